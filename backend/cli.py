@@ -1,0 +1,39 @@
+"""The `scenesort` command line: one subcommand per module, each owning its options."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module that implements it, one-line help). Each module defines
+# `add_arguments(parser)` and `run(args) -> int`; importing is lazy so that
+# `scenesort --help` does not pay for Warp or FastAPI.
+COMMANDS: dict[str, tuple[str, str]] = {
+    "render": ("backend.render", "render a scene (default: the built-in scene) and print timings"),
+    "bench": ("backend.bench", "build and trace a scene with every engine and peer, print a table"),
+    "serve": ("backend.serve", "run the local HTTP service (FastAPI + uvicorn)"),
+    "addon-zip": ("backend.addon_zip", "build the installable Blender extension zip"),
+}
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    parser = argparse.ArgumentParser(prog="scenesort", description=__doc__)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (_, help_text) in COMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    # Parse the command name first, then hand the rest to the owning module's parser.
+    name = next((a for a in argv if not a.startswith("-")), None)
+    if name not in COMMANDS:
+        parser.print_help() if name is None else parser.error(f"unknown command {name!r}")
+        return 0 if name is None else 2
+    module = importlib.import_module(COMMANDS[name][0])
+    cmd_parser = argparse.ArgumentParser(prog=f"scenesort {name}", description=COMMANDS[name][1])
+    module.add_arguments(cmd_parser)
+    args = cmd_parser.parse_args(argv[argv.index(name) + 1 :])
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
