@@ -1,0 +1,268 @@
+"""numpy in, numpy out: `build_bvh` and `trace` (contract in docs/kernels-api.md)."""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import warp as wp
+
+from . import bvh_build as bb
+from .bvh_trace import STACK_SIZE, BvhArrays, trace_kernel
+from .pool import check_pool, default_workers, make_pool
+from .validate import as_rays, as_triangle_mesh, degenerate_triangles, per_ray
+
+Method = Literal["sah", "median"]
+METHODS: dict[str, int] = {"median": int(bb.METHOD_MEDIAN), "sah": int(bb.METHOD_SAH)}
+DEFAULT_MIN_CHUNKS = 14  # K of eq. 3.1 (sec. 3.4)
+
+
+@dataclass
+class Hits:
+    t: np.ndarray  # (R,) float32, inf on a miss
+    triangle: np.ndarray  # (R,) int32, -1 on a miss
+    u: np.ndarray  # (R,) float32 weight of v1
+    v: np.ndarray  # (R,) float32 weight of v2
+
+    @property
+    def hit(self) -> np.ndarray:
+        return self.triangle >= 0
+
+
+@dataclass
+class Bvh:
+    vertices: np.ndarray
+    indices: np.ndarray
+    method: str
+    leaf_size: int
+    device: wp.context.Device
+    arrays: BvhArrays  # device-side view for kernels
+    bounds: np.ndarray  # (2, 3) float32
+    stats: dict = field(default_factory=dict)
+    _keep: tuple = ()  # the device arrays `arrays` points into
+
+    def nodes(self) -> np.ndarray:
+        """The node array as a numpy structured array (lo, first, hi, count)."""
+        return self.arrays.nodes.numpy()
+
+    def permutation(self) -> np.ndarray:
+        """Caller's triangle index of each leaf position."""
+        return self.arrays.tri_ids.numpy()
+
+
+def _device(device) -> wp.context.Device:
+    wp.init()
+    return wp.get_device(device)
+
+
+def _sync_ms(device, start: float) -> float:
+    wp.synchronize_device(device)
+    return (time.perf_counter() - start) * 1e3
+
+
+def build_bvh(
+    vertices: np.ndarray,
+    indices: np.ndarray,
+    method: Method = "sah",
+    leaf_size: int = 8,
+    max_depth: int = STACK_SIZE,
+    device=None,
+    *,
+    min_chunks: int = DEFAULT_MIN_CHUNKS,
+    workers: int | None = None,
+    pool_capacity: int | None = None,
+) -> Bvh:
+    """Build a BVH with the task pool in one persistent launch (2012 paper, sec. 4)."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {sorted(METHODS)}, got {method!r}")
+    if not 1 <= int(leaf_size) <= 64:
+        raise ValueError(f"leaf_size must be in 1..64 (8, 16 or 32 are usual), got {leaf_size}")
+    if not 1 <= int(max_depth) <= STACK_SIZE:
+        raise ValueError(f"max_depth must be in 1..{STACK_SIZE}, got {max_depth}")
+    if int(min_chunks) < 1:
+        raise ValueError(f"min_chunks must be >= 1, got {min_chunks}")
+    device = _device(device)
+    phase_ms: dict[str, float] = {}
+    wp.load_module(bb.build_worker.module, device=device)  # compile time is not build time
+    t_total = t0 = time.perf_counter()
+    vertices, indices = as_triangle_mesh(vertices, indices)
+    degenerate = degenerate_triangles(vertices, indices)
+    ids = np.flatnonzero(~degenerate).astype(np.int32)
+    phase_ms["validate"] = (time.perf_counter() - t0) * 1e3
+
+    t0 = time.perf_counter()
+    m = len(indices)
+    n = len(ids)
+    workers = default_workers(device) if workers is None else int(workers)
+    capacity = pool_capacity or (256 if device.is_cpu else max(4096, 2 * n // leaf_size))
+    v_wp = wp.array(vertices, dtype=wp.vec3, device=device)
+    f_wp = wp.array(indices, dtype=wp.vec3i, device=device)
+    ids_wp = wp.array(ids, dtype=int, device=device)
+    b = bb.BuildData()
+    b.tri_lo = wp.empty(m, dtype=wp.vec3, device=device)
+    b.tri_hi = wp.empty(m, dtype=wp.vec3, device=device)
+    b.centroid = wp.empty(m, dtype=wp.vec3, device=device)
+    b.perm = ids_wp
+    for name in ("swap_id", "swap_pos", "scan"):
+        setattr(b, name, wp.empty(max(n, 1), dtype=int, device=device))
+    b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
+    for name in ("box_lo", "box_hi", "cbox_lo", "cbox_hi"):
+        setattr(b, name, wp.empty(max(n, 1), dtype=wp.vec3, device=device))
+    bins = capacity * bb.BIN_SLOTS
+    b.bin_count = wp.empty(bins, dtype=int, device=device)
+    for name in ("bin_lo", "bin_hi"):
+        setattr(b, name, wp.empty(bins, dtype=wp.vec3, device=device))
+    b.tasks = wp.empty(capacity, dtype=bb.BuildTask, device=device)
+    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=bb.BvhNode, device=device)
+    b.counters = wp.zeros(2, dtype=int, device=device)
+    b.phase_cycles = wp.zeros(len(bb.PHASE_NAMES), dtype=wp.int64, device=device)
+    b.method = METHODS[method]
+    b.leaf_size = int(leaf_size)
+    b.max_depth = int(max_depth)
+    max_idle = 2 if device.is_cpu else 1 << 24
+    pool = make_pool(capacity, workers, int(min_chunks), max_idle, device)
+    inf = np.float32(np.inf)
+    bounds = wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
+                      dtype=wp.vec3, device=device)
+    wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
+    wp.launch(bb.triangle_boxes, dim=n,
+              inputs=[v_wp, f_wp, ids_wp, b.tri_lo, b.tri_hi, b.centroid, bounds], device=device)
+    box = bounds.numpy()
+    phase_ms["prepare"] = _sync_ms(device, t0)
+
+    t0 = time.perf_counter()
+    if n > 0:
+        wp.launch(bb.start_build, dim=1,
+                  inputs=[b, pool, *(wp.vec3(*row) for row in box), n], device=device)
+        wp.launch(bb.build_worker, dim=workers, inputs=[b, pool], device=device)
+    pool_state = check_pool(pool)
+    build_ms = _sync_ms(device, t0)
+    cycles = b.phase_cycles.numpy().astype(np.float64)
+    share = cycles / cycles.sum() if cycles.sum() > 0 else np.zeros_like(cycles)
+    for name, s in zip(bb.PHASE_NAMES, share, strict=True):
+        phase_ms[name] = float(build_ms * s)
+
+    t0 = time.perf_counter()
+    node_count, depth = (int(x) for x in b.counters.numpy())
+    tri_verts = wp.empty(max(3 * n, 1), dtype=wp.vec3, device=device)
+    wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, ids_wp, tri_verts],
+              device=device)
+    arrays = BvhArrays()
+    arrays.nodes = b.nodes if n > 0 else _empty_root(device)
+    arrays.tri_verts = tri_verts
+    arrays.tri_ids = ids_wp
+    phase_ms["reorder"] = _sync_ms(device, t0)
+    total_ms = (time.perf_counter() - t_total) * 1e3
+
+    bvh = Bvh(vertices=vertices, indices=indices, method=method, leaf_size=int(leaf_size),
+              device=device, arrays=arrays, bounds=box[:2].copy(), _keep=(v_wp, f_wp))
+    node_count = node_count if n > 0 else 1
+    nodes = bvh.nodes()[:node_count]
+    bvh.arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
+    leaves = int(np.count_nonzero(nodes["count"]))
+    bvh.stats = {
+        "build_ms": total_ms,
+        "phase_ms": phase_ms,
+        "nodes": node_count,
+        "leaves": leaves if n > 0 else 0,
+        "depth": depth,
+        "sah_cost": sah_cost(nodes) if n > 0 else 0.0,
+        "triangles": m,
+        "degenerate": int(m - n),
+        "pool_slots_used": int(pool_state[2]),
+        "pool_steps_published": int(pool_state[3]),
+        "method": method,
+        "leaf_size": int(leaf_size),
+        "device": str(device),
+    }
+    return bvh
+
+
+def _empty_root(device) -> wp.array:
+    """The BVH of a mesh with no triangles: a root whose box, a point at infinity, no ray
+    enters (an inverted box would look like all of space to the slab test)."""
+    node = np.zeros(1, dtype=bb.BvhNode.numpy_dtype())
+    node["lo"] = np.inf
+    node["hi"] = np.inf
+    return wp.array(node, dtype=bb.BvhNode, device=device)
+
+
+def sah_cost(nodes: np.ndarray) -> float:
+    """SAH cost with traversal and intersection cost 1: sum over nodes of A(node)/A(root)
+    times 1 for inner nodes and times the triangle count for leaves."""
+    e = np.maximum(nodes["hi"].astype(np.float64) - nodes["lo"], 0.0)
+    area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
+    if area[0] <= 0:
+        return float(nodes["count"][0]) if len(nodes) == 1 else float(len(nodes))
+    weight = np.where(nodes["count"] > 0, nodes["count"], 1)
+    return float(np.sum(area * weight) / area[0])
+
+
+def _threads(device, threads: int | None) -> int:
+    if not device.is_cpu:
+        return 1
+    if threads is None:
+        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    return max(1, int(threads))
+
+
+def trace(
+    bvh: Bvh,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    any_hit: bool = False,
+    *,
+    threads: int | None = None,
+) -> Hits:
+    """Closest hit (or, with any_hit, some hit) per ray in [tmin, tmax].
+
+    On CPU the rays are split between `threads` host threads (default: every core), each
+    launching its share: a Warp CPU launch runs on one thread."""
+    origins, directions = as_rays(origins, directions)
+    r = len(origins)
+    tmin_a = per_ray(tmin, r, "tmin")
+    tmax_a = per_ray(tmax, r, "tmax")
+    if np.any(tmax_a < tmin_a):
+        raise ValueError("tmax must be >= tmin for every ray")
+    device = bvh.device
+    o = wp.array(origins, dtype=wp.vec3, device=device)
+    d = wp.array(directions, dtype=wp.vec3, device=device)
+    lo = wp.array(tmin_a, dtype=float, device=device)
+    hi = wp.array(tmax_a, dtype=float, device=device)
+    out = [wp.empty(r, dtype=dt, device=device) for dt in (float, int, float, float)]
+    launch_split(
+        trace_kernel, r, [bvh.arrays], [o, d, lo, hi], [int(any_hit)], out, device,
+        _threads(device, threads),
+    )
+    t, tri, u, v = (a.numpy() for a in out)
+    return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
+
+
+def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, outputs: list,
+                 device, threads: int) -> None:
+    """Launch `kernel` over n items, split into contiguous parts run by `threads` host
+    threads (only on CPU, where a launch is serial). Every array in `per_item` and
+    `outputs` is indexed by item and sliced per part."""
+    if n == 0:
+        return
+    parts = min(threads, max(1, n // 4096))
+    if parts <= 1:
+        wp.launch(kernel, dim=n, inputs=[*shared, *per_item, *scalars], outputs=outputs,
+                  device=device)
+        return
+    wp.load_module(kernel.module, device=device)  # compile once, not in every thread
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+
+    def run(k: int) -> None:
+        a, b = int(bounds[k]), int(bounds[k + 1])
+        wp.launch(kernel, dim=b - a, inputs=[*shared, *(x[a:b] for x in per_item), *scalars],
+                  outputs=[x[a:b] for x in outputs], device=device)
+
+    with ThreadPoolExecutor(parts) as ex:
+        list(ex.map(run, range(parts)))

@@ -1,0 +1,735 @@
+"""BVH construction on the task pool (2012 paper, sec. 4).
+
+One task per node under construction, one persistent launch for the whole build. The phases
+are the paper's (sec. 4.1):
+  SplitPlane  binned SAH: 32 bins on each of the three axes (the spatial median plane is
+              chosen when the task is stored, so median tasks start at PPS)
+  PPS         32-ary up-sweep/down-sweep prefix sum of the 'right of the plane' marks
+  Swap        two steps: gather the left-marked triangles of the right part into a separate
+              index array, then swap them with the right-marked ones of the left part
+  AABB        reduction of the two children's boxes (median only: SAH bins give the boxes)
+A work chunk is CHUNK consecutive items; a step with fewer than K chunks runs inline in the
+worker that finished the previous step (sec. 3.4). A split that leaves one side empty
+(coincident centroids) falls back to halving the range, and takes its boxes from AABB.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from .geometry import INF
+from .pool import (
+    ERR_STUCK,
+    ERROR,
+    Pool,
+    cycles,
+    pool_acquire,
+    pool_alloc,
+    pool_finish,
+    pool_hand_over,
+    pool_publish,
+    pool_release,
+    pool_running,
+)
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+CHUNK = wp.constant(32)  # items per work chunk (the paper's warp width)
+BINS = wp.constant(32)  # SAH candidate planes per axis (sec. 4.1)
+BIN_SLOTS = 3 * 32  # bins per pool slot
+BinFloats = wp.types.vector(length=32, dtype=wp.float32)
+
+METHOD_MEDIAN = wp.constant(0)
+METHOD_SAH = wp.constant(1)
+
+PHASE_SPLIT_PLANE = wp.constant(0)
+PHASE_PPS = wp.constant(1)
+PHASE_SWAP = wp.constant(2)
+PHASE_AABB = wp.constant(3)
+PHASE_DONE = wp.constant(4)
+PHASE_NAMES = ("SplitPlane", "PPS", "Swap", "AABB")
+
+# counters[]
+NODE_COUNT = wp.constant(0)
+MAX_DEPTH = wp.constant(1)
+
+
+@wp.struct
+class BvhNode:
+    """32 bytes. Inner nodes: children at `first` and `first + 1`, `count` 0."""
+
+    lo: wp.vec3  # 12 bytes
+    first: int  # 4: leaf: first triangle position in leaf order; inner: left child index
+    hi: wp.vec3  # 12
+    count: int  # 4: leaf: triangles (> 0); inner: 0
+
+
+@wp.struct
+class BuildTask:
+    node: int  # the node this task fills
+    start: int  # triangle range [start, start + count) of the index array
+    count: int
+    depth: int
+    phase: int
+    step: int
+    chunks: int  # work chunks of the current step
+    lo: wp.vec3  # node box
+    hi: wp.vec3
+    clo: wp.vec3  # centroid box: the median plane lives in it (SAH bins span lo..hi)
+    chi: wp.vec3
+    axis: int
+    split_bin: int  # SAH: bins <= split_bin go left
+    split: float  # median: centroids <= split go left
+    pivot: int  # triangles that go left
+    ones_left: int  # right-marked triangles in [start, start + pivot): what Swap exchanges
+    llo: wp.vec3  # children's boxes and centroid boxes (the latter for median only)
+    lhi: wp.vec3
+    lclo: wp.vec3
+    lchi: wp.vec3
+    rlo: wp.vec3
+    rhi: wp.vec3
+    rclo: wp.vec3
+    rchi: wp.vec3
+
+
+@wp.struct
+class BuildData:
+    tri_lo: wp.array(dtype=wp.vec3)  # per triangle id
+    tri_hi: wp.array(dtype=wp.vec3)
+    centroid: wp.array(dtype=wp.vec3)
+    perm: wp.array(dtype=int)  # the index array: triangle ids, in leaf order when done
+    swap_id: wp.array(dtype=int)  # Swap's separate index array ...
+    swap_pos: wp.array(dtype=int)  # ... and where each of its entries came from
+    mark: wp.array(dtype=wp.int8)  # 1 = right of the plane, per index-array position
+    scan: wp.array(dtype=int)  # PPS levels, stored inside each task's own range
+    box_lo: wp.array(dtype=wp.vec3)  # AABB levels, likewise
+    box_hi: wp.array(dtype=wp.vec3)
+    cbox_lo: wp.array(dtype=wp.vec3)
+    cbox_hi: wp.array(dtype=wp.vec3)
+    bin_count: wp.array(dtype=int)  # BIN_SLOTS per pool slot
+    bin_lo: wp.array(dtype=wp.vec3)
+    bin_hi: wp.array(dtype=wp.vec3)
+    tasks: wp.array(dtype=BuildTask)  # the task data array, one entry per pool slot
+    nodes: wp.array(dtype=BvhNode)
+    counters: wp.array(dtype=int)
+    phase_cycles: wp.array(dtype=wp.int64)
+    method: int
+    leaf_size: int
+    max_depth: int
+
+
+# ---------------------------------------------------------------- small helpers
+
+
+@wp.func
+def ceil_div(a: int, b: int) -> int:
+    return (a + b - 1) / b
+
+
+@wp.func
+def level_count(n: int) -> int:
+    """Levels of the 32-ary reduction tree over n items (level 1 holds one value per chunk)."""
+    levels = int(1)
+    s = ceil_div(n, CHUNK)
+    while s > 1:
+        s = ceil_div(s, CHUNK)
+        levels += 1
+    return levels
+
+
+@wp.func
+def level_size(n: int, level: int) -> int:
+    s = n
+    for _ in range(level):
+        s = ceil_div(s, CHUNK)
+    return s
+
+
+@wp.func
+def level_base(base: int, n: int, level: int) -> int:
+    """Where `level` (>= 1) of a reduction over [base, base + n) is stored: levels are packed
+    after each other inside the range itself, which always has room for them."""
+    off = base
+    s = n
+    for _ in range(level - 1):
+        s = ceil_div(s, CHUNK)
+        off += s
+    return off
+
+
+@wp.func
+def longest_axis(lo: wp.vec3, hi: wp.vec3) -> int:
+    e = hi - lo
+    axis = int(0)
+    if e[1] > e[axis]:
+        axis = 1
+    if e[2] > e[axis]:
+        axis = 2
+    return axis
+
+
+@wp.func
+def half_area(lo: wp.vec3, hi: wp.vec3) -> float:
+    e = wp.max(hi - lo, wp.vec3(0.0))
+    return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+
+
+@wp.func
+def bin_scale(lo: wp.vec3, hi: wp.vec3) -> wp.vec3:
+    """Bins per unit length on each axis of a node's box (0 on a flat axis)."""
+    e = hi - lo
+    s = wp.vec3(0.0)
+    for axis in range(3):
+        if e[axis] > 0.0:
+            s[axis] = float(BINS) / e[axis]
+    return s
+
+
+@wp.func
+def bin_of(c: float, lo: float, scale: float) -> int:
+    """SAH bin of a centroid coordinate: the same float expression in SplitPlane and PPS."""
+    return wp.clamp(int((c - lo) * scale), 0, BINS - 1)
+
+
+@wp.func
+def goes_right(b: BuildData, t: BuildTask, tri: int) -> bool:
+    c = b.centroid[tri][t.axis]
+    if b.method == METHOD_SAH:
+        return bin_of(c, t.lo[t.axis], bin_scale(t.lo, t.hi)[t.axis]) > t.split_bin
+    return c > t.split
+
+
+# ---------------------------------------------------------------- SplitPlane
+
+
+@wp.func
+def split_plane_chunk(b: BuildData, t: BuildTask, slot: int, chunk: int):
+    """Bin one chunk's triangles on all three axes (sec. 4.1, SplitPlane). Bins span the
+    node's box: cheaper than a centroid box, and the bins then give the children's boxes."""
+    first = t.start + chunk * CHUNK
+    last = wp.min(first + CHUNK, t.start + t.count)
+    scale = bin_scale(t.lo, t.hi)
+    base = slot * BIN_SLOTS
+    for i in range(first, last):
+        tri = b.perm[i]
+        c = b.centroid[tri]
+        lo = b.tri_lo[tri]
+        hi = b.tri_hi[tri]
+        for axis in range(3):
+            k = base + axis * BINS + bin_of(c[axis], t.lo[axis], scale[axis])
+            wp.atomic_add(b.bin_count, k, 1)
+            wp.atomic_min(b.bin_lo, k, lo)
+            wp.atomic_max(b.bin_hi, k, hi)
+
+
+@wp.func
+def reset_bin(b: BuildData, k: int):
+    b.bin_count[k] = 0
+    b.bin_lo[k] = wp.vec3(INF)
+    b.bin_hi[k] = wp.vec3(-INF)
+
+
+@wp.func
+def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
+    """The last finisher of SplitPlane picks the cheapest of the 3 x 31 planes with a suffix
+    and a prefix sweep over the bins; the bins give the children's exact boxes. Leaves the
+    bins cleared for the slot's next task."""
+    best_cost = float(INF)
+    base = slot * BIN_SLOTS
+    for axis in range(3):
+        a = base + axis * BINS
+        right_area = BinFloats()
+        lo = wp.vec3(INF)
+        hi = wp.vec3(-INF)
+        for k in range(BINS - 1, 0, -1):  # right_area[k]: bins k.. BINS-1
+            lo = wp.min(lo, b.bin_lo[a + k])
+            hi = wp.max(hi, b.bin_hi[a + k])
+            right_area[k] = half_area(lo, hi)
+        lo = wp.vec3(INF)
+        hi = wp.vec3(-INF)
+        n_left = int(0)
+        for k in range(BINS - 1):  # plane between bins k and k + 1
+            n_left += b.bin_count[a + k]
+            lo = wp.min(lo, b.bin_lo[a + k])
+            hi = wp.max(hi, b.bin_hi[a + k])
+            n_right = t.count - n_left
+            if n_left > 0 and n_right > 0:
+                cost = float(n_left) * half_area(lo, hi) + float(n_right) * right_area[k + 1]
+                if cost < best_cost:
+                    best_cost = cost
+                    t.axis = axis
+                    t.split_bin = k
+                    t.pivot = n_left
+    if best_cost < INF:
+        a = base + t.axis * BINS
+        t.llo = wp.vec3(INF)
+        t.lhi = wp.vec3(-INF)
+        t.rlo = wp.vec3(INF)
+        t.rhi = wp.vec3(-INF)
+        for k in range(BINS):
+            if k <= t.split_bin:
+                t.llo = wp.min(t.llo, b.bin_lo[a + k])
+                t.lhi = wp.max(t.lhi, b.bin_hi[a + k])
+            else:
+                t.rlo = wp.min(t.rlo, b.bin_lo[a + k])
+                t.rhi = wp.max(t.rhi, b.bin_hi[a + k])
+    else:
+        t.pivot = -1  # no plane separates the centroids
+    for k in range(BIN_SLOTS):
+        reset_bin(b, base + k)
+    return t
+
+
+# ---------------------------------------------------------------- PPS
+
+
+@wp.func
+def pps_up_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
+    """Up-sweep: level 1 marks a chunk's triangles and counts the right ones; higher levels sum
+    CHUNK values of the level below."""
+    dst = level_base(t.start, t.count, level) + chunk
+    total = int(0)
+    if level == 1:
+        first = t.start + chunk * CHUNK
+        last = wp.min(first + CHUNK, t.start + t.count)
+        for i in range(first, last):
+            right = int(0)
+            if goes_right(b, t, b.perm[i]):
+                right = 1
+            b.mark[i] = wp.int8(right)
+            total += right
+    else:
+        src = level_base(t.start, t.count, level - 1)
+        n = level_size(t.count, level - 1)
+        first = chunk * CHUNK
+        last = wp.min(first + CHUNK, n)
+        for i in range(first, last):
+            total += b.scan[src + i]
+    b.scan[dst] = total
+
+
+@wp.func
+def pps_down_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
+    """Down-sweep: turn CHUNK sums of `level` into exclusive prefix sums, starting from the
+    offset that the level above now holds for this group."""
+    src = level_base(t.start, t.count, level)
+    n = level_size(t.count, level)
+    running = b.scan[level_base(t.start, t.count, level + 1) + chunk]
+    first = chunk * CHUNK
+    last = wp.min(first + CHUNK, n)
+    for i in range(first, last):
+        x = b.scan[src + i]
+        b.scan[src + i] = running
+        running += x
+
+
+@wp.func
+def ones_before(b: BuildData, t: BuildTask, local: int) -> int:
+    """Right-marked triangles before local position `local`, from the PPS result."""
+    c = local / CHUNK
+    ones = int(0)
+    if c < level_size(t.count, 1):
+        ones = b.scan[t.start + c]
+    for i in range(t.start + c * CHUNK, t.start + local):
+        ones += int(b.mark[i])
+    return ones
+
+
+# ---------------------------------------------------------------- Swap
+
+
+@wp.func
+def swap_gather_chunk(b: BuildData, t: BuildTask, chunk: int):
+    """Swap, step 1: left-marked triangles right of the pivot go to the separate index array,
+    ranked among themselves."""
+    c = t.pivot / CHUNK + chunk
+    ones = b.scan[t.start + c]
+    zeros_left = t.pivot - t.ones_left
+    first = c * CHUNK
+    last = wp.min(first + CHUNK, t.count)
+    for k in range(first, last):
+        if b.mark[t.start + k] != wp.int8(0):
+            ones += 1
+        elif k >= t.pivot:
+            r = (k - ones) - zeros_left
+            b.swap_id[t.start + r] = b.perm[t.start + k]
+            b.swap_pos[t.start + r] = t.start + k
+
+
+@wp.func
+def swap_exchange_chunk(b: BuildData, t: BuildTask, chunk: int):
+    """Swap, step 2: the r-th right-marked triangle left of the pivot trades places with the
+    r-th entry of the separate index array."""
+    ones = b.scan[t.start + chunk]
+    first = chunk * CHUNK
+    last = wp.min(first + CHUNK, t.pivot)
+    for k in range(first, last):
+        if b.mark[t.start + k] != wp.int8(0):
+            tri = b.perm[t.start + k]
+            b.perm[t.start + k] = b.swap_id[t.start + ones]
+            b.perm[b.swap_pos[t.start + ones]] = tri
+            ones += 1
+
+
+# ---------------------------------------------------------------- AABB
+
+
+@wp.func
+def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
+    """Reduction of boxes over the two halves [0, pivot) and [pivot, count) separately; chunks
+    of the left half come first."""
+    n_left_chunks = level_size(t.pivot, level)
+    base = t.start
+    n = t.pivot
+    c = chunk
+    if chunk >= n_left_chunks:
+        base = t.start + t.pivot
+        n = t.count - t.pivot
+        c = chunk - n_left_chunks
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    clo = wp.vec3(INF)
+    chi = wp.vec3(-INF)
+    if level == 1:
+        first = base + c * CHUNK
+        last = wp.min(first + CHUNK, base + n)
+        for i in range(first, last):
+            tri = b.perm[i]
+            lo = wp.min(lo, b.tri_lo[tri])
+            hi = wp.max(hi, b.tri_hi[tri])
+            clo = wp.min(clo, b.centroid[tri])
+            chi = wp.max(chi, b.centroid[tri])
+    else:
+        src = level_base(base, n, level - 1)
+        first = src + c * CHUNK
+        last = wp.min(first + CHUNK, src + level_size(n, level - 1))
+        for i in range(first, last):
+            lo = wp.min(lo, b.box_lo[i])
+            hi = wp.max(hi, b.box_hi[i])
+            clo = wp.min(clo, b.cbox_lo[i])
+            chi = wp.max(chi, b.cbox_hi[i])
+    dst = level_base(base, n, level) + c
+    b.box_lo[dst] = lo
+    b.box_hi[dst] = hi
+    b.cbox_lo[dst] = clo
+    b.cbox_hi[dst] = chi
+
+
+@wp.func
+def aabb_levels(t: BuildTask) -> int:
+    return wp.max(level_count(t.pivot), level_count(t.count - t.pivot))
+
+
+@wp.func
+def aabb_result(b: BuildData, t: BuildTask) -> BuildTask:
+    levels = aabb_levels(t)
+    left = level_base(t.start, t.pivot, levels)
+    right = level_base(t.start + t.pivot, t.count - t.pivot, levels)
+    t.llo = b.box_lo[left]
+    t.lhi = b.box_hi[left]
+    t.lclo = b.cbox_lo[left]
+    t.lchi = b.cbox_hi[left]
+    t.rlo = b.box_lo[right]
+    t.rhi = b.box_hi[right]
+    t.rclo = b.cbox_lo[right]
+    t.rchi = b.cbox_hi[right]
+    return t
+
+
+# ---------------------------------------------------------------- steps and tasks
+
+
+@wp.func
+def pps_levels(t: BuildTask) -> int:
+    return level_count(t.count)
+
+
+@wp.func
+def step_chunks(t: BuildTask) -> int:
+    """Work chunks of the task's current step."""
+    if t.phase == PHASE_SPLIT_PLANE:
+        return ceil_div(t.count, CHUNK)
+    if t.phase == PHASE_PPS:
+        levels = pps_levels(t)
+        if t.step < levels:  # up-sweep to level step + 1
+            return level_size(t.count, t.step + 1)
+        level = 2 * levels - 1 - t.step  # down-sweep of level `level`
+        return level_size(t.count, level + 1)
+    if t.phase == PHASE_SWAP:
+        if t.step == 0:
+            return ceil_div(t.count, CHUNK) - t.pivot / CHUNK
+        return ceil_div(t.pivot, CHUNK)
+    if t.phase == PHASE_AABB:
+        level = t.step + 1
+        return level_size(t.pivot, level) + level_size(t.count - t.pivot, level)
+    return 0
+
+
+@wp.func
+def run_chunk(b: BuildData, t: BuildTask, slot: int, chunk: int):
+    if t.phase == PHASE_SPLIT_PLANE:
+        split_plane_chunk(b, t, slot, chunk)
+    elif t.phase == PHASE_PPS:
+        levels = pps_levels(t)
+        if t.step < levels:
+            pps_up_chunk(b, t, t.step + 1, chunk)
+        else:
+            pps_down_chunk(b, t, 2 * levels - 1 - t.step, chunk)
+    elif t.phase == PHASE_SWAP:
+        if t.step == 0:
+            swap_gather_chunk(b, t, chunk)
+        else:
+            swap_exchange_chunk(b, t, chunk)
+    elif t.phase == PHASE_AABB:
+        aabb_chunk(b, t, t.step + 1, chunk)
+
+
+@wp.func
+def enter(t: BuildTask, phase: int) -> BuildTask:
+    t.phase = phase
+    t.step = 0
+    t.chunks = step_chunks(t)
+    return t
+
+
+@wp.func
+def halve(t: BuildTask) -> BuildTask:
+    """No plane separates the centroids: split the range in two and compute the boxes."""
+    t.pivot = t.count / 2
+    return enter(t, PHASE_AABB)
+
+
+@wp.func
+def complete_step(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
+    """The last finisher interprets the step's results and moves the task on."""
+    if t.phase == PHASE_SPLIT_PLANE:
+        t = choose_sah_split(b, t, slot)
+        if t.pivot < 0:
+            return halve(t)
+        return enter(t, PHASE_PPS)
+    if t.phase == PHASE_PPS:
+        levels = pps_levels(t)
+        if t.step == levels - 1:  # the top holds the number of right triangles
+            top = level_base(t.start, t.count, levels)
+            t.pivot = t.count - b.scan[top]
+            if t.pivot == 0 or t.pivot == t.count:
+                return halve(t)
+            b.scan[top] = 0
+        if t.step == 2 * levels - 2:  # level 1 now holds each chunk's exclusive offset
+            t.ones_left = ones_before(b, t, t.pivot)
+            return enter(t, PHASE_SWAP)
+    elif t.phase == PHASE_SWAP:
+        if t.step == 1:
+            if b.method == METHOD_SAH:
+                t.phase = PHASE_DONE
+                return t
+            return enter(t, PHASE_AABB)
+    elif t.phase == PHASE_AABB and t.step == aabb_levels(t) - 1:
+        t = aabb_result(b, t)
+        t.phase = PHASE_DONE
+        return t
+    t.step += 1
+    t.chunks = step_chunks(t)
+    return t
+
+
+@wp.func
+def new_task(
+    b: BuildData, node: int, start: int, count: int, depth: int,
+    lo: wp.vec3, hi: wp.vec3, clo: wp.vec3, chi: wp.vec3,
+) -> BuildTask:
+    """A task ready for its first step; the median plane is chosen here (sec. 4.1)."""
+    t = BuildTask()
+    t.node = node
+    t.start = start
+    t.count = count
+    t.depth = depth
+    t.lo = lo
+    t.hi = hi
+    t.clo = clo
+    t.chi = chi
+    t.pivot = 0
+    t.ones_left = 0
+    if b.method == METHOD_SAH:
+        return enter(t, PHASE_SPLIT_PLANE)
+    t.axis = longest_axis(clo, chi)
+    t.split = 0.5 * (clo[t.axis] + chi[t.axis])
+    if not (t.split >= clo[t.axis] and t.split < chi[t.axis]):
+        return halve(t)  # coincident centroids, or a midpoint that rounds onto the upper end
+    return enter(t, PHASE_PPS)
+
+
+@wp.func
+def is_leaf(b: BuildData, count: int, depth: int) -> bool:
+    return count <= b.leaf_size or depth >= b.max_depth - 1
+
+
+@wp.func
+def write_node(b: BuildData, node: int, lo: wp.vec3, hi: wp.vec3, first: int, count: int):
+    n = BvhNode()
+    n.lo = lo
+    n.hi = hi
+    n.first = first
+    n.count = count
+    b.nodes[node] = n
+
+
+@wp.func
+def split_node(b: BuildData, pool: Pool, t: BuildTask, slot: int) -> int:
+    """Turn a finished task into an inner node with two children (sec. 4.2): child tasks
+    reuse this slot and, for a second one, take the lowest free slot. The worker continues
+    with the child in the higher of the two slots and stores the other: on one worker the
+    pool then behaves as a stack (depth first), so it never holds more than depth + 1 tasks.
+    Returns the slot to continue with, or -1."""
+    left = wp.atomic_add(b.counters, NODE_COUNT, 2)
+    write_node(b, t.node, t.lo, t.hi, left, 0)
+    depth = t.depth + 1
+    n_right = t.count - t.pivot
+    write_node(b, left, t.llo, t.lhi, t.start, t.pivot)
+    write_node(b, left + 1, t.rlo, t.rhi, t.start + t.pivot, n_right)
+    left_leaf = is_leaf(b, t.pivot, depth)
+    right_leaf = is_leaf(b, n_right, depth)
+    if left_leaf or right_leaf:
+        wp.atomic_max(b.counters, MAX_DEPTH, depth)
+    if left_leaf and right_leaf:
+        pool_release(pool, slot)
+        return -1
+    if left_leaf:
+        b.tasks[slot] = new_task(b, left + 1, t.start + t.pivot, n_right, depth, t.rlo, t.rhi,
+                                 t.rclo, t.rchi)
+        return slot
+    lt = new_task(b, left, t.start, t.pivot, depth, t.llo, t.lhi, t.lclo, t.lchi)
+    if right_leaf:
+        b.tasks[slot] = lt
+        return slot
+    rt = new_task(b, left + 1, t.start + t.pivot, n_right, depth, t.rlo, t.rhi, t.rclo, t.rchi)
+    other = pool_alloc(pool)
+    if other < 0:
+        return -1
+    keep = wp.max(slot, other)
+    store = wp.min(slot, other)
+    b.tasks[keep] = lt
+    b.tasks[store] = rt
+    pool_publish(pool, store, rt.chunks)
+    return keep
+
+
+@wp.func
+def advance(b: BuildData, pool: Pool, slot: int, t: BuildTask) -> int:
+    """Run steps inline while they have fewer than K chunks (sec. 3.4), finishing tasks and
+    continuing with a child; publish the first step that is big enough for the pool.
+    Returns the slot last worked on (where this worker looks for work next)."""
+    s = slot
+    task = t
+    while True:
+        phase = task.phase
+        start_cycles = cycles()
+        task = complete_step(b, task, s)
+        if task.phase == PHASE_DONE:
+            next_slot = split_node(b, pool, task, s)
+            if next_slot < 0:
+                wp.atomic_add(b.phase_cycles, phase, cycles() - start_cycles)
+                return s
+            s = next_slot
+            task = b.tasks[s]
+        wp.atomic_add(b.phase_cycles, phase, cycles() - start_cycles)
+        if task.chunks >= pool.min_chunks:
+            b.tasks[s] = task
+            pool_hand_over(pool, s, task.chunks)
+            return s
+        start_cycles = cycles()
+        for c in range(task.chunks):
+            run_chunk(b, task, s, c)
+        wp.atomic_add(b.phase_cycles, task.phase, cycles() - start_cycles)
+
+
+@wp.kernel
+def build_worker(b: BuildData, pool: Pool):
+    """The persistent worker of Algorithm 1."""
+    last_slot = wp.tid()
+    idle = int(0)
+    while pool_running(pool):
+        got = pool_acquire(pool, last_slot)
+        slot = got[0]
+        if slot < 0:
+            idle += 1
+            if idle > pool.max_idle:
+                wp.atomic_max(pool.state, ERROR, ERR_STUCK)
+            continue
+        idle = 0
+        last_slot = slot
+        t = b.tasks[slot]
+        start_cycles = cycles()
+        for c in range(got[1], got[1] + got[2]):
+            run_chunk(b, t, slot, c)
+        wp.atomic_add(b.phase_cycles, t.phase, cycles() - start_cycles)
+        if pool_finish(pool, slot, got[2]):
+            last_slot = advance(b, pool, slot, b.tasks[slot])
+
+
+@wp.kernel
+def start_build(b: BuildData, pool: Pool, root_lo: wp.vec3, root_hi: wp.vec3,
+                root_clo: wp.vec3, root_chi: wp.vec3, count: int):
+    """Store the root task (Algorithm 1: 'in serial, insert the first task')."""
+    b.counters[NODE_COUNT] = 1
+    if is_leaf(b, count, 0):
+        write_node(b, 0, root_lo, root_hi, 0, count)
+        return
+    slot = pool_alloc(pool)
+    t = new_task(b, 0, 0, count, 0, root_lo, root_hi, root_clo, root_chi)
+    b.tasks[slot] = t
+    if t.chunks >= pool.min_chunks:
+        pool_publish(pool, slot, t.chunks)
+    else:
+        for c in range(t.chunks):
+            run_chunk(b, t, slot, c)
+        advance(b, pool, slot, t)
+
+
+@wp.kernel
+def reset_bins(b: BuildData):
+    reset_bin(b, wp.tid())
+
+
+@wp.kernel
+def triangle_boxes(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    ids: wp.array(dtype=int),
+    tri_lo: wp.array(dtype=wp.vec3),
+    tri_hi: wp.array(dtype=wp.vec3),
+    centroid: wp.array(dtype=wp.vec3),
+    bounds: wp.array(dtype=wp.vec3),
+):
+    """Per-triangle boxes and centroids, and the scene's box and centroid box (bounds[0..3])."""
+    i = wp.tid()
+    tri = ids[i]
+    f = indices[tri]
+    a = vertices[f[0]]
+    bb = vertices[f[1]]
+    c = vertices[f[2]]
+    lo = wp.min(wp.min(a, bb), c)
+    hi = wp.max(wp.max(a, bb), c)
+    mid = 0.5 * (lo + hi)
+    tri_lo[tri] = lo
+    tri_hi[tri] = hi
+    centroid[tri] = mid
+    wp.atomic_min(bounds, 0, lo)
+    wp.atomic_max(bounds, 1, hi)
+    wp.atomic_min(bounds, 2, mid)
+    wp.atomic_max(bounds, 3, mid)
+
+
+@wp.kernel
+def gather_leaf_triangles(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    perm: wp.array(dtype=int),
+    tri_verts: wp.array(dtype=wp.vec3),
+):
+    """Triangles in leaf order, three vertices each, so a leaf reads one contiguous block."""
+    i = wp.tid()
+    f = indices[perm[i]]
+    tri_verts[3 * i] = vertices[f[0]]
+    tri_verts[3 * i + 1] = vertices[f[1]]
+    tri_verts[3 * i + 2] = vertices[f[2]]

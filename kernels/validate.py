@@ -1,0 +1,76 @@
+"""Input checks shared by every entry point: ValueError naming the problem and the fix."""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _float_array(a, name: str, width: int) -> np.ndarray:
+    a = np.asarray(a)
+    if a.ndim != 2 or a.shape[1] != width:
+        raise ValueError(f"{name} must have shape (N, {width}), got {a.shape}")
+    if not np.issubdtype(a.dtype, np.floating):
+        raise ValueError(f"{name} must be a float32 array, got dtype {a.dtype}")
+    a = np.ascontiguousarray(a, dtype=np.float32)
+    bad = ~np.isfinite(a).all(axis=1)
+    if bad.any():
+        raise ValueError(
+            f"{name} contains NaN or Inf in {int(bad.sum())} rows (first: row "
+            f"{int(np.flatnonzero(bad)[0])}); remove or fix them"
+        )
+    return a
+
+
+def as_triangle_mesh(vertices, indices) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float32 (N,3) vertices and int32 (M,3) indices."""
+    vertices = _float_array(vertices, "vertices", 3)
+    idx = np.asarray(indices)
+    if idx.ndim != 2 or idx.shape[1] != 3:
+        raise ValueError(f"indices must have shape (M, 3), got {idx.shape}")
+    if not np.issubdtype(idx.dtype, np.integer):
+        raise ValueError(f"indices must be an int32 array, got dtype {idx.dtype}")
+    if idx.size:
+        lo, hi = int(idx.min()), int(idx.max())
+        if lo < 0 or hi >= len(vertices):
+            raise ValueError(
+                f"indices must lie in [0, {len(vertices) - 1}] (the vertex count is "
+                f"{len(vertices)}), found values in [{lo}, {hi}]"
+            )
+    return vertices, np.ascontiguousarray(idx, dtype=np.int32)
+
+
+def degenerate_triangles(vertices: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """Mask of zero-area triangles (exact float64 cross product of float32 edges)."""
+    v = vertices.astype(np.float64)
+    a, b, c = v[indices[:, 0]], v[indices[:, 1]], v[indices[:, 2]]
+    return ~np.any(np.cross(b - a, c - a) != 0.0, axis=1)
+
+
+def as_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    """Validated float32 (R,3) origins and non-zero directions."""
+    origins = _float_array(origins, "origins", 3)
+    directions = _float_array(directions, "directions", 3)
+    if len(origins) != len(directions):
+        raise ValueError(
+            f"origins and directions must have the same length, got {len(origins)} and "
+            f"{len(directions)}"
+        )
+    zero = ~np.any(directions != 0.0, axis=1)
+    if zero.any():
+        raise ValueError(
+            f"directions has {int(zero.sum())} zero-length rows (first: row "
+            f"{int(np.flatnonzero(zero)[0])}); every ray needs a non-zero direction"
+        )
+    return origins, directions
+
+
+def per_ray(value, count: int, name: str) -> np.ndarray:
+    """A scalar or (R,) array as a float32 (R,) array; NaN is rejected, +-inf allowed."""
+    a = np.asarray(value, dtype=np.float32)
+    if a.ndim == 0:
+        a = np.full(count, a, dtype=np.float32)
+    elif a.shape != (count,):
+        raise ValueError(f"{name} must be a scalar or have shape ({count},), got {a.shape}")
+    if np.isnan(a).any():
+        raise ValueError(f"{name} contains NaN")
+    return np.ascontiguousarray(a)
