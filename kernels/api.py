@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -13,8 +12,8 @@ import warp as wp
 
 from . import bvh_build as bb
 from .bvh_trace import STACK_SIZE, BvhArrays, trace_kernel
-from .pool import check_pool, default_workers, make_pool
-from .validate import as_rays, as_triangle_mesh, degenerate_triangles, per_ray
+from .pool import check_pool, cpu_cores, default_workers, launch_workers, make_pool
+from .validate import as_rays, as_triangle_mesh, per_ray
 
 Method = Literal["sah", "median"]
 METHODS: dict[str, int] = {"median": int(bb.METHOD_MEDIAN), "sah": int(bb.METHOD_SAH)}
@@ -90,58 +89,59 @@ def build_bvh(
     wp.load_module(bb.build_worker.module, device=device)  # compile time is not build time
     t_total = t0 = time.perf_counter()
     vertices, indices = as_triangle_mesh(vertices, indices)
-    degenerate = degenerate_triangles(vertices, indices)
-    ids = np.flatnonzero(~degenerate).astype(np.int32)
     phase_ms["validate"] = (time.perf_counter() - t0) * 1e3
 
     t0 = time.perf_counter()
     m = len(indices)
-    n = len(ids)
     workers = default_workers(device) if workers is None else int(workers)
-    capacity = pool_capacity or (256 if device.is_cpu else max(4096, 2 * n // leaf_size))
     v_wp = wp.array(vertices, dtype=wp.vec3, device=device)
     f_wp = wp.array(indices, dtype=wp.vec3i, device=device)
-    ids_wp = wp.array(ids, dtype=int, device=device)
     b = bb.BuildData()
-    b.tri_lo = wp.empty(m, dtype=wp.vec3, device=device)
-    b.tri_hi = wp.empty(m, dtype=wp.vec3, device=device)
-    b.centroid = wp.empty(m, dtype=wp.vec3, device=device)
-    b.perm = ids_wp
-    for name in ("swap_id", "swap_pos", "scan"):
-        setattr(b, name, wp.empty(max(n, 1), dtype=int, device=device))
-    b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
-    for name in ("box_lo", "box_hi", "cbox_lo", "cbox_hi"):
-        setattr(b, name, wp.empty(max(n, 1), dtype=wp.vec3, device=device))
-    bins = capacity * bb.BIN_SLOTS
-    b.bin_count = wp.empty(bins, dtype=int, device=device)
-    for name in ("bin_lo", "bin_hi"):
-        setattr(b, name, wp.empty(bins, dtype=wp.vec3, device=device))
-    b.tasks = wp.empty(capacity, dtype=bb.BuildTask, device=device)
-    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=bb.BvhNode, device=device)
-    b.counters = wp.zeros(2, dtype=int, device=device)
-    b.phase_cycles = wp.zeros(len(bb.PHASE_NAMES), dtype=wp.int64, device=device)
-    b.method = METHODS[method]
-    b.leaf_size = int(leaf_size)
-    b.max_depth = int(max_depth)
-    max_idle = 2 if device.is_cpu else 1 << 24
-    pool = make_pool(capacity, workers, int(min_chunks), max_idle, device)
+    b.tri_lo, b.tri_hi, b.centroid = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(3))
+    valid = wp.empty(m, dtype=int, device=device)
     inf = np.float32(np.inf)
     bounds = wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
                       dtype=wp.vec3, device=device)
-    wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
-    wp.launch(bb.triangle_boxes, dim=n,
-              inputs=[v_wp, f_wp, ids_wp, b.tri_lo, b.tri_hi, b.centroid, bounds], device=device)
+    wp.launch(bb.triangle_boxes, dim=m,
+              inputs=[v_wp, f_wp, b.tri_lo, b.tri_hi, b.centroid, valid, bounds], device=device)
+    offsets = wp.empty(m, dtype=int, device=device)
+    if m:
+        wp.utils.array_scan(valid, offsets, inclusive=False)
+    n = int(offsets.numpy()[-1] + valid.numpy()[-1]) if m else 0
+    ids_wp = wp.empty(max(n, 1), dtype=int, device=device)
+    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, ids_wp], device=device)
     box = bounds.numpy()
+
+    capacity = pool_capacity or (256 * workers if device.is_cpu else max(4096, 2 * n // leaf_size))
+    b.perm = ids_wp
+    b.swap_id, b.swap_pos, b.scan = (wp.empty(max(n, 1), dtype=int, device=device)
+                                     for _ in range(3))
+    b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
+    b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
+        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
+    )
+    bins = (capacity + workers) * bb.BIN_SLOTS  # per slot, then per worker
+    b.bin_count = wp.empty(bins, dtype=int, device=device)
+    b.bin_lo, b.bin_hi = (wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(2))
+    b.tasks = wp.empty(capacity, dtype=bb.BuildTask, device=device)
+    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=bb.BvhNode, device=device)
+    b.counters = wp.zeros(2, dtype=int, device=device)
+    b.phase_cycles = wp.zeros(workers * len(bb.PHASE_NAMES), dtype=wp.int64, device=device)
+    b.method = METHODS[method]
+    b.leaf_size = int(leaf_size)
+    b.max_depth = int(max_depth)
+    pool = make_pool(capacity, workers, int(min_chunks), device)
+    wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
     phase_ms["prepare"] = _sync_ms(device, t0)
 
     t0 = time.perf_counter()
     if n > 0:
         wp.launch(bb.start_build, dim=1,
                   inputs=[b, pool, *(wp.vec3(*row) for row in box), n], device=device)
-        wp.launch(bb.build_worker, dim=workers, inputs=[b, pool], device=device)
+        launch_workers(bb.build_worker, workers, [b, pool], device)
     pool_state = check_pool(pool)
     build_ms = _sync_ms(device, t0)
-    cycles = b.phase_cycles.numpy().astype(np.float64)
+    cycles = b.phase_cycles.numpy().reshape(workers, -1).sum(axis=0).astype(np.float64)
     share = cycles / cycles.sum() if cycles.sum() > 0 else np.zeros_like(cycles)
     for name, s in zip(bb.PHASE_NAMES, share, strict=True):
         phase_ms[name] = float(build_ms * s)
@@ -154,7 +154,7 @@ def build_bvh(
     arrays = BvhArrays()
     arrays.nodes = b.nodes if n > 0 else _empty_root(device)
     arrays.tri_verts = tri_verts
-    arrays.tri_ids = ids_wp
+    arrays.tri_ids = ids_wp if n > 0 else wp.empty(0, dtype=int, device=device)
     phase_ms["reorder"] = _sync_ms(device, t0)
     total_ms = (time.perf_counter() - t_total) * 1e3
 
@@ -175,6 +175,7 @@ def build_bvh(
         "degenerate": int(m - n),
         "pool_slots_used": int(pool_state[2]),
         "pool_steps_published": int(pool_state[3]),
+        "workers": workers,
         "method": method,
         "leaf_size": int(leaf_size),
         "device": str(device),
@@ -205,9 +206,7 @@ def sah_cost(nodes: np.ndarray) -> float:
 def _threads(device, threads: int | None) -> int:
     if not device.is_cpu:
         return 1
-    if threads is None:
-        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    return max(1, int(threads))
+    return cpu_cores() if threads is None else max(1, int(threads))
 
 
 def trace(

@@ -19,17 +19,20 @@ import warp as wp
 
 from .geometry import INF
 from .pool import (
-    ERR_STUCK,
-    ERROR,
     Pool,
     cycles,
     pool_acquire,
     pool_alloc,
     pool_finish,
     pool_hand_over,
+    pool_idle,
     pool_publish,
     pool_release,
     pool_running,
+    shared_add,
+    shared_max,
+    shared_max_vec3,
+    shared_min_vec3,
 )
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -48,6 +51,7 @@ PHASE_SWAP = wp.constant(2)
 PHASE_AABB = wp.constant(3)
 PHASE_DONE = wp.constant(4)
 PHASE_NAMES = ("SplitPlane", "PPS", "Swap", "AABB")
+PHASES = wp.constant(len(PHASE_NAMES))
 
 # counters[]
 NODE_COUNT = wp.constant(0)
@@ -106,13 +110,13 @@ class BuildData:
     box_hi: wp.array(dtype=wp.vec3)
     cbox_lo: wp.array(dtype=wp.vec3)
     cbox_hi: wp.array(dtype=wp.vec3)
-    bin_count: wp.array(dtype=int)  # BIN_SLOTS per pool slot
+    bin_count: wp.array(dtype=int)  # BIN_SLOTS per pool slot, then per worker
     bin_lo: wp.array(dtype=wp.vec3)
     bin_hi: wp.array(dtype=wp.vec3)
     tasks: wp.array(dtype=BuildTask)  # the task data array, one entry per pool slot
     nodes: wp.array(dtype=BvhNode)
     counters: wp.array(dtype=int)
-    phase_cycles: wp.array(dtype=wp.int64)
+    phase_cycles: wp.array(dtype=wp.int64)  # per worker and phase
     method: int
     leaf_size: int
     max_depth: int
@@ -192,10 +196,11 @@ def bin_of(c: float, lo: float, scale: float) -> int:
 
 
 @wp.func
-def goes_right(b: BuildData, t: BuildTask, tri: int) -> bool:
+def goes_right(b: BuildData, t: BuildTask, scale: float, tri: int) -> bool:
+    """Marked 1 in PPS: right of the SAH plane (`scale` from bin_scale) or the median."""
     c = b.centroid[tri][t.axis]
     if b.method == METHOD_SAH:
-        return bin_of(c, t.lo[t.axis], bin_scale(t.lo, t.hi)[t.axis]) > t.split_bin
+        return bin_of(c, t.lo[t.axis], scale) > t.split_bin
     return c > t.split
 
 
@@ -203,13 +208,14 @@ def goes_right(b: BuildData, t: BuildTask, tri: int) -> bool:
 
 
 @wp.func
-def split_plane_chunk(b: BuildData, t: BuildTask, slot: int, chunk: int):
-    """Bin one chunk's triangles on all three axes (sec. 4.1, SplitPlane). Bins span the
-    node's box: cheaper than a centroid box, and the bins then give the children's boxes."""
+def split_plane_chunk(b: BuildData, t: BuildTask, bin_slot: int, chunk: int):
+    """Bin one chunk's triangles on all three axes (sec. 4.1, SplitPlane) into bins that
+    only this worker writes (plain updates). Bins span the node's box: cheaper than a
+    centroid box, and the bins then give the children's boxes."""
     first = t.start + chunk * CHUNK
     last = wp.min(first + CHUNK, t.start + t.count)
     scale = bin_scale(t.lo, t.hi)
-    base = slot * BIN_SLOTS
+    base = bin_slot * BIN_SLOTS
     for i in range(first, last):
         tri = b.perm[i]
         c = b.centroid[tri]
@@ -230,6 +236,21 @@ def reset_bin(b: BuildData, k: int):
 
 
 @wp.func
+def merge_bins(b: BuildData, from_slot: int, to_slot: int):
+    """Add a worker's private bins to the task's shared ones (atomically: other workers
+    may merge theirs at the same time) and clear them."""
+    src = from_slot * BIN_SLOTS
+    dst = to_slot * BIN_SLOTS
+    for k in range(BIN_SLOTS):
+        n = b.bin_count[src + k]
+        if n > 0:
+            shared_add(b.bin_count, dst + k, n)
+            shared_min_vec3(b.bin_lo, dst + k, b.bin_lo[src + k])
+            shared_max_vec3(b.bin_hi, dst + k, b.bin_hi[src + k])
+            reset_bin(b, src + k)
+
+
+@wp.func
 def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
     """The last finisher of SplitPlane picks the cheapest of the 3 x 31 planes with a suffix
     and a prefix sweep over the bins; the bins give the children's exact boxes. Leaves the
@@ -242,16 +263,19 @@ def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
         lo = wp.vec3(INF)
         hi = wp.vec3(-INF)
         for k in range(BINS - 1, 0, -1):  # right_area[k]: bins k.. BINS-1
-            lo = wp.min(lo, b.bin_lo[a + k])
-            hi = wp.max(hi, b.bin_hi[a + k])
+            if b.bin_count[a + k] > 0:
+                lo = wp.min(lo, b.bin_lo[a + k])
+                hi = wp.max(hi, b.bin_hi[a + k])
             right_area[k] = half_area(lo, hi)
         lo = wp.vec3(INF)
         hi = wp.vec3(-INF)
         n_left = int(0)
         for k in range(BINS - 1):  # plane between bins k and k + 1
-            n_left += b.bin_count[a + k]
-            lo = wp.min(lo, b.bin_lo[a + k])
-            hi = wp.max(hi, b.bin_hi[a + k])
+            n = b.bin_count[a + k]
+            if n > 0:
+                n_left += n
+                lo = wp.min(lo, b.bin_lo[a + k])
+                hi = wp.max(hi, b.bin_hi[a + k])
             n_right = t.count - n_left
             if n_left > 0 and n_right > 0:
                 cost = float(n_left) * half_area(lo, hi) + float(n_right) * right_area[k + 1]
@@ -275,8 +299,9 @@ def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
                 t.rhi = wp.max(t.rhi, b.bin_hi[a + k])
     else:
         t.pivot = -1  # no plane separates the centroids
-    for k in range(BIN_SLOTS):
-        reset_bin(b, base + k)
+    for k in range(BIN_SLOTS):  # untouched bins are still clear
+        if b.bin_count[base + k] > 0:
+            reset_bin(b, base + k)
     return t
 
 
@@ -292,9 +317,10 @@ def pps_up_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
     if level == 1:
         first = t.start + chunk * CHUNK
         last = wp.min(first + CHUNK, t.start + t.count)
+        scale = bin_scale(t.lo, t.hi)[t.axis]
         for i in range(first, last):
             right = int(0)
-            if goes_right(b, t, b.perm[i]):
+            if goes_right(b, t, scale, b.perm[i]):
                 right = 1
             b.mark[i] = wp.int8(right)
             total += right
@@ -581,7 +607,7 @@ def split_node(b: BuildData, pool: Pool, t: BuildTask, slot: int) -> int:
     with the child in the higher of the two slots and stores the other: on one worker the
     pool then behaves as a stack (depth first), so it never holds more than depth + 1 tasks.
     Returns the slot to continue with, or -1."""
-    left = wp.atomic_add(b.counters, NODE_COUNT, 2)
+    left = shared_add(b.counters, NODE_COUNT, 2)
     write_node(b, t.node, t.lo, t.hi, left, 0)
     depth = t.depth + 1
     n_right = t.count - t.pivot
@@ -590,7 +616,7 @@ def split_node(b: BuildData, pool: Pool, t: BuildTask, slot: int) -> int:
     left_leaf = is_leaf(b, t.pivot, depth)
     right_leaf = is_leaf(b, n_right, depth)
     if left_leaf or right_leaf:
-        wp.atomic_max(b.counters, MAX_DEPTH, depth)
+        shared_max(b.counters, MAX_DEPTH, depth)
     if left_leaf and right_leaf:
         pool_release(pool, slot)
         return -1
@@ -615,7 +641,13 @@ def split_node(b: BuildData, pool: Pool, t: BuildTask, slot: int) -> int:
 
 
 @wp.func
-def advance(b: BuildData, pool: Pool, slot: int, t: BuildTask) -> int:
+def add_cycles(b: BuildData, worker: int, phase: int, since: wp.int64):
+    i = worker * PHASES + phase
+    b.phase_cycles[i] = b.phase_cycles[i] + (cycles() - since)
+
+
+@wp.func
+def advance(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask) -> int:
     """Run steps inline while they have fewer than K chunks (sec. 3.4), finishing tasks and
     continuing with a child; publish the first step that is big enough for the pool.
     Returns the slot last worked on (where this worker looks for work next)."""
@@ -623,48 +655,60 @@ def advance(b: BuildData, pool: Pool, slot: int, t: BuildTask) -> int:
     task = t
     while True:
         phase = task.phase
-        start_cycles = cycles()
+        since = cycles()
         task = complete_step(b, task, s)
         if task.phase == PHASE_DONE:
             next_slot = split_node(b, pool, task, s)
             if next_slot < 0:
-                wp.atomic_add(b.phase_cycles, phase, cycles() - start_cycles)
+                add_cycles(b, worker, phase, since)
                 return s
             s = next_slot
             task = b.tasks[s]
-        wp.atomic_add(b.phase_cycles, phase, cycles() - start_cycles)
+        add_cycles(b, worker, phase, since)
         if task.chunks >= pool.min_chunks:
             b.tasks[s] = task
             pool_hand_over(pool, s, task.chunks)
             return s
-        start_cycles = cycles()
+        since = cycles()
         for c in range(task.chunks):
             run_chunk(b, task, s, c)
-        wp.atomic_add(b.phase_cycles, task.phase, cycles() - start_cycles)
+        add_cycles(b, worker, task.phase, since)
+
+
+@wp.func
+def run_chunks(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask, first: int,
+               count: int):
+    """Acquired chunks of a pool step. A SplitPlane step shared with other workers is
+    binned into this worker's own bins first and merged once (sec. 4.1)."""
+    since = cycles()
+    if t.phase == PHASE_SPLIT_PLANE and count < t.chunks:
+        own = pool.capacity + worker
+        for c in range(first, first + count):
+            split_plane_chunk(b, t, own, c)
+        merge_bins(b, own, slot)
+    else:
+        for c in range(first, first + count):
+            run_chunk(b, t, slot, c)
+    add_cycles(b, worker, t.phase, since)
 
 
 @wp.kernel
-def build_worker(b: BuildData, pool: Pool):
+def build_worker(b: BuildData, pool: Pool, first_worker: int):
     """The persistent worker of Algorithm 1."""
-    last_slot = wp.tid()
-    idle = int(0)
+    worker = first_worker + wp.tid()
+    last_slot = worker
+    idle_since = wp.int64(-1)
     while pool_running(pool):
         got = pool_acquire(pool, last_slot)
         slot = got[0]
         if slot < 0:
-            idle += 1
-            if idle > pool.max_idle:
-                wp.atomic_max(pool.state, ERROR, ERR_STUCK)
+            idle_since = pool_idle(pool, idle_since)
             continue
-        idle = 0
+        idle_since = wp.int64(-1)
         last_slot = slot
-        t = b.tasks[slot]
-        start_cycles = cycles()
-        for c in range(got[1], got[1] + got[2]):
-            run_chunk(b, t, slot, c)
-        wp.atomic_add(b.phase_cycles, t.phase, cycles() - start_cycles)
+        run_chunks(b, pool, worker, slot, b.tasks[slot], got[1], got[2])
         if pool_finish(pool, slot, got[2]):
-            last_slot = advance(b, pool, slot, b.tasks[slot])
+            last_slot = advance(b, pool, worker, slot, b.tasks[slot])
 
 
 @wp.kernel
@@ -678,12 +722,7 @@ def start_build(b: BuildData, pool: Pool, root_lo: wp.vec3, root_hi: wp.vec3,
     slot = pool_alloc(pool)
     t = new_task(b, 0, 0, count, 0, root_lo, root_hi, root_clo, root_chi)
     b.tasks[slot] = t
-    if t.chunks >= pool.min_chunks:
-        pool_publish(pool, slot, t.chunks)
-    else:
-        for c in range(t.chunks):
-            run_chunk(b, t, slot, c)
-        advance(b, pool, slot, t)
+    pool_publish(pool, slot, t.chunks)
 
 
 @wp.kernel
@@ -695,29 +734,46 @@ def reset_bins(b: BuildData):
 def triangle_boxes(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
-    ids: wp.array(dtype=int),
     tri_lo: wp.array(dtype=wp.vec3),
     tri_hi: wp.array(dtype=wp.vec3),
     centroid: wp.array(dtype=wp.vec3),
+    valid: wp.array(dtype=int),
     bounds: wp.array(dtype=wp.vec3),
 ):
-    """Per-triangle boxes and centroids, and the scene's box and centroid box (bounds[0..3])."""
+    """Per-triangle boxes and centroids; `valid` is 0 for zero-area triangles (an exact
+    float64 cross product of the float32 edges), which the build leaves out. bounds[0..3]
+    get the scene's box and centroid box over the valid ones."""
     i = wp.tid()
-    tri = ids[i]
-    f = indices[tri]
+    f = indices[i]
     a = vertices[f[0]]
     bb = vertices[f[1]]
     c = vertices[f[2]]
     lo = wp.min(wp.min(a, bb), c)
     hi = wp.max(wp.max(a, bb), c)
     mid = 0.5 * (lo + hi)
-    tri_lo[tri] = lo
-    tri_hi[tri] = hi
-    centroid[tri] = mid
-    wp.atomic_min(bounds, 0, lo)
-    wp.atomic_max(bounds, 1, hi)
-    wp.atomic_min(bounds, 2, mid)
-    wp.atomic_max(bounds, 3, mid)
+    tri_lo[i] = lo
+    tri_hi[i] = hi
+    centroid[i] = mid
+    a64 = wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
+    e1 = wp.vec3d(wp.float64(bb[0]), wp.float64(bb[1]), wp.float64(bb[2])) - a64
+    e2 = wp.vec3d(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2])) - a64
+    n = wp.cross(e1, e2)
+    zero = wp.float64(0.0)
+    valid[i] = 0
+    if n[0] != zero or n[1] != zero or n[2] != zero:
+        valid[i] = 1
+        wp.atomic_min(bounds, 0, lo)
+        wp.atomic_max(bounds, 1, hi)
+        wp.atomic_min(bounds, 2, mid)
+        wp.atomic_max(bounds, 3, mid)
+
+
+@wp.kernel
+def compact_valid(valid: wp.array(dtype=int), offsets: wp.array(dtype=int),
+                  ids: wp.array(dtype=int)):
+    i = wp.tid()
+    if valid[i] != 0:
+        ids[offsets[i]] = i
 
 
 @wp.kernel

@@ -10,13 +10,18 @@ The application keeps the task data (its own `@wp.struct` array) in the same slo
 brings it to zero is the last finisher and advances the task.
 
 Here a worker is one thread (the paper's warp of 32 threads shares a chunk of 32 items; one
-thread walks the chunk's items instead). On CPU a launch is one serial loop, so worker 0 does
-all the work and the others find the pool empty; Warp's CPU atomics are plain
-read-modify-writes, which is correct because of that. On CUDA, header reads go through
-atomics and `memory_fence()` orders task data before the header that publishes it.
+thread walks the chunk's items instead). A Warp CPU launch is one serial loop and Warp's CPU
+atomics are plain read-modify-writes, so on CPU each core runs its own launch of the worker
+kernel and every access to state shared between workers goes through the `shared_*`
+functions below: real atomics (`__atomic` builtins, sequentially consistent, which also
+order the task data written before a header against the reads after it). On CUDA they are
+CUDA's atomics, and `memory_fence()` orders task data before the header that publishes it.
 """
 
 from __future__ import annotations
+
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
@@ -40,7 +45,7 @@ class Pool:
     capacity: int
     workers: int  # W in eq. 3.1
     min_chunks: int  # K in eq. 3.1 and the inline threshold of sec. 3.4
-    max_idle: int  # empty searches in a row before a worker declares the pool stuck
+    max_idle: wp.int64  # cycles without work before a worker declares the pool stuck
 
 
 class PoolError(RuntimeError):
@@ -60,6 +65,93 @@ def memory_fence(): ...
 @wp.func_native(
     """
 #if defined(__CUDA_ARCH__)
+    return atomicAdd(&a[i], v);
+#else
+    return __atomic_fetch_add(&a[i], v, __ATOMIC_SEQ_CST);
+#endif
+"""
+)
+def shared_add(a: wp.array(dtype=wp.int32), i: int, v: int) -> int: ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return atomicExch(&a[i], v);
+#else
+    return __atomic_exchange_n(&a[i], v, __ATOMIC_SEQ_CST);
+#endif
+"""
+)
+def shared_exch(a: wp.array(dtype=wp.int32), i: int, v: int) -> int: ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return atomicCAS(&a[i], expected, v);
+#else
+    __atomic_compare_exchange_n(&a[i], &expected, v, false, __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
+    return expected;
+#endif
+"""
+)
+def shared_cas(a: wp.array(dtype=wp.int32), i: int, expected: int, v: int) -> int: ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return atomicMax(&a[i], v);
+#else
+    return __atomic_fetch_max(&a[i], v, __ATOMIC_SEQ_CST);
+#endif
+"""
+)
+def shared_max(a: wp.array(dtype=wp.int32), i: int, v: int) -> int: ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    wp::atomic_min(&a[i], v);
+#else
+    for (int k = 0; k < 3; ++k) {
+        float* p = &a[i].c[k];
+        float old;
+        __atomic_load(p, &old, __ATOMIC_SEQ_CST);
+        while (v.c[k] < old &&
+               !__atomic_compare_exchange(p, &old, &v.c[k], false, __ATOMIC_SEQ_CST,
+                                          __ATOMIC_SEQ_CST)) {}
+    }
+#endif
+"""
+)
+def shared_min_vec3(a: wp.array(dtype=wp.vec3), i: int, v: wp.vec3): ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    wp::atomic_max(&a[i], v);
+#else
+    for (int k = 0; k < 3; ++k) {
+        float* p = &a[i].c[k];
+        float old;
+        __atomic_load(p, &old, __ATOMIC_SEQ_CST);
+        while (v.c[k] > old &&
+               !__atomic_compare_exchange(p, &old, &v.c[k], false, __ATOMIC_SEQ_CST,
+                                          __ATOMIC_SEQ_CST)) {}
+    }
+#endif
+"""
+)
+def shared_max_vec3(a: wp.array(dtype=wp.vec3), i: int, v: wp.vec3): ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
     return clock64();
 #else
     return (int64_t)__builtin_readcyclecounter();
@@ -69,10 +161,33 @@ def memory_fence(): ...
 def cycles() -> wp.int64: ...
 
 
-@wp.func
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    return atomicAdd(&a[i], 0);
+#else
+    return __atomic_load_n(&a[i], __ATOMIC_SEQ_CST);
+#endif
+"""
+)
 def pool_load(a: wp.array(dtype=wp.int32), i: int) -> int:
-    """Atomic read: on CUDA a plain load may be served from a stale cache line."""
-    return wp.atomic_add(a, i, 0)
+    """Atomic read: a plain load may be served from a stale cache line or register. (On x86
+    a plain `mov`, so idle workers polling the pool do not take the cache line away.)"""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    __nanosleep(100);
+#elif defined(__x86_64__)
+    __builtin_ia32_pause();
+#elif defined(__aarch64__)
+    __asm__ __volatile__("yield");
+#endif
+"""
+)
+def cpu_relax(): ...
 
 
 @wp.func
@@ -93,7 +208,7 @@ def pool_acquire(pool: Pool, start_slot: int) -> wp.vec3i:
         if h > 0:
             # eq. 3.1: N_w = max(ceil(S / W), K)
             want = wp.max((h + pool.workers - 1) / pool.workers, pool.min_chunks)
-            old = wp.atomic_sub(pool.header, slot, want)
+            old = shared_add(pool.header, slot, -want)
             if old > 0:
                 take = wp.min(want, old)
                 return wp.vec3i(slot, old - take, take)
@@ -103,21 +218,21 @@ def pool_acquire(pool: Pool, start_slot: int) -> wp.vec3i:
 @wp.func
 def pool_finish(pool: Pool, slot: int, count: int) -> bool:
     """Report `count` finished chunks; True for the last finisher of the step."""
-    return wp.atomic_sub(pool.unfinished, slot, count) == count
+    return shared_add(pool.unfinished, slot, -count) == count
 
 
 @wp.func
 def pool_publish(pool: Pool, slot: int, chunks: int):
     """Make the step of a locked task available: its data must be written before this."""
-    pool.unfinished[slot] = chunks
+    shared_exch(pool.unfinished, slot, chunks)
     memory_fence()
-    wp.atomic_exch(pool.header, slot, chunks)
+    shared_exch(pool.header, slot, chunks)
 
 
 @wp.func
 def pool_hand_over(pool: Pool, slot: int, chunks: int):
     """Publish a task's next step, too big to run inline (counted in state[PUBLISHED])."""
-    wp.atomic_add(pool.state, PUBLISHED, 1)
+    shared_add(pool.state, PUBLISHED, 1)
     pool_publish(pool, slot, chunks)
 
 
@@ -125,14 +240,14 @@ def pool_hand_over(pool: Pool, slot: int, chunks: int):
 def pool_wait(pool: Pool, slot: int, dependencies: int):
     """Store a locked task as dependent on `dependencies` other tasks."""
     memory_fence()
-    wp.atomic_exch(pool.header, slot, -dependencies)
+    shared_exch(pool.header, slot, -dependencies)
 
 
 @wp.func
 def pool_resolve(pool: Pool, slot: int) -> bool:
     """One dependency of `slot` finished; True when it was the last (the task is now locked
     and the caller publishes its first step)."""
-    return wp.atomic_add(pool.header, slot, 1) == -1
+    return shared_add(pool.header, slot, 1) == -1
 
 
 @wp.func
@@ -142,19 +257,19 @@ def pool_alloc(pool: Pool) -> int:
     Returns -1 and flags ERR_OVERFLOW when every slot is taken."""
     for slot in range(pool.capacity):
         h = pool_load(pool.header, slot)
-        if h <= EMPTY and wp.atomic_cas(pool.header, slot, h, 0) == h:
-            wp.atomic_max(pool.state, HIGH_WATER, slot + 1)
-            wp.atomic_add(pool.state, LIVE, 1)
+        if h <= EMPTY and shared_cas(pool.header, slot, h, 0) == h:
+            shared_max(pool.state, HIGH_WATER, slot + 1)
+            shared_add(pool.state, LIVE, 1)
             return slot
-    wp.atomic_max(pool.state, ERROR, ERR_OVERFLOW)
+    shared_max(pool.state, ERROR, ERR_OVERFLOW)
     return -1
 
 
 @wp.func
 def pool_release(pool: Pool, slot: int):
     """The task in `slot` is done: free the slot."""
-    wp.atomic_exch(pool.header, slot, EMPTY)
-    wp.atomic_sub(pool.state, LIVE, 1)
+    shared_exch(pool.header, slot, EMPTY)
+    shared_add(pool.state, LIVE, -1)
 
 
 @wp.func
@@ -162,7 +277,27 @@ def pool_running(pool: Pool) -> bool:
     return pool_load(pool.state, LIVE) > 0 and pool_load(pool.state, ERROR) == 0
 
 
-def make_pool(capacity: int, workers: int, min_chunks: int, max_idle: int, device) -> Pool:
+@wp.func
+def pool_idle(pool: Pool, idle_since: wp.int64) -> wp.int64:
+    """Call when a search found no work; returns the cycle count the worker has been idle
+    since. After `max_idle` cycles without work the pool is declared stuck (ERR_STUCK), so
+    that a lost dependency ends the launch with an error instead of a hang."""
+    cpu_relax()
+    now = cycles()
+    if idle_since < wp.int64(0):
+        return now
+    if now - idle_since > pool.max_idle:
+        shared_max(pool.state, ERROR, ERR_STUCK)
+    return idle_since
+
+
+# Cycles a worker may wait for work while others still hold some (about 10 s): only a lost
+# dependency waits that long. A lone worker with nothing to do is stuck at once.
+WAIT_CYCLES = 30_000_000_000
+
+
+def make_pool(capacity: int, workers: int, min_chunks: int, device,
+              max_idle: int | None = None) -> Pool:
     pool = Pool()
     pool.header = wp.full(capacity, int(EMPTY), dtype=wp.int32, device=device)
     pool.unfinished = wp.zeros(capacity, dtype=wp.int32, device=device)
@@ -170,7 +305,7 @@ def make_pool(capacity: int, workers: int, min_chunks: int, max_idle: int, devic
     pool.capacity = capacity
     pool.workers = workers
     pool.min_chunks = min_chunks
-    pool.max_idle = max_idle
+    pool.max_idle = wp.int64((0 if workers == 1 else WAIT_CYCLES) if max_idle is None else max_idle)
     return pool
 
 
@@ -185,12 +320,32 @@ def check_pool(pool: Pool) -> np.ndarray:
     if state[ERROR] == ERR_STUCK or state[LIVE] != 0:
         raise PoolError(
             f"task pool stuck with {state[LIVE]} unfinished tasks (capacity {pool.capacity}, "
-            f"{pool.workers} workers gave up after {pool.max_idle} empty searches)"
+            f"{pool.workers} workers found no work for {pool.max_idle} cycles)"
         )
     return state
 
 
+def cpu_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
 def default_workers(device) -> int:
-    """One worker on CPU (a launch is one serial loop); enough to fill a GPU otherwise."""
+    """One worker per core on CPU (each a launch of its own); enough to fill a GPU."""
     device = wp.get_device(device)
-    return 1 if device.is_cpu else 64 * device.sm_count * 4
+    return cpu_cores() if device.is_cpu else 64 * device.sm_count * 4
+
+
+def launch_workers(kernel, workers: int, inputs: list, device) -> None:
+    """Launch a persistent worker kernel whose last argument is the first worker's index:
+    on CPU one launch of one worker per host thread, so the workers run in parallel."""
+    if not wp.get_device(device).is_cpu or workers == 1:
+        wp.launch(kernel, dim=workers, inputs=[*inputs, 0], device=device)
+        return
+    wp.load_module(kernel.module, device=device)
+    with ThreadPoolExecutor(workers) as ex:
+        futures = [
+            ex.submit(wp.launch, kernel, dim=1, inputs=[*inputs, w], device=device)
+            for w in range(workers)
+        ]
+        for f in futures:
+            f.result()

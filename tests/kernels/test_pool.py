@@ -8,8 +8,6 @@ import warp as wp
 
 import kernels
 from kernels.pool import (
-    ERR_STUCK,
-    ERROR,
     Pool,
     PoolError,
     check_pool,
@@ -17,6 +15,7 @@ from kernels.pool import (
     pool_acquire,
     pool_alloc,
     pool_finish,
+    pool_idle,
     pool_publish,
     pool_release,
     pool_resolve,
@@ -32,14 +31,13 @@ def toy_worker(pool: Pool, chunks_b: int, order: wp.array(dtype=int), log: wp.ar
     """Slot 0: task A; slot 1: task B, dependent on A. Each processed chunk appends
     (slot, chunk) to the log; the last finisher of A activates B, of B releases it."""
     last = wp.tid()
-    idle = int(0)
+    idle_since = wp.int64(-1)
     while pool_running(pool):
         got = pool_acquire(pool, last)
         if got[0] < 0:
-            idle += 1
-            if idle > pool.max_idle:
-                wp.atomic_max(pool.state, ERROR, ERR_STUCK)
+            idle_since = pool_idle(pool, idle_since)
             continue
+        idle_since = wp.int64(-1)
         for c in range(got[1], got[1] + got[2]):
             k = wp.atomic_add(order, 0, 1)
             log[2 * k] = got[0]
@@ -59,7 +57,7 @@ def toy_setup(pool: Pool, chunks_a: int, dependencies_b: int):
 
 
 def run_toy(chunks_a: int, chunks_b: int, dependencies_b: int = 1, min_chunks: int = 4):
-    pool = make_pool(8, workers=1, min_chunks=min_chunks, max_idle=3, device="cpu")
+    pool = make_pool(8, workers=1, min_chunks=min_chunks, device="cpu")
     order = wp.zeros(1, dtype=int, device="cpu")
     log = wp.full(2 * (chunks_a + chunks_b + 1), -1, dtype=int, device="cpu")
     wp.launch(toy_setup, dim=1, inputs=[pool, chunks_a, dependencies_b], device="cpu")
