@@ -1,0 +1,23 @@
+"""scenesort: ambient-occlusion renders and BVH build timings from a local Warp service.
+
+A Blender extension (4.2+; settings in blender_manifest.toml, no bl_info). It uses
+only Blender's Python (standard library + numpy) and talks HTTP to `scenesort serve`.
+Relative imports only, so it also registers when imported as a plain package.
+"""
+
+from __future__ import annotations
+
+from . import operators, panel, prefs, props, service
+
+_MODULES = (prefs, props, operators, panel)
+
+
+def register() -> None:
+    for module in _MODULES:
+        module.register()
+
+
+def unregister() -> None:
+    service.stop()  # never leave the child service running without its add-on
+    for module in reversed(_MODULES):
+        module.unregister()

@@ -1,0 +1,221 @@
+"""HTTP client of the scenesort service, standard library only.
+
+Proxies are disabled (the service is local: a system proxy must not see or break
+the traffic), and every call has a timeout. Errors become `ServiceError` with a
+message a user understands; the service's own JSON error (`message`, `fix`) is
+passed on.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import urllib.error
+import urllib.parse
+import urllib.request
+from typing import Any
+
+import numpy as np
+
+HEALTH_TIMEOUT_S = 2.0  # health and HEAD are cheap: fail fast when nothing listens
+UPLOAD_TIMEOUT_S = 60.0
+# Build and render answer only when done; this bounds the silence between bytes.
+WORK_TIMEOUT_S = 900.0
+SCENE_HASH_CHARS = 32  # backend/wire.py keeps 32 hex characters of the sha256
+
+
+class ServiceError(Exception):
+    """A failed request, in words for the user; `status` is the HTTP status or None."""
+
+    def __init__(self, message: str, status: int | None = None) -> None:
+        super().__init__(message)
+        self.status = status
+
+
+def scene_id(vertex_count: int, triangle_count: int, body: bytes) -> str:
+    """The service's content id of a scene upload (same rule as backend/wire.py)."""
+    digest = hashlib.sha256(b"scenesort-scene-v1 %d %d\n" % (vertex_count, triangle_count))
+    digest.update(body)
+    return digest.hexdigest()[:SCENE_HASH_CHARS]
+
+
+def _opener() -> urllib.request.OpenerDirector:
+    # An empty ProxyHandler: no proxy from the environment or system settings.
+    return urllib.request.build_opener(urllib.request.ProxyHandler({}))
+
+
+def _error_text(exc: urllib.error.HTTPError) -> str:
+    """The service's error message (and its suggested fix) from an error response."""
+    try:
+        data = json.loads(exc.read() or b"{}")
+    except (ValueError, OSError):
+        data = {}
+    if isinstance(data, dict):
+        detail = data.get("detail", data)
+        if isinstance(detail, dict) and detail.get("message"):
+            fix = detail.get("fix")
+            return f"{detail['message']} ({fix})" if fix else str(detail["message"])
+        if isinstance(detail, str):
+            return detail
+        if isinstance(detail, list) and detail and isinstance(detail[0], dict):
+            return str(detail[0].get("msg", detail[0]))
+    return exc.reason if isinstance(exc.reason, str) else f"HTTP {exc.code}"
+
+
+class Client:
+    """Calls on one service base URL, e.g. http://127.0.0.1:8765."""
+
+    def __init__(self, base_url: str, token: str | None = None) -> None:
+        url = base_url.strip().rstrip("/")
+        parts = urllib.parse.urlsplit(url)
+        if parts.scheme not in {"http", "https"} or not parts.hostname:
+            raise ServiceError(f"'{base_url}' is not a service URL like http://127.0.0.1:8765")
+        self.base_url = url
+        self.token = token
+        self.requests: list[str] = []  # "METHOD path" of every request made, for the panel
+
+    def _request(
+        self,
+        method: str,
+        path: str,
+        body: bytes | None = None,
+        content_type: str | None = None,
+        timeout: float = HEALTH_TIMEOUT_S,
+    ) -> tuple[int, dict[str, str], bytes]:
+        req = urllib.request.Request(self.base_url + path, data=body, method=method)
+        if content_type:
+            req.add_header("Content-Type", content_type)
+        if self.token:
+            req.add_header("Authorization", f"Bearer {self.token}")
+        self.requests.append(f"{method} {path.split('?')[0]}")
+        try:
+            with _opener().open(req, timeout=timeout) as resp:
+                return resp.status, dict(resp.headers.items()), resp.read()
+        except urllib.error.HTTPError as exc:
+            if exc.code == 404 and method == "HEAD":
+                return 404, {}, b""
+            verb = "failed on" if exc.code >= 500 else "refused"
+            raise ServiceError(
+                f"The service {verb} {method} {path.split('?')[0]}: {_error_text(exc)}", exc.code
+            ) from None
+        except urllib.error.URLError as exc:
+            reason = exc.reason
+            if isinstance(reason, TimeoutError):
+                raise ServiceError(
+                    f"The service at {self.base_url} did not answer within {timeout:g} s"
+                ) from None
+            if isinstance(reason, ConnectionRefusedError):
+                raise ServiceError(
+                    f"No scenesort service is running at {self.base_url}: "
+                    "press 'Start local service' or check the URL"
+                ) from None
+            raise ServiceError(
+                f"Could not reach the service at {self.base_url}: {reason}"
+            ) from None
+        except TimeoutError:
+            raise ServiceError(
+                f"The service at {self.base_url} did not answer within {timeout:g} s"
+            ) from None
+        except (ConnectionError, OSError) as exc:
+            raise ServiceError(f"The connection to {self.base_url} failed: {exc}") from None
+
+    def _json(
+        self, method: str, path: str, payload: Any = None, timeout: float = HEALTH_TIMEOUT_S
+    ) -> dict:
+        body = None if payload is None else json.dumps(payload).encode()
+        _, _, data = self._request(
+            method, path, body, "application/json" if body else None, timeout
+        )
+        try:
+            return json.loads(data)
+        except ValueError:
+            raise ServiceError(f"The service sent an unreadable answer to {path}") from None
+
+    def health(self) -> dict:
+        """`GET /v1/health`: version, Warp version, device, cache use."""
+        return self._json("GET", "/v1/health")
+
+    def has_scene(self, scene_id: str) -> bool:
+        """`HEAD /v1/scenes/{id}`: whether the service already holds this scene."""
+        status, _, _ = self._request("HEAD", f"/v1/scenes/{scene_id}", timeout=HEALTH_TIMEOUT_S)
+        return status == 200
+
+    def upload_scene(self, vertex_count: int, triangle_count: int, body: bytes) -> dict:
+        """`POST /v1/scenes`: the raw scene body; returns scene_id, triangles, bounds, ..."""
+        query = urllib.parse.urlencode({"vertices": vertex_count, "triangles": triangle_count})
+        _, _, data = self._request(
+            "POST", f"/v1/scenes?{query}", body, "application/octet-stream", UPLOAD_TIMEOUT_S
+        )
+        return json.loads(data)
+
+    def build_bvh(self, scene_id: str, method: str, leaf_size: int) -> dict:
+        """`POST /v1/scenes/{id}/bvh`: timings_ms (total and per phase) and statistics."""
+        return self._json(
+            "POST",
+            f"/v1/scenes/{scene_id}/bvh",
+            {"method": method, "leaf_size": int(leaf_size)},
+            timeout=WORK_TIMEOUT_S,
+        )
+
+    def ambient_occlusion(
+        self,
+        scene_id: str,
+        ray_body: bytes,
+        spp: int,
+        distance: float,
+        seed: int = 0,
+        target_error: float | None = None,
+        engine: str = "bvh",
+        method: str | None = None,
+        leaf_size: int | None = None,
+    ) -> tuple[np.ndarray, dict[str, str]]:
+        """`POST /v1/scenes/{id}/ao`: one float32 AO value per ray, and the headers.
+
+        `distance` None lets the service choose; `method`/`leaf_size` pick the BVH.
+        """
+        params: dict[str, Any] = {"rays": len(ray_body) // 24, "spp": int(spp), "seed": int(seed)}
+        if distance:
+            params["distance"] = repr(float(distance))
+        if target_error:
+            params["target_error"] = repr(float(target_error))
+        if engine != "bvh":
+            params["engine"] = engine
+        if method is not None:
+            params["method"] = method
+        if leaf_size is not None:
+            params["leaf_size"] = int(leaf_size)
+        query = urllib.parse.urlencode(params)
+        _, headers, data = self._request(
+            "POST",
+            f"/v1/scenes/{scene_id}/ao?{query}",
+            ray_body,
+            "application/octet-stream",
+            WORK_TIMEOUT_S,
+        )
+        if len(data) != 4 * params["rays"]:
+            raise ServiceError(
+                f"The service sent {len(data)} bytes for {params['rays']} rays; expected "
+                f"{4 * params['rays']}"
+            )
+        return np.frombuffer(data, dtype="<f4").astype(np.float32), headers
+
+    # --- jobs: long renders from a camera description, with progress and cancel ---
+
+    def create_job(self, payload: dict[str, Any]) -> dict:
+        """`POST /v1/jobs`: queue an AO render of a camera (see camera.camera_dict)."""
+        return self._json("POST", "/v1/jobs", payload, timeout=UPLOAD_TIMEOUT_S)
+
+    def job_status(self, job_id: str) -> dict:
+        """`GET /v1/jobs/{id}`: state, phase, progress (0..1), timings."""
+        return self._json("GET", f"/v1/jobs/{job_id}", timeout=UPLOAD_TIMEOUT_S)
+
+    def cancel_job(self, job_id: str) -> dict:
+        """`DELETE /v1/jobs/{id}`: the service stops the job at its next step."""
+        return self._json("DELETE", f"/v1/jobs/{job_id}", timeout=UPLOAD_TIMEOUT_S)
+
+    def job_result(self, job_id: str) -> np.ndarray:
+        """`GET /v1/jobs/{id}/result?format=f32`: height*width float32, row 0 at the top."""
+        _, _, data = self._request(
+            "GET", f"/v1/jobs/{job_id}/result?format=f32", timeout=UPLOAD_TIMEOUT_S
+        )
+        return np.frombuffer(data, dtype="<f4").astype(np.float32)

@@ -1,0 +1,158 @@
+"""The steps of Build BVH and Render AO: upload only when needed, build, render.
+
+Runs inside a `Task` (main thread or worker): inputs are plain snapshots taken from
+Blender beforehand, outputs are plain dicts and arrays applied afterwards.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from .client import Client, ServiceError
+from .client import scene_id as content_id
+from .export import SceneMesh
+from .tasks import Task
+
+
+@dataclass(frozen=True)
+class Settings:
+    """A snapshot of `scene.scenesort`, safe to read off the main thread."""
+
+    server_url: str
+    method: str
+    leaf_size: int
+    spp: int
+    target_error: float
+    ao_distance: float
+    seed: int
+    engine: str
+
+    @classmethod
+    def from_scene(cls, props: Any) -> Settings:
+        return cls(
+            server_url=props.server_url,
+            method=props.method,
+            leaf_size=int(props.leaf_size),
+            spp=int(props.spp),
+            target_error=float(props.target_error),
+            ao_distance=float(props.ao_distance),
+            seed=int(props.seed),
+            engine=props.engine,
+        )
+
+
+@dataclass
+class Outcome:
+    """What the service did: upload size, the build answer, the AO image."""
+
+    scene_id: str = ""
+    uploaded_bytes: int = 0
+    build: dict | None = None
+    ao: np.ndarray | None = None
+    render_ms: float = 0.0
+    requests: list[str] = field(default_factory=list)
+
+
+def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) -> str:
+    """The scene id on the service, uploading the scene only if the service lacks it."""
+    if mesh.triangles == 0:
+        raise ServiceError(
+            "The scene has no visible, renderable mesh triangles to send: "
+            "unhide an object or enable it for rendering"
+        )
+    task.set_step("hashing the scene")
+    body = mesh.body()
+    scene_id = content_id(len(mesh.vertices), mesh.triangles, body)
+    task.set_step("checking the service's scene cache")
+    if not client.has_scene(scene_id):
+        task.set_step(f"uploading {mesh.triangles:,} triangles ({len(body) / 1e6:.1f} MB)")
+        answer = client.upload_scene(len(mesh.vertices), mesh.triangles, body)
+        outcome.uploaded_bytes = len(body)
+        if answer.get("scene_id", scene_id) != scene_id:
+            # Not fatal: use the service's id, but the next render will upload again.
+            scene_id = answer["scene_id"]
+    outcome.scene_id = scene_id
+    return scene_id
+
+
+def build(task: Task, settings: Settings, mesh: SceneMesh) -> Outcome:
+    """Make sure the scene is on the service and build (or reuse) its BVH."""
+    client = Client(settings.server_url)
+    outcome = Outcome()
+    scene_id = ensure_scene(task, client, mesh, outcome)
+    task.set_step(f"building the BVH ({settings.method}, leaf size {settings.leaf_size})")
+    outcome.build = client.build_bvh(scene_id, settings.method, settings.leaf_size)
+    outcome.requests = client.requests
+    return outcome
+
+
+JOB_POLL_S = 0.25
+
+
+def render_job(task: Task, settings: Settings, mesh: SceneMesh, camera: dict) -> Outcome:
+    """Like `render`, as a service job: real progress, and Esc cancels it on the service."""
+    client = Client(settings.server_url)
+    outcome = Outcome()
+    scene_id = ensure_scene(task, client, mesh, outcome)
+    if settings.engine == "bvh":
+        task.set_step(f"building the BVH ({settings.method}, leaf size {settings.leaf_size})")
+        outcome.build = client.build_bvh(scene_id, settings.method, settings.leaf_size)
+    payload = {
+        "scene_id": scene_id,
+        "camera": camera,
+        "spp": settings.spp,
+        "seed": settings.seed,
+        "engine": settings.engine,
+        "method": settings.method,
+        "leaf_size": settings.leaf_size,
+    }
+    if settings.ao_distance:
+        payload["distance"] = settings.ao_distance
+    if settings.target_error:
+        payload["target_error"] = settings.target_error
+    start = time.perf_counter()
+    job = client.create_job(payload)
+    while job["state"] in {"queued", "running"}:
+        if task.cancelled:
+            client.cancel_job(job["job_id"])
+        task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * job['progress']:.0f}%")
+        time.sleep(JOB_POLL_S)
+        job = client.job_status(job["job_id"])
+    if job["state"] != "done":
+        raise ServiceError(
+            f"The render job {job['state']}: {job.get('error') or 'no reason given'}"
+        )
+    outcome.ao = client.job_result(job["job_id"])
+    outcome.render_ms = (time.perf_counter() - start) * 1e3
+    outcome.requests = client.requests
+    return outcome
+
+
+def render(task: Task, settings: Settings, mesh: SceneMesh, ray_body: bytes) -> Outcome:
+    """Scene, BVH (for the BVH engine), then one AO value per camera ray."""
+    client = Client(settings.server_url)
+    outcome = Outcome()
+    scene_id = ensure_scene(task, client, mesh, outcome)
+    if settings.engine == "bvh":
+        task.set_step(f"building the BVH ({settings.method}, leaf size {settings.leaf_size})")
+        outcome.build = client.build_bvh(scene_id, settings.method, settings.leaf_size)
+    task.set_step(f"rendering AO ({len(ray_body) // 24:,} rays, {settings.spp} spp)")
+    start = time.perf_counter()
+    outcome.ao, _ = client.ambient_occlusion(
+        scene_id,
+        ray_body,
+        spp=settings.spp,
+        distance=settings.ao_distance,
+        seed=settings.seed,
+        target_error=settings.target_error or None,
+        engine=settings.engine,
+        method=settings.method if settings.engine == "bvh" else None,
+        leaf_size=settings.leaf_size if settings.engine == "bvh" else None,
+    )
+    outcome.render_ms = (time.perf_counter() - start) * 1e3
+    outcome.requests = client.requests
+    return outcome

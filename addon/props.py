@@ -1,0 +1,137 @@
+"""Settings (saved with the scene) and runtime status (never saved) of the add-on."""
+
+from __future__ import annotations
+
+import bpy
+from bpy.props import (
+    BoolProperty,
+    CollectionProperty,
+    EnumProperty,
+    FloatProperty,
+    IntProperty,
+    PointerProperty,
+    StringProperty,
+)
+
+HISTORY_LENGTH = 8  # earlier builds kept for comparison in the panel
+DEFAULT_URL = "http://127.0.0.1:8765"
+
+
+class SCENESORT_PG_phase(bpy.types.PropertyGroup):
+    """One named phase of a BVH build and its time."""
+
+    name: StringProperty(name="Phase")  # type: ignore[valid-type]
+    ms: FloatProperty(name="Milliseconds")  # type: ignore[valid-type]
+
+
+class SCENESORT_PG_build(bpy.types.PropertyGroup):
+    """One earlier build, for the history table."""
+
+    method: StringProperty(name="Method")  # type: ignore[valid-type]
+    leaf_size: IntProperty(name="Leaf size")  # type: ignore[valid-type]
+    triangles: IntProperty(name="Triangles")  # type: ignore[valid-type]
+    total_ms: FloatProperty(name="Total ms")  # type: ignore[valid-type]
+
+
+class SCENESORT_PG_settings(bpy.types.PropertyGroup):
+    """`scene.scenesort`: what to build and render, and the last build's timings."""
+
+    server_url: StringProperty(  # type: ignore[valid-type]
+        name="Service URL",
+        description="Base URL of the scenesort service (the local one by default)",
+        default=DEFAULT_URL,
+    )
+    method: EnumProperty(  # type: ignore[valid-type]
+        name="BVH method",
+        items=[
+            ("sah", "SAH", "32-bin surface area heuristic: slower build, faster rays"),
+            ("median", "Median", "Spatial median split: fastest build"),
+        ],
+        default="sah",
+    )
+    leaf_size: IntProperty(  # type: ignore[valid-type]
+        name="Leaf size",
+        description="Most triangles in one BVH leaf (the papers use 8, 16 or 32)",
+        default=8,
+        min=1,
+        max=64,
+    )
+    spp: IntProperty(  # type: ignore[valid-type]
+        name="Samples",
+        description="AO rays per pixel (the most per pixel when a target error is set)",
+        default=16,
+        min=1,
+        max=4096,
+    )
+    target_error: FloatProperty(  # type: ignore[valid-type]
+        name="Target error",
+        description="Stop sampling a pixel once its standard error is below this (0: off)",
+        default=0.0,
+        min=0.0,
+        max=0.99,
+        precision=4,
+    )
+    ao_distance: FloatProperty(  # type: ignore[valid-type]
+        name="AO distance",
+        description=(
+            "Occluders farther than this from the shaded point are ignored "
+            "(0: the service picks a distance from the scene's size)"
+        ),
+        default=1.0,
+        min=0.0,
+        soft_max=100.0,
+        subtype="DISTANCE",
+    )
+    seed: IntProperty(name="Seed", description="Random seed of the AO samples", default=0, min=0)  # type: ignore[valid-type]
+    engine: EnumProperty(  # type: ignore[valid-type]
+        name="Engine",
+        items=[
+            ("bvh", "BVH", "Trace AO rays through the built BVH"),
+            ("dacrt", "DACRT", "Divide-and-conquer ray tracing (no BVH needed)"),
+        ],
+        default="bvh",
+    )
+    # The last build, filled by scenesort.build_bvh and scenesort.render_ao.
+    has_build: BoolProperty(default=False)  # type: ignore[valid-type]
+    build_total_ms: FloatProperty(name="Total ms")  # type: ignore[valid-type]
+    build_cached: BoolProperty(name="Cached")  # type: ignore[valid-type]
+    build_method: StringProperty(name="Method")  # type: ignore[valid-type]
+    build_leaf_size: IntProperty(name="Leaf size")  # type: ignore[valid-type]
+    build_triangles: IntProperty(name="Triangles")  # type: ignore[valid-type]
+    build_nodes: IntProperty(name="Nodes")  # type: ignore[valid-type]
+    build_sah_cost: FloatProperty(name="SAH cost")  # type: ignore[valid-type]
+    build_mtris_per_s: FloatProperty(name="MTris/s")  # type: ignore[valid-type]
+    build_phases: CollectionProperty(type=SCENESORT_PG_phase)  # type: ignore[valid-type]
+    build_history: CollectionProperty(type=SCENESORT_PG_build)  # type: ignore[valid-type]
+
+
+class SCENESORT_PG_status(bpy.types.PropertyGroup):
+    """`window_manager.scenesort`: runtime state; not saved, so errors never touch the scene."""
+
+    connected: BoolProperty(default=False)  # type: ignore[valid-type]
+    version: StringProperty()  # type: ignore[valid-type]
+    device: StringProperty()  # type: ignore[valid-type]
+    message: StringProperty()  # type: ignore[valid-type]
+    error: StringProperty()  # type: ignore[valid-type]
+    busy: BoolProperty(default=False)  # type: ignore[valid-type]
+    progress: StringProperty()  # type: ignore[valid-type]
+    last_render_ms: FloatProperty()  # type: ignore[valid-type]
+    last_upload_bytes: IntProperty()  # type: ignore[valid-type]
+    renders: IntProperty()  # type: ignore[valid-type]
+
+
+CLASSES = (SCENESORT_PG_phase, SCENESORT_PG_build, SCENESORT_PG_settings, SCENESORT_PG_status)
+
+
+def register() -> None:
+    for cls in CLASSES:
+        bpy.utils.register_class(cls)
+    bpy.types.Scene.scenesort = PointerProperty(type=SCENESORT_PG_settings)
+    bpy.types.WindowManager.scenesort = PointerProperty(type=SCENESORT_PG_status)
+
+
+def unregister() -> None:
+    del bpy.types.WindowManager.scenesort
+    del bpy.types.Scene.scenesort
+    for cls in reversed(CLASSES):
+        bpy.utils.unregister_class(cls)

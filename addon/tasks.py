@@ -1,0 +1,62 @@
+"""Work that runs to completion on the main thread (execute) or on a worker thread (invoke).
+
+Blender data is read before the task starts and written after it ends, always on
+the main thread; the task body only does HTTP and numpy, so it is safe in a thread.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Callable
+from typing import Any
+
+
+class Cancelled(Exception):
+    """The user pressed Esc; the task stopped at its next step."""
+
+
+class Task:
+    """One unit of work with a progress line and cooperative cancelling between steps."""
+
+    def __init__(self, body: Callable[[Task], Any]) -> None:
+        self._body = body
+        self._cancel = threading.Event()
+        self._thread: threading.Thread | None = None
+        self.step = "starting"
+        self.steps: list[str] = []  # every step so far, oldest first
+        self.result: Any = None
+        self.error: BaseException | None = None
+
+    def set_step(self, text: str) -> None:
+        """Name the current step (shown in the status bar); stop here if cancelled."""
+        if self._cancel.is_set():
+            raise Cancelled()
+        self.step = text
+        self.steps.append(text)
+
+    def cancel(self) -> None:
+        self._cancel.set()
+
+    @property
+    def cancelled(self) -> bool:
+        return self._cancel.is_set()
+
+    def run(self) -> Any:
+        """Run in the calling thread; exceptions propagate."""
+        self.result = self._body(self)
+        return self.result
+
+    def _run_caught(self) -> None:
+        try:
+            self.run()
+        except BaseException as exc:  # handed to the main thread, which reports it
+            self.error = exc
+
+    def start(self) -> None:
+        """Run on a daemon thread: a hung request must not keep Blender from quitting."""
+        self._thread = threading.Thread(target=self._run_caught, name="scenesort", daemon=True)
+        self._thread.start()
+
+    @property
+    def done(self) -> bool:
+        return self._thread is not None and not self._thread.is_alive()

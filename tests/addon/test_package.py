@@ -1,0 +1,106 @@
+"""The extension manifest, `scenesort addon-zip`, and the zip installing as a package."""
+
+from __future__ import annotations
+
+import importlib
+import re
+import subprocess
+import sys
+import tomllib
+import zipfile
+from pathlib import Path
+
+import bpy
+import pytest
+from conftest import REPO
+
+from backend import addon_zip
+
+ADDON = REPO / "addon"
+# Blender's own extension validator, shipped inside the bpy wheel.
+BLENDER_EXT = Path(bpy.utils.system_resource("SCRIPTS")) / "addons_core/bl_pkg/cli/blender_ext.py"
+
+
+def _manifest() -> dict:
+    return tomllib.loads((ADDON / "blender_manifest.toml").read_text(encoding="utf-8"))
+
+
+def test_manifest_has_the_required_fields() -> None:
+    m = _manifest()
+    assert m["schema_version"] == "1.0.0"
+    assert m["id"] == "scenesort" and m["type"] == "add-on"
+    assert m["blender_version_min"] == "4.2.0"
+    assert m["license"] == ["SPDX:MIT"]
+    for key in ("version", "name", "tagline", "maintainer"):
+        assert isinstance(m[key], str) and m[key], key
+    assert len(m["tagline"]) <= 64 and not m["tagline"].endswith((".", "!", "?"))
+    assert "local scenesort service" in m["permissions"]["network"]
+
+
+def test_no_bl_info_and_relative_imports_only() -> None:
+    for path in ADDON.glob("*.py"):
+        text = path.read_text(encoding="utf-8")
+        assert re.search(r"^bl_info\s*=", text, re.MULTILINE) is None, path.name
+        for line in text.splitlines():
+            stripped = line.strip()
+            # Absolute imports of our own modules would break inside bl_ext.<repo>.scenesort.
+            assert not stripped.startswith(("from addon", "import addon")), (path.name, line)
+
+
+@pytest.fixture(scope="module")
+def built_zip(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("zip") / "scenesort.zip"
+    proc = subprocess.run(
+        [sys.executable, "-m", "backend.cli", "addon-zip", "--output", str(out)],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == str(out)
+    return out
+
+
+def test_zip_contents(built_zip: Path) -> None:
+    names = set(zipfile.ZipFile(built_zip).namelist())
+    expected = {p.name for p in ADDON.glob("*.py")} | {"blender_manifest.toml"}
+    assert names == expected
+    assert "__init__.py" in names and not any("__pycache__" in n for n in names)
+
+
+def test_zip_is_reproducible(built_zip: Path, tmp_path: Path) -> None:
+    again = addon_zip.build_zip(ADDON, tmp_path / "again.zip")
+    assert again.read_bytes() == built_zip.read_bytes()
+
+
+def test_blenders_validator_accepts_the_zip(built_zip: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, str(BLENDER_EXT), "validate", str(built_zip)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+
+
+def test_zip_registers_as_its_own_package(built_zip: Path, tmp_path: Path) -> None:
+    """Unpacked under another package name (as Blender does: bl_ext.<repo>.scenesort)."""
+    target = tmp_path / "pkgs" / "scenesort_unzipped"
+    zipfile.ZipFile(built_zip).extractall(target)
+    sys.path.insert(0, str(target.parent))
+    try:
+        module = importlib.import_module("scenesort_unzipped")
+        bpy.ops.wm.read_factory_settings(use_empty=True)
+        module.register()
+        try:
+            assert bpy.context.scene.scenesort.server_url.startswith("http://127.0.0.1")
+        finally:
+            module.unregister()
+    finally:
+        sys.path.remove(str(target.parent))
+        for name in [n for n in sys.modules if n.split(".")[0] == "scenesort_unzipped"]:
+            del sys.modules[name]
+
+
+def test_missing_source_fails_with_a_message(tmp_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "backend.cli", "addon-zip", "--source", str(tmp_path)],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 1 and "no blender_manifest.toml" in proc.stderr

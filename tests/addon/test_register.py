@@ -1,0 +1,64 @@
+"""The add-on registers and unregisters cleanly, twice, and never pulls in the engine."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import bpy
+from conftest import REPO
+
+import addon
+
+OPERATORS = ("server_start", "server_stop", "server_status", "build_bvh", "render_ao")
+SETTINGS = ("server_url", "method", "leaf_size", "spp", "target_error", "ao_distance", "engine")
+
+
+def _registered() -> bool:
+    return hasattr(bpy.types.Scene, "scenesort")
+
+
+def test_register_unregister_twice() -> None:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    for _ in range(2):
+        addon.register()
+        assert _registered()
+        scene = bpy.context.scene
+        for name in SETTINGS:
+            assert hasattr(scene.scenesort, name), name
+        assert scene.scenesort.server_url == "http://127.0.0.1:8765"
+        assert scene.scenesort.method == "sah" and scene.scenesort.leaf_size == 8
+        for name in OPERATORS:
+            # `get_rna_type` fails for an operator that is not registered.
+            assert getattr(bpy.ops.scenesort, name).get_rna_type().identifier
+        assert hasattr(bpy.types, "SCENESORT_PT_render")
+        assert hasattr(bpy.types, "SCENESORT_PT_view3d")
+        assert hasattr(bpy.context.window_manager, "scenesort")
+        addon.unregister()
+        assert not _registered()
+        assert not hasattr(bpy.types, "SCENESORT_PT_render")
+        assert not hasattr(bpy.types.WindowManager, "scenesort")
+
+
+def test_settings_survive_with_defaults_documented(registered: bpy.types.Scene) -> None:
+    """Enum items are the names the service accepts."""
+    props = registered.scenesort
+    rna = props.bl_rna.properties
+    assert {i.identifier for i in rna["method"].enum_items} == {"sah", "median"}
+    assert {i.identifier for i in rna["engine"].enum_items} == {"bvh", "dacrt"}
+    assert rna["leaf_size"].hard_min == 1 and rna["leaf_size"].hard_max == 64
+    assert rna["spp"].hard_max == 4096  # the service's limit
+
+
+def test_addon_imports_neither_warp_nor_the_project() -> None:
+    """Inside Blender only the standard library and numpy exist: check in a clean process."""
+    code = (
+        "import sys, bpy, addon; addon.register(); addon.unregister();"
+        "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
+        "{'warp', 'kernels', 'backend', 'fastapi', 'httpx', 'uvicorn', 'requests'});"
+        "print('BAD', bad); sys.exit(1 if bad else 0)"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]

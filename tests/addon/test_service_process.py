@@ -1,0 +1,76 @@
+"""The child service never outlives Blender: stop(), normal exit, and a crash."""
+
+from __future__ import annotations
+
+import os
+import shlex
+import subprocess
+import sys
+import time
+
+import pytest
+from conftest import REPO
+
+from addon import service
+
+# Stands in for `scenesort serve`: sleeps (bounded) whatever arguments it gets.
+SLEEPER = shlex.join([sys.executable, "-c", "import time; time.sleep(60)"])
+
+
+def _alive(pid: int) -> bool:
+    """Whether `pid` runs (a zombie counts as gone)."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().split(") ")[-1][0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def _wait_gone(pid: int, seconds: float = 10.0) -> bool:
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        if not _alive(pid):
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_command_line_appends_serve_and_address() -> None:
+    argv = service.command_line(SLEEPER, "127.0.0.1", 9999)
+    assert argv[0] == sys.executable
+    assert argv[-5:] == ["serve", "--host", "127.0.0.1", "--port", "9999"]
+    with pytest.raises(service.LaunchError, match="was not found"):
+        service.command_line("no-such-program-scenesort", "127.0.0.1", 1)
+    assert service.host_port("http://localhost:1234/") == ("127.0.0.1", 1234)
+    assert service.host_port("http://127.0.0.1") == ("127.0.0.1", 8765)
+
+
+def test_stop_ends_the_child() -> None:
+    proc = service.start(SLEEPER, "http://127.0.0.1:1")
+    try:
+        assert service.running() and _alive(proc.pid)
+        assert service.start(SLEEPER, "http://127.0.0.1:1") is proc  # no second child
+    finally:
+        assert service.stop()
+    assert proc.poll() is not None and not service.running()
+    assert not service.stop()  # nothing left to stop
+
+
+@pytest.mark.parametrize("ending", ["normal_exit", "killed"])
+def test_child_dies_with_its_parent(ending: str) -> None:
+    """A Blender that exits (atexit) or is killed (no cleanup at all) takes the child along."""
+    exit_code = "sys.exit(0)" if ending == "normal_exit" else "os.kill(os.getpid(), 9)"
+    code = (
+        "import os, sys; from addon import service;"
+        f"p = service.start({SLEEPER!r}, 'http://127.0.0.1:1');"
+        f"print(p.pid, flush=True); {exit_code}"
+    )
+    parent = subprocess.run(
+        [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60
+    )
+    child = int(parent.stdout.split()[0])
+    try:
+        assert _wait_gone(child), f"service child {child} outlived its parent ({ending})"
+    finally:
+        if _alive(child):
+            os.kill(child, 9)
