@@ -97,25 +97,26 @@ def build_bvh(
     v_wp = wp.array(vertices, dtype=wp.vec3, device=device)
     f_wp = wp.array(indices, dtype=wp.vec3i, device=device)
     b = bb.BuildData()
-    b.tri_lo, b.tri_hi, b.centroid = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(3))
+    lo, hi, centroid = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(3))
     valid = wp.empty(m, dtype=int, device=device)
     inf = np.float32(np.inf)
     bounds = wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
                       dtype=wp.vec3, device=device)
     wp.launch(bb.triangle_boxes, dim=m,
-              inputs=[v_wp, f_wp, b.tri_lo, b.tri_hi, b.centroid, valid, bounds], device=device)
+              inputs=[v_wp, f_wp, lo, hi, centroid, valid, bounds], device=device)
     offsets = wp.empty(m, dtype=int, device=device)
     if m:
         wp.utils.array_scan(valid, offsets, inclusive=False)
     n = int(offsets.numpy()[-1] + valid.numpy()[-1]) if m else 0
-    ids_wp = wp.empty(max(n, 1), dtype=int, device=device)
-    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, ids_wp], device=device)
     box = bounds.numpy()
 
     capacity = pool_capacity or (256 * workers if device.is_cpu else max(4096, 2 * n // leaf_size))
-    b.perm = ids_wp
-    b.swap_id, b.swap_pos, b.scan = (wp.empty(max(n, 1), dtype=int, device=device)
-                                     for _ in range(3))
+    b.perm, b.swap_id, b.swap_pos, b.scan = (
+        wp.empty(max(n, 1), dtype=int, device=device) for _ in range(4)
+    )
+    b.tri_lo, b.tri_hi, b.centroid, b.swap_lo, b.swap_hi, b.swap_c = (
+        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(6)
+    )
     b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
     b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
         wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
@@ -131,6 +132,8 @@ def build_bvh(
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)
     pool = make_pool(capacity, workers, int(min_chunks), device)
+    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, centroid, b],
+              device=device)
     wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
     phase_ms["prepare"] = _sync_ms(device, t0)
 
@@ -149,12 +152,12 @@ def build_bvh(
     t0 = time.perf_counter()
     node_count, depth = (int(x) for x in b.counters.numpy())
     tri_verts = wp.empty(max(3 * n, 1), dtype=wp.vec3, device=device)
-    wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, ids_wp, tri_verts],
+    wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, b.perm, tri_verts],
               device=device)
     arrays = BvhArrays()
     arrays.nodes = b.nodes if n > 0 else _empty_root(device)
     arrays.tri_verts = tri_verts
-    arrays.tri_ids = ids_wp if n > 0 else wp.empty(0, dtype=int, device=device)
+    arrays.tri_ids = b.perm if n > 0 else wp.empty(0, dtype=int, device=device)
     phase_ms["reorder"] = _sync_ms(device, t0)
     total_ms = (time.perf_counter() - t_total) * 1e3
 

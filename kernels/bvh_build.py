@@ -98,11 +98,14 @@ class BuildTask:
 
 @wp.struct
 class BuildData:
-    tri_lo: wp.array(dtype=wp.vec3)  # per triangle id
-    tri_hi: wp.array(dtype=wp.vec3)
-    centroid: wp.array(dtype=wp.vec3)
     perm: wp.array(dtype=int)  # the index array: triangle ids, in leaf order when done
-    swap_id: wp.array(dtype=int)  # Swap's separate index array ...
+    tri_lo: wp.array(dtype=wp.vec3)  # each position's triangle box and centroid: they move
+    tri_hi: wp.array(dtype=wp.vec3)  # with `perm`, so every phase reads memory in order
+    centroid: wp.array(dtype=wp.vec3)  # instead of gathering by triangle id
+    swap_id: wp.array(dtype=int)  # Swap's separate index array (with the same payload) ...
+    swap_lo: wp.array(dtype=wp.vec3)
+    swap_hi: wp.array(dtype=wp.vec3)
+    swap_c: wp.array(dtype=wp.vec3)
     swap_pos: wp.array(dtype=int)  # ... and where each of its entries came from
     mark: wp.array(dtype=wp.int8)  # 1 = right of the plane, per index-array position
     scan: wp.array(dtype=int)  # PPS levels, stored inside each task's own range
@@ -196,9 +199,9 @@ def bin_of(c: float, lo: float, scale: float) -> int:
 
 
 @wp.func
-def goes_right(b: BuildData, t: BuildTask, scale: float, tri: int) -> bool:
+def goes_right(b: BuildData, t: BuildTask, scale: float, i: int) -> bool:
     """Marked 1 in PPS: right of the SAH plane (`scale` from bin_scale) or the median."""
-    c = b.centroid[tri][t.axis]
+    c = b.centroid[i][t.axis]
     if b.method == METHOD_SAH:
         return bin_of(c, t.lo[t.axis], scale) > t.split_bin
     return c > t.split
@@ -217,10 +220,9 @@ def split_plane_chunk(b: BuildData, t: BuildTask, bin_slot: int, chunk: int):
     scale = bin_scale(t.lo, t.hi)
     base = bin_slot * BIN_SLOTS
     for i in range(first, last):
-        tri = b.perm[i]
-        c = b.centroid[tri]
-        lo = b.tri_lo[tri]
-        hi = b.tri_hi[tri]
+        c = b.centroid[i]
+        lo = b.tri_lo[i]
+        hi = b.tri_hi[i]
         for axis in range(3):
             k = base + axis * BINS + bin_of(c[axis], t.lo[axis], scale[axis])
             wp.atomic_add(b.bin_count, k, 1)
@@ -320,7 +322,7 @@ def pps_up_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
         scale = bin_scale(t.lo, t.hi)[t.axis]
         for i in range(first, last):
             right = int(0)
-            if goes_right(b, t, scale, b.perm[i]):
+            if goes_right(b, t, scale, i):
                 right = 1
             b.mark[i] = wp.int8(right)
             total += right
@@ -377,9 +379,13 @@ def swap_gather_chunk(b: BuildData, t: BuildTask, chunk: int):
         if b.mark[t.start + k] != wp.int8(0):
             ones += 1
         elif k >= t.pivot:
-            r = (k - ones) - zeros_left
-            b.swap_id[t.start + r] = b.perm[t.start + k]
-            b.swap_pos[t.start + r] = t.start + k
+            r = t.start + (k - ones) - zeros_left
+            i = t.start + k
+            b.swap_id[r] = b.perm[i]
+            b.swap_lo[r] = b.tri_lo[i]
+            b.swap_hi[r] = b.tri_hi[i]
+            b.swap_c[r] = b.centroid[i]
+            b.swap_pos[r] = i
 
 
 @wp.func
@@ -391,9 +397,17 @@ def swap_exchange_chunk(b: BuildData, t: BuildTask, chunk: int):
     last = wp.min(first + CHUNK, t.pivot)
     for k in range(first, last):
         if b.mark[t.start + k] != wp.int8(0):
-            tri = b.perm[t.start + k]
-            b.perm[t.start + k] = b.swap_id[t.start + ones]
-            b.perm[b.swap_pos[t.start + ones]] = tri
+            i = t.start + k
+            r = t.start + ones
+            j = b.swap_pos[r]
+            b.perm[j] = b.perm[i]
+            b.tri_lo[j] = b.tri_lo[i]
+            b.tri_hi[j] = b.tri_hi[i]
+            b.centroid[j] = b.centroid[i]
+            b.perm[i] = b.swap_id[r]
+            b.tri_lo[i] = b.swap_lo[r]
+            b.tri_hi[i] = b.swap_hi[r]
+            b.centroid[i] = b.swap_c[r]
             ones += 1
 
 
@@ -420,11 +434,10 @@ def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
         first = base + c * CHUNK
         last = wp.min(first + CHUNK, base + n)
         for i in range(first, last):
-            tri = b.perm[i]
-            lo = wp.min(lo, b.tri_lo[tri])
-            hi = wp.max(hi, b.tri_hi[tri])
-            clo = wp.min(clo, b.centroid[tri])
-            chi = wp.max(chi, b.centroid[tri])
+            lo = wp.min(lo, b.tri_lo[i])
+            hi = wp.max(hi, b.tri_hi[i])
+            clo = wp.min(clo, b.centroid[i])
+            chi = wp.max(chi, b.centroid[i])
     else:
         src = level_base(base, n, level - 1)
         first = src + c * CHUNK
@@ -769,11 +782,22 @@ def triangle_boxes(
 
 
 @wp.kernel
-def compact_valid(valid: wp.array(dtype=int), offsets: wp.array(dtype=int),
-                  ids: wp.array(dtype=int)):
+def compact_valid(
+    valid: wp.array(dtype=int),
+    offsets: wp.array(dtype=int),
+    lo: wp.array(dtype=wp.vec3),
+    hi: wp.array(dtype=wp.vec3),
+    centroid: wp.array(dtype=wp.vec3),
+    b: BuildData,
+):
+    """The initial index array: the valid triangles in order, with their boxes."""
     i = wp.tid()
     if valid[i] != 0:
-        ids[offsets[i]] = i
+        k = offsets[i]
+        b.perm[k] = i
+        b.tri_lo[k] = lo[i]
+        b.tri_hi[k] = hi[i]
+        b.centroid[k] = centroid[i]
 
 
 @wp.kernel
