@@ -228,29 +228,33 @@ def trace(
     launching its share: a Warp CPU launch runs on one thread."""
     origins, directions = as_rays(origins, directions)
     r = len(origins)
-    tmin_a = per_ray(tmin, r, "tmin")
-    tmax_a = per_ray(tmax, r, "tmax")
+    tmin_a = per_ray(tmin, r, "tmin", keep_scalar=True)
+    tmax_a = per_ray(tmax, r, "tmax", keep_scalar=True)
     if np.any(tmax_a < tmin_a):
         raise ValueError("tmax must be >= tmin for every ray")
     device = bvh.device
-    o = wp.array(origins, dtype=wp.vec3, device=device)
-    d = wp.array(directions, dtype=wp.vec3, device=device)
-    lo = wp.array(tmin_a, dtype=float, device=device)
-    hi = wp.array(tmax_a, dtype=float, device=device)
-    out = [wp.empty(r, dtype=dt, device=device) for dt in (float, int, float, float)]
-    launch_split(
-        trace_kernel, r, [bvh.arrays], [o, d, lo, hi], [int(any_hit)], out, device,
-        _threads(device, threads),
-    )
-    t, tri, u, v = (a.numpy() for a in out)
-    return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
+    t, tri, u, v = (np.empty(r, dt) for dt in (np.float32, np.int32, np.float32, np.float32))
+    outputs = [to_device(x, dt, device) for x, dt in ((t, float), (tri, int), (u, float),
+                                                       (v, float))]
+    inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
+              to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
+    launch_split(trace_kernel, r, [bvh.arrays], inputs, [int(any_hit)], outputs, device,
+                 _threads(device, threads))
+    if not device.is_cpu:
+        t, tri, u, v = (a.numpy() for a in outputs)
+    return Hits(t=t, triangle=tri, u=u, v=v)
+
+
+def to_device(a: np.ndarray, dtype, device) -> wp.array:
+    """A Warp view of a contiguous numpy array on CPU (no copy), a copy elsewhere."""
+    return wp.array(a, dtype=dtype, device=device, copy=not device.is_cpu)
 
 
 def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, outputs: list,
                  device, threads: int) -> None:
     """Launch `kernel` over n items, split into contiguous parts run by `threads` host
-    threads (only on CPU, where a launch is serial). Every array in `per_item` and
-    `outputs` is indexed by item and sliced per part."""
+    threads (only on CPU, where a launch is serial). Arrays in `per_item` and `outputs`
+    of length n are sliced per part; shorter ones (a broadcast scalar) are passed whole."""
     if n == 0:
         return
     parts = min(threads, max(1, n // 4096))
@@ -261,10 +265,14 @@ def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, ou
     wp.load_module(kernel.module, device=device)  # compile once, not in every thread
     bounds = np.linspace(0, n, parts + 1).astype(int)
 
+    def part(x: wp.array, a: int, b: int) -> wp.array:
+        return x[a:b] if x.shape[0] == n else x
+
     def run(k: int) -> None:
         a, b = int(bounds[k]), int(bounds[k + 1])
-        wp.launch(kernel, dim=b - a, inputs=[*shared, *(x[a:b] for x in per_item), *scalars],
-                  outputs=[x[a:b] for x in outputs], device=device)
+        wp.launch(kernel, dim=b - a, inputs=[*shared, *(part(x, a, b) for x in per_item),
+                                             *scalars],
+                  outputs=[part(x, a, b) for x in outputs], device=device)
 
     with ThreadPoolExecutor(parts) as ex:
         list(ex.map(run, range(parts)))

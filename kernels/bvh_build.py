@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .geometry import INF
+from .geometry import INF, max3, min3
 from .pool import (
     Pool,
     cycles,
@@ -177,7 +177,7 @@ def longest_axis(lo: wp.vec3, hi: wp.vec3) -> int:
 
 @wp.func
 def half_area(lo: wp.vec3, hi: wp.vec3) -> float:
-    e = wp.max(hi - lo, wp.vec3(0.0))
+    e = max3(hi - lo, wp.vec3(0.0))
     return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
 
 
@@ -225,9 +225,9 @@ def split_plane_chunk(b: BuildData, t: BuildTask, bin_slot: int, chunk: int):
         hi = b.tri_hi[i]
         for axis in range(3):
             k = base + axis * BINS + bin_of(c[axis], t.lo[axis], scale[axis])
-            wp.atomic_add(b.bin_count, k, 1)
-            wp.atomic_min(b.bin_lo, k, lo)
-            wp.atomic_max(b.bin_hi, k, hi)
+            b.bin_count[k] = b.bin_count[k] + 1
+            b.bin_lo[k] = min3(b.bin_lo[k], lo)
+            b.bin_hi[k] = max3(b.bin_hi[k], hi)
 
 
 @wp.func
@@ -266,8 +266,8 @@ def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
         hi = wp.vec3(-INF)
         for k in range(BINS - 1, 0, -1):  # right_area[k]: bins k.. BINS-1
             if b.bin_count[a + k] > 0:
-                lo = wp.min(lo, b.bin_lo[a + k])
-                hi = wp.max(hi, b.bin_hi[a + k])
+                lo = min3(lo, b.bin_lo[a + k])
+                hi = max3(hi, b.bin_hi[a + k])
             right_area[k] = half_area(lo, hi)
         lo = wp.vec3(INF)
         hi = wp.vec3(-INF)
@@ -276,8 +276,8 @@ def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
             n = b.bin_count[a + k]
             if n > 0:
                 n_left += n
-                lo = wp.min(lo, b.bin_lo[a + k])
-                hi = wp.max(hi, b.bin_hi[a + k])
+                lo = min3(lo, b.bin_lo[a + k])
+                hi = max3(hi, b.bin_hi[a + k])
             n_right = t.count - n_left
             if n_left > 0 and n_right > 0:
                 cost = float(n_left) * half_area(lo, hi) + float(n_right) * right_area[k + 1]
@@ -294,11 +294,11 @@ def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
         t.rhi = wp.vec3(-INF)
         for k in range(BINS):
             if k <= t.split_bin:
-                t.llo = wp.min(t.llo, b.bin_lo[a + k])
-                t.lhi = wp.max(t.lhi, b.bin_hi[a + k])
+                t.llo = min3(t.llo, b.bin_lo[a + k])
+                t.lhi = max3(t.lhi, b.bin_hi[a + k])
             else:
-                t.rlo = wp.min(t.rlo, b.bin_lo[a + k])
-                t.rhi = wp.max(t.rhi, b.bin_hi[a + k])
+                t.rlo = min3(t.rlo, b.bin_lo[a + k])
+                t.rhi = max3(t.rhi, b.bin_hi[a + k])
     else:
         t.pivot = -1  # no plane separates the centroids
     for k in range(BIN_SLOTS):  # untouched bins are still clear
@@ -434,19 +434,19 @@ def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
         first = base + c * CHUNK
         last = wp.min(first + CHUNK, base + n)
         for i in range(first, last):
-            lo = wp.min(lo, b.tri_lo[i])
-            hi = wp.max(hi, b.tri_hi[i])
-            clo = wp.min(clo, b.centroid[i])
-            chi = wp.max(chi, b.centroid[i])
+            lo = min3(lo, b.tri_lo[i])
+            hi = max3(hi, b.tri_hi[i])
+            clo = min3(clo, b.centroid[i])
+            chi = max3(chi, b.centroid[i])
     else:
         src = level_base(base, n, level - 1)
         first = src + c * CHUNK
         last = wp.min(first + CHUNK, src + level_size(n, level - 1))
         for i in range(first, last):
-            lo = wp.min(lo, b.box_lo[i])
-            hi = wp.max(hi, b.box_hi[i])
-            clo = wp.min(clo, b.cbox_lo[i])
-            chi = wp.max(chi, b.cbox_hi[i])
+            lo = min3(lo, b.box_lo[i])
+            hi = max3(hi, b.box_hi[i])
+            clo = min3(clo, b.cbox_lo[i])
+            chi = max3(chi, b.cbox_hi[i])
     dst = level_base(base, n, level) + c
     b.box_lo[dst] = lo
     b.box_hi[dst] = hi
@@ -761,8 +761,8 @@ def triangle_boxes(
     a = vertices[f[0]]
     bb = vertices[f[1]]
     c = vertices[f[2]]
-    lo = wp.min(wp.min(a, bb), c)
-    hi = wp.max(wp.max(a, bb), c)
+    lo = min3(min3(a, bb), c)
+    hi = max3(max3(a, bb), c)
     mid = 0.5 * (lo + hi)
     tri_lo[i] = lo
     tri_hi[i] = hi

@@ -115,7 +115,7 @@ def trace_kernel(
     bvh: BvhArrays,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
-    tmin: wp.array(dtype=float),
+    tmin: wp.array(dtype=float),  # per ray, or one value for all
     tmax: wp.array(dtype=float),
     find_any: int,
     out_t: wp.array(dtype=float),
@@ -125,7 +125,7 @@ def trace_kernel(
 ):
     i = wp.tid()
     r = make_ray(origins[i], directions[i])
-    h = traverse(bvh, r, tmin[i], tmax[i], find_any != 0)
+    h = traverse(bvh, r, tmin[i % tmin.shape[0]], tmax[i % tmax.shape[0]], find_any != 0)
     out_t[i] = h.t
     out_triangle[i] = h.triangle
     out_u[i] = h.u

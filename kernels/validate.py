@@ -12,6 +12,8 @@ def _float_array(a, name: str, width: int) -> np.ndarray:
     if not np.issubdtype(a.dtype, np.floating):
         raise ValueError(f"{name} must be a float32 array, got dtype {a.dtype}")
     a = np.ascontiguousarray(a, dtype=np.float32)
+    if np.isfinite(a).all():
+        return a
     bad = ~np.isfinite(a).all(axis=1)
     if bad.any():
         raise ValueError(
@@ -64,11 +66,12 @@ def as_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     return origins, directions
 
 
-def per_ray(value, count: int, name: str) -> np.ndarray:
-    """A scalar or (R,) array as a float32 (R,) array; NaN is rejected, +-inf allowed."""
+def per_ray(value, count: int, name: str, *, keep_scalar: bool = False) -> np.ndarray:
+    """A scalar or (R,) array as a float32 (R,) array, or with `keep_scalar` a scalar as a
+    (1,) array for kernels that broadcast it; NaN is rejected, +-inf allowed."""
     a = np.asarray(value, dtype=np.float32)
     if a.ndim == 0:
-        a = np.full(count, a, dtype=np.float32)
+        a = a.reshape(1) if keep_scalar else np.full(count, a, dtype=np.float32)
     elif a.shape != (count,):
         raise ValueError(f"{name} must be a scalar or have shape ({count},), got {a.shape}")
     if np.isnan(a).any():
