@@ -1,6 +1,9 @@
 """scenesort's engine: Warp kernels for the task pool, BVH construction and traversal."""
 
+from .ao import AoResult, ambient_occlusion, render_ao
 from .api import Bvh, Hits, build_bvh, trace
 from .pool import PoolError
 
-__all__ = ["Bvh", "Hits", "PoolError", "build_bvh", "trace"]
+__all__ = [
+    "AoResult", "Bvh", "Hits", "PoolError", "ambient_occlusion", "build_bvh", "render_ao", "trace",
+]

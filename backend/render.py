@@ -1,0 +1,246 @@
+"""`scenesort render`: an ambient-occlusion render of a scene, with progress and timings.
+
+    scenesort render                                   # the built-in default scene
+    scenesort render --scene sponza --spp 64 --out sponza.png --npy sponza.npy
+    scenesort render --scene mesh.ply --camera cam.json --target-error 0.02
+
+`--scene` takes a mesh file or a shared scene's name; `--camera` a JSON file holding either
+the wire form of `kernels.camera.Camera` or a scenes.json look-at camera (position,
+look_at, up, fov_y_deg). The PNG is 8-bit grey, AO scaled to 0..255 with no gamma (like
+Cycles' AO pass); `--npy` also writes the float32 (height, width) image.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+SAMPLERS = ("sobol", "random")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--scene",
+        default=None,
+        help="a mesh file (.ply, .obj, ...) or a shared scene name (default: the built-in scene)",
+    )
+    parser.add_argument(
+        "--camera",
+        type=Path,
+        default=None,
+        help="camera JSON: Camera wire form or {position, look_at, up, "
+        "fov_y_deg} (default: the scene's camera, or one framing the mesh)",
+    )
+    parser.add_argument("--width", type=int, default=None, help="pixels across (default 640)")
+    parser.add_argument("--height", type=int, default=None, help="pixels down (default 480)")
+    mode = parser.add_mutually_exclusive_group()
+    mode.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
+    mode.add_argument(
+        "--target-error",
+        type=float,
+        default=None,
+        help="adaptive: stop a pixel once its 95%% interval half-width is below",
+    )
+    parser.add_argument(
+        "--max-spp", type=int, default=1024, help="adaptive: most samples per pixel (default 1024)"
+    )
+    parser.add_argument(
+        "--distance",
+        type=float,
+        default=None,
+        help="occlusion distance (default: 0.1 of the scene box diagonal)",
+    )
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--sampler", choices=SAMPLERS, default="sobol")
+    parser.add_argument("--engine", choices=("bvh", "dacrt"), default="bvh")
+    parser.add_argument("--threads", type=int, default=None, help="host threads (default: all)")
+    parser.add_argument("--out", type=Path, default=Path("ao.png"), help="8-bit PNG to write")
+    parser.add_argument("--npy", type=Path, default=None, help="also write float32 AO (.npy)")
+    parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def load_scene(scene: str | None, width: int | None, height: int | None) -> Any:
+    """The built-in scene, a shared scene by name, or a mesh file with a framing camera."""
+    from backend import scenes
+
+    w = width or scenes.DEFAULT_WIDTH
+    h = height or scenes.DEFAULT_HEIGHT
+    if scene is None:
+        return scenes.default_scene(w, h)
+    path = Path(scene)
+    if path.suffix or path.exists():
+        vertices, indices = scenes.load_mesh(path)
+        return scenes.Scene(path.stem, vertices, indices, framing_camera(vertices, w, h))
+    return scenes.shared_scene(scene, w, h)
+
+
+def framing_camera(vertices: np.ndarray, width: int, height: int) -> Any:
+    """A 35-degree pinhole camera on the +Y+Z diagonal that fits the mesh's bounding
+    sphere with a 10% margin (like the shared scenes' object cameras)."""
+    from kernels.camera import Camera
+
+    lo, hi = vertices.min(axis=0).astype(float), vertices.max(axis=0).astype(float)
+    centre = 0.5 * (lo + hi)
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
+    fov = 35.0
+    dist = 1.1 * radius / np.sin(np.radians(fov) / 2.0)
+    view = np.array([0.5, 0.4, 1.0]) / np.linalg.norm([0.5, 0.4, 1.0])
+    return Camera.look_at(
+        centre + dist * view, centre, (0, 1, 0), fov, width, height, clip_start=0.0, clip_end=1e10
+    )
+
+
+def load_camera(path: Path, width: int, height: int) -> Any:
+    """A camera from JSON: the Camera wire form, or a scenes.json look-at description."""
+    from kernels.camera import Camera
+
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--camera {str(path)!r} is not a readable JSON file: {exc}") from exc
+    if isinstance(data, dict) and "matrix_world" in data:
+        return Camera.from_dict(data)
+    keys = ("position", "look_at", "up", "fov_y_deg")
+    if not isinstance(data, dict) or any(k not in data for k in keys):
+        raise ValueError(f"--camera must hold a Camera (matrix_world, ...) or the keys {keys}")
+    return Camera.look_at(
+        data["position"], data["look_at"], data["up"], data["fov_y_deg"], width, height
+    )
+
+
+def write_png(ao: np.ndarray, path: Path) -> None:
+    """8-bit grey PNG, row 0 at the top, AO 0..1 -> 0..255 (linear, rounded)."""
+    from PIL import Image
+
+    pixels = np.clip(np.rint(ao * 255.0), 0, 255).astype(np.uint8)
+    Image.fromarray(pixels, mode="L").save(path)
+
+
+def _check(args: argparse.Namespace) -> None:
+    for name in ("width", "height"):
+        value = getattr(args, name)
+        if value is not None and value < 1:
+            raise ValueError(f"--{name} must be >= 1, got {value}")
+    if args.spp < 1:
+        raise ValueError(f"--spp must be >= 1, got {args.spp}")
+    if args.distance is not None and not args.distance > 0:
+        raise ValueError(f"--distance must be > 0, got {args.distance}")
+    if args.target_error is not None and not 0 < args.target_error < 1:
+        raise ValueError(f"--target-error must be in (0, 1), got {args.target_error}")
+    if args.engine != "bvh":
+        raise ValueError("--engine dacrt is not available yet (issue 3); use --engine bvh")
+
+
+def run(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    console = Console()
+    try:
+        _check(args)
+        return _render(args, console)
+    except ValueError as exc:
+        console.print(f"[red]error:[/red] {exc}")
+        return 2
+
+
+def _render(args: argparse.Namespace, console: Any) -> int:
+    import kernels
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    scene = load_scene(args.scene, args.width, args.height)
+    camera = scene.camera
+    if args.camera is not None:
+        camera = load_camera(args.camera, camera.width, camera.height)
+    origins, directions, tmin, tmax = camera.rays()
+    timings["load"] = (time.perf_counter() - t0) * 1e3
+
+    t0 = time.perf_counter()
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    timings["build"] = (time.perf_counter() - t0) * 1e3
+
+    kwargs = dict(
+        spp=args.spp,
+        distance=args.distance,
+        seed=args.seed,
+        target_error=args.target_error,
+        tmin=tmin,
+        tmax=tmax,
+        threads=args.threads,
+        max_spp=args.max_spp,
+        sampler=args.sampler,
+    )
+    result = _with_progress(
+        kernels, bvh, origins, directions, kwargs, console, not args.no_progress
+    )
+    ao = result.ao.reshape(camera.height, camera.width)
+
+    t0 = time.perf_counter()
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    write_png(ao, args.out)
+    if args.npy is not None:
+        args.npy.parent.mkdir(parents=True, exist_ok=True)
+        np.save(args.npy, ao.astype(np.float32))
+    timings["write"] = (time.perf_counter() - t0) * 1e3
+
+    console.print(_table(scene, camera, bvh, result, timings))
+    written = f"{args.out}" + (f" and {args.npy}" if args.npy is not None else "")
+    console.print(f"wrote {written}")
+    return 0
+
+
+def _with_progress(
+    kernels: Any, bvh: Any, origins, directions, kwargs: dict, console: Any, show: bool
+) -> Any:
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    if not show:
+        return kernels.render_ao(bvh, origins, directions, **kwargs)
+    columns = (
+        TextColumn("{task.description:<10}"),
+        BarColumn(),
+        TextColumn("{task.percentage:>5.1f}%"),
+        TimeElapsedColumn(),
+    )
+    with Progress(*columns, console=console, transient=True) as bar:
+        task = bar.add_task("primary", total=1.0)
+
+        def progress(fraction: float, phase: str) -> None:
+            bar.update(task, completed=fraction, description=phase)
+
+        return kernels.render_ao(bvh, origins, directions, progress=progress, **kwargs)
+
+
+def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, float]) -> Any:
+    from rich.table import Table
+
+    ms = result.timings_ms
+    rays = result.rays
+    spp = result.spp_used[result.spp_used > 0]
+    title = (
+        f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
+        f"spp mean {spp.mean() if len(spp) else 0:.1f} (max {spp.max(initial=0)})"
+    )
+    table = Table(title=title)
+    table.add_column("phase")
+    table.add_column("ms", justify="right")
+    table.add_column("rays", justify="right")
+    table.add_column("MRays/s", justify="right")
+
+    def row(name: str, t: float, n: int | None = None) -> None:
+        rate = f"{n / t / 1e3:.2f}" if n and t > 0 else ""
+        table.add_row(name, f"{t:.1f}", f"{n:,}" if n is not None else "", rate)
+
+    row("load", timings["load"])
+    row("build", timings["build"])
+    row("primary", ms["primary"], rays["primary"])
+    row("occlusion", ms["occlusion"], rays["occlusion"])
+    row("write", timings["write"])
+    total = timings["load"] + timings["build"] + ms["total"] + timings["write"]
+    row("total", total, rays["primary"] + rays["occlusion"])
+    return table

@@ -1,0 +1,395 @@
+"""Run time against error for ambient occlusion: our renderer (fixed spp with Sobol and
+random samples, and adaptive `target_error`) against fixed-spp AO traced by Warp's own
+`wp.Mesh` (`mesh_query_ray_anyhit`) and by Embree with exactly our occlusion directions.
+
+    .venv/bin/python benchmarks/ao_error.py                       # every scene, 512 wide
+    .venv/bin/python benchmarks/ao_error.py --scenes bunny,sponza --width 256
+    .venv/bin/python benchmarks/ao_error.py --quick --width 128   # fewer points, 1024-spp ref
+
+Error is the RMSE over the pixels whose primary ray hits, against a reference of
+`--ref-spp` independent samples per pixel traced by Embree (cached under .cache/ao_ref),
+with the reference's own variance removed (its samples are independent Bernoulli trials,
+so MSE(est) = MSE(est, ref) - Var(ref)). Times are wall clock, median of `--repeat`,
+from camera rays to AO: ours = `render_ao` (primary + occlusion); peers = their own
+primary closest-hit launch + their occlusion launch (ray generation not counted for them).
+wp.Mesh gets as many host threads as ours; embreex holds the GIL, so Embree runs on one.
+
+Floor (issue 4): on every scene, time to RMSE 0.02 with target_error <= half the time the
+fixed-spp wp.Mesh AO needs. Writes docs/figures/ao_error.png and the AO section of
+docs/benchmarks.md unless --no-docs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import math
+import os
+import statistics
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+import kernels  # noqa: E402
+from backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
+from kernels import ao  # noqa: E402
+from kernels.api import _threads, launch_split  # noqa: E402
+
+RMSE_GOAL = 0.02
+FIXED_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256)
+TARGETS = (0.25, 0.15, 0.1, 0.07, 0.05, 0.035, 0.025, 0.018, 0.0125, 0.009, 0.007, 0.005)
+QUICK_SPP = (1, 4, 16, 64)
+QUICK_TARGETS = (0.2, 0.1, 0.05, 0.025)
+PEER_CHUNK = 1 << 21  # occlusion rays per peer launch (bounds memory)
+SECTION_BEGIN = "<!-- ao_error:begin -->"
+SECTION_END = "<!-- ao_error:end -->"
+
+
+@dataclass
+class Curve:
+    method: str
+    points: list[tuple[float, float, float]] = field(default_factory=list)  # (knob, s, rmse)
+
+    def time_to(self, goal: float) -> float | None:
+        """Seconds to reach RMSE `goal`, interpolated in log-log between sweep points."""
+        pts = sorted((t, e) for _, t, e in self.points)
+        for (t0, e0), (t1, e1) in zip(pts, pts[1:], strict=False):
+            if e0 > goal >= e1 and e1 > 0:
+                f = math.log(e0 / goal) / math.log(e0 / e1)
+                return math.exp(math.log(t0) + f * math.log(t1 / t0))
+        return pts[0][0] if pts and pts[0][1] <= goal else None
+
+
+# --- peers: the same primary hits and occlusion directions, traced by someone else ---------
+
+
+@wp.kernel
+def mesh_closest(mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
+                 out_t: wp.array(dtype=float)):
+    i = wp.tid()
+    q = wp.mesh_query_ray(mesh, o[i], d[i], 1.0e30)
+    out_t[i] = wp.where(q.result, q.t, -1.0)
+
+
+@wp.kernel
+def mesh_open(mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
+              dist: float, out_open: wp.array(dtype=int)):
+    i = wp.tid()
+    out_open[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, o[i], d[i], dist), 0, 1)
+
+
+class WarpMeshPeer:
+    name = "wp.Mesh"
+
+    def __init__(self, vertices: np.ndarray, indices: np.ndarray, threads: int):
+        self.mesh = wp.Mesh(points=wp.array(vertices, dtype=wp.vec3),
+                            indices=wp.array(indices.ravel(), dtype=int))
+        self.threads = threads
+        self.device = wp.get_device("cpu")
+
+    def primary(self, o: np.ndarray, d: np.ndarray) -> float:
+        ow, dw = wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3)
+        out = wp.empty(len(o), dtype=float)
+        t = time.perf_counter()
+        launch_split(mesh_closest, len(o), [self.mesh.id], [ow, dw], [], [out], self.device,
+                     self.threads)
+        return time.perf_counter() - t
+
+    def occlusion(self, o: np.ndarray, d: np.ndarray, dist: float) -> tuple[np.ndarray, float]:
+        ow, dw = wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3)
+        out = wp.empty(len(o), dtype=int)
+        t = time.perf_counter()
+        launch_split(mesh_open, len(o), [self.mesh.id], [ow, dw], [float(dist)], [out],
+                     self.device, self.threads)
+        return out.numpy(), time.perf_counter() - t
+
+
+class EmbreePeer:
+    name = "Embree"
+
+    def __init__(self, vertices: np.ndarray, indices: np.ndarray):
+        from embreex import rtcore_scene
+        from embreex.mesh_construction import TriangleMesh
+
+        self.scene = rtcore_scene.EmbreeScene()
+        TriangleMesh(self.scene, vertices, indices)
+
+    def primary(self, o: np.ndarray, d: np.ndarray) -> float:
+        t = time.perf_counter()
+        self.scene.run(o, d)
+        return time.perf_counter() - t
+
+    def occlusion(self, o: np.ndarray, d: np.ndarray, dist: float) -> tuple[np.ndarray, float]:
+        dists = np.full(len(o), dist, np.float32)  # embreex overwrites it in place
+        t = time.perf_counter()
+        res = self.scene.run(o, d, dists=dists, query="OCCLUDED")
+        return (res != 0).astype(np.int64), time.perf_counter() - t
+
+
+def peer_ao(peer, o, d, hits: ao.PrimaryHits, spp: int, dist: float, sampler: str,
+            seed: int, progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, float]:
+    """Fixed-spp AO of the hit pixels with our spawn points and directions, traced by
+    `peer`: (AO per hit pixel, peer seconds)."""
+    seconds = peer.primary(o, d)
+    points = hits.points.numpy()
+    h = len(points)
+    n_open = np.zeros(h, dtype=np.int64)
+    step = max(1, min(spp, PEER_CHUNK // max(h, 1)))
+    for first in range(0, spp, step):
+        count = min(step, spp - first)
+        dirs = ao.occlusion_directions(hits, first, count, seed, sampler)
+        opened, s = peer.occlusion(np.repeat(points, count, axis=0), dirs, dist)
+        n_open += opened.reshape(h, count).sum(axis=1)
+        seconds += s
+        if progress:
+            progress(count)
+    return n_open / spp, seconds
+
+
+# --- reference --------------------------------------------------------------------------
+
+
+def reference(name: str, scene, bvh, o, d, tmin, tmax, dist: float, spp: int,
+              cache: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(AO, Bernoulli variance of that AO, hit mask) at `spp` independent samples, traced
+    by Embree; cached by scene, size, distance and spp."""
+    cam = scene.camera
+    key = hashlib.sha1(f"{name}|{cam.width}x{cam.height}|{dist!r}|{spp}|v1".encode()).hexdigest()
+    path = cache / f"{name}_{cam.width}x{cam.height}_{spp}_{key[:10]}.npz"
+    if path.is_file():
+        z = np.load(path)
+        return z["ao"], z["var"], z["hit"]
+    t = time.perf_counter()
+    hits = ao.trace_primary(bvh, o, d, tmin, tmax)
+    peer = EmbreePeer(scene.vertices, scene.indices)
+    values, _ = peer_ao(peer, o, d, hits, spp, dist, "random", seed=987_654)
+    full = np.ones(len(o))
+    var = np.zeros(len(o))
+    full[hits.pixels] = values
+    var[hits.pixels] = values * (1 - values) / (spp - 1)
+    hit = np.zeros(len(o), dtype=bool)
+    hit[hits.pixels] = True
+    cache.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(path, ao=full, var=var, hit=hit)
+    print(f"  reference {spp} spp: {time.perf_counter() - t:.1f} s (cached at {path})")
+    return full, var, hit
+
+
+def rmse(est: np.ndarray, ref: np.ndarray, var: np.ndarray, hit: np.ndarray) -> float:
+    mse = float(np.mean((est[hit].astype(np.float64) - ref[hit]) ** 2) - np.mean(var[hit]))
+    return math.sqrt(max(mse, 1e-12))
+
+
+# --- one scene --------------------------------------------------------------------------
+
+
+def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
+    info = shared_scene_infos()[name]
+    width = args.width
+    height = args.height or max(1, round(width * 3 / 4))
+    scene = shared_scene(name, width, height)
+    o, d, tmin, tmax = scene.camera.rays()
+    t = time.perf_counter()
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    build_ours = time.perf_counter() - t
+    dist = ao.default_distance(bvh)
+    threads = _threads(bvh.device, args.threads)
+    print(f"{name}: {scene.triangles:,} triangles, {width}x{height}, distance {dist:.4g}")
+    ref, var, hit = reference(name, scene, bvh, o, d, tmin, tmax, dist, args.ref_spp,
+                              REPO / ".cache" / "ao_ref")
+    spps = QUICK_SPP if args.quick else FIXED_SPP
+    targets = QUICK_TARGETS if args.quick else TARGETS
+
+    def measure(fn: Callable[[], tuple[np.ndarray, float]]) -> tuple[float, float]:
+        runs = [fn() for _ in range(args.repeat)]
+        return statistics.median(s for _, s in runs), rmse(runs[0][0], ref, var, hit)
+
+    def ours(**kw) -> tuple[np.ndarray, float]:
+        res = kernels.render_ao(bvh, o, d, tmin=tmin, tmax=tmax, distance=dist,
+                                threads=args.threads, **kw)
+        return res.ao, res.timings_ms["total"] / 1e3
+
+    curves = [Curve("ours sobol"), Curve("ours random"), Curve("ours target_error"),
+              Curve("wp.Mesh"), Curve("Embree")]
+    hits = ao.trace_primary(bvh, o, d, tmin, tmax)
+    t = time.perf_counter()
+    peers = [WarpMeshPeer(scene.vertices, scene.indices, threads),
+             EmbreePeer(scene.vertices, scene.indices)]
+    build_peers = time.perf_counter() - t
+    for peer in peers:  # Embree builds lazily and Warp compiles on first use: not timed
+        peer_ao(peer, o[:64], d[:64], hits, 1, dist, "sobol", 0)
+    ours(spp=1)
+    for spp in spps:
+        for curve, sampler in ((curves[0], "sobol"), (curves[1], "random")):
+            s, e = measure(lambda sampler=sampler, spp=spp: ours(spp=spp, sampler=sampler))
+            curve.points.append((spp, s, e))
+        for curve, peer in zip(curves[3:], peers, strict=True):
+            def traced(peer=peer, spp=spp):
+                values, s = peer_ao(peer, o, d, hits, spp, dist, "sobol", 0)
+                full = np.ones(len(o))
+                full[hits.pixels] = values
+                return full, s
+            s, e = measure(traced)
+            curve.points.append((spp, s, e))
+        print(f"  spp {spp:4d}: " + "  ".join(
+            f"{c.method} {c.points[-1][1]:.3f}s/{c.points[-1][2]:.4f}"
+            for c in curves if c.method != "ours target_error"))
+    for target in targets:
+        s, e = measure(lambda target=target: ours(target_error=target, max_spp=args.max_spp))
+        curves[2].points.append((target, s, e))
+        print(f"  target {target:.4f}: {s:.3f}s rmse {e:.4f}")
+    goal = {c.method: c.time_to(RMSE_GOAL) for c in curves}
+    row = {"scene": name, "triangles": scene.triangles, "size": f"{width}x{height}",
+           "hit": float(hit.mean()), "distance": dist, "goal": goal,
+           "build_ms": {"ours": build_ours * 1e3, "peers (both)": build_peers * 1e3},
+           "threads": threads, "info": info.get("file", name)}
+    return row, curves
+
+
+# --- output -----------------------------------------------------------------------------
+
+
+def ratio(a: float | None, b: float | None) -> str:
+    return f"{a / b:.2f}" if a is not None and b is not None else "n/a"
+
+
+def fmt(s: float | None) -> str:
+    return f"{s:.3f}" if s is not None else "not reached"
+
+
+def table(rows: list[dict], args) -> str:
+    lines = [
+        f"Run: `{args.command_line}` on {os.cpu_count()} shared cores (timings noisy: other "
+        "work ran at the same time).",
+        "",
+        f"Time (s) to reach RMSE {RMSE_GOAL} (interpolated, log-log); floor: target_error "
+        "<= 0.5 x wp.Mesh.",
+        "",
+        "| scene | size | hit | ours target_error | ours sobol | ours random | wp.Mesh | Embree "
+        "| vs wp.Mesh | vs Embree | floor |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    for r in rows:
+        g = r["goal"]
+        ad, mesh = g["ours target_error"], g["wp.Mesh"]
+        ok = ad is not None and mesh is not None and ad <= 0.5 * mesh
+        lines.append(
+            f"| {r['scene']} | {r['size']} | {r['hit']:.0%} | {fmt(ad)} | "
+            f"{fmt(g['ours sobol'])} | {fmt(g['ours random'])} | {fmt(mesh)} | "
+            f"{fmt(g['Embree'])} | {ratio(ad, mesh)} | {ratio(ad, g['Embree'])} | "
+            f"{'pass' if ok else 'FAIL'} |"
+        )
+    return "\n".join(lines)
+
+
+def floor_line(rows: list[dict]) -> str:
+    met = [r["scene"] for r in rows
+           if r["goal"]["ours target_error"] is not None and r["goal"]["wp.Mesh"] is not None
+           and r["goal"]["ours target_error"] <= 0.5 * r["goal"]["wp.Mesh"]]
+    return f"Floor met on {len(met)} of {len(rows)} scenes" + (f" ({', '.join(met)})." if met
+                                                                 else ".")
+
+
+def sweep_table(name: str, curves: list[Curve]) -> str:
+    lines = [f"<details><summary>{name}: every point (knob, seconds, RMSE)</summary>", "",
+             "| method | knob | s | RMSE |", "|---|---:|---:|---:|"]
+    for c in curves:
+        for k, s, e in c.points:
+            lines.append(f"| {c.method} | {k:g} | {s:.3f} | {e:.4f} |")
+    return "\n".join([*lines, "", "</details>"])
+
+
+def plot(results: list[tuple[dict, list[Curve]]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    n = len(results)
+    cols = min(n, 4)
+    rows = math.ceil(n / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.4 * rows), squeeze=False)
+    styles = {"ours target_error": "o-", "ours sobol": "s-", "ours random": "s--",
+              "wp.Mesh": "^-", "Embree": "v-"}
+    for ax, (row, curves) in zip(axes.ravel(), results, strict=False):
+        for c in curves:
+            pts = [(s, e) for _, s, e in c.points]  # in sweep order: noise shows as noise
+            ax.loglog([p[0] for p in pts], [p[1] for p in pts], styles[c.method], ms=3,
+                      label=c.method)
+        ax.axhline(RMSE_GOAL, color="grey", lw=0.8, ls=":")
+        ax.set_title(f"{row['scene']} {row['size']}")
+        ax.set_xlabel("wall time (s)")
+        ax.set_ylabel("RMSE")
+        ax.grid(True, which="both", lw=0.3)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    axes.ravel()[0].legend(fontsize=7)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def write_docs(results: list[tuple[dict, list[Curve]]], args) -> None:
+    figure = REPO / "docs" / "figures" / "ao_error.png"
+    plot(results, figure)
+    body = "\n\n".join([
+        "## Ambient occlusion: run time against error (issue 4)",
+        "Produced by `benchmarks/ao_error.py` (method, reference and timing rules in its "
+        f"docstring). RMSE over hit pixels against an independent {args.ref_spp}-spp Embree "
+        "reference (its own variance removed); same spawn points and Sobol directions for "
+        "every tracer. Below 512 pixels across, fixed per-launch costs weigh more than at "
+        "full size.",
+        table([r for r, _ in results], args),
+        floor_line([r for r, _ in results]),
+        "![AO time against error](figures/ao_error.png)",
+        *[sweep_table(r["scene"], c) for r, c in results],
+    ])
+    section = f"{SECTION_BEGIN}\n{body}\n{SECTION_END}"
+    doc = REPO / "docs" / "benchmarks.md"
+    text = doc.read_text() if doc.is_file() else "# Benchmarks\n"
+    if SECTION_BEGIN in text and SECTION_END in text:
+        a, b = text.index(SECTION_BEGIN), text.index(SECTION_END) + len(SECTION_END)
+        text = text[:a] + section + text[b:]
+    else:
+        text = text.rstrip("\n") + "\n\n" + section + "\n"
+    doc.write_text(text)
+    print(f"wrote {figure.relative_to(REPO)} and the AO section of docs/benchmarks.md")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--scenes", default=None, help="comma-separated (default: all shared)")
+    parser.add_argument("--width", type=int, default=512)
+    parser.add_argument("--height", type=int, default=None, help="default: width * 3/4")
+    parser.add_argument("--ref-spp", type=int, default=None, help="default 4096 (quick: 1024)")
+    parser.add_argument("--max-spp", type=int, default=4096, help="adaptive cap")
+    parser.add_argument("--repeat", type=int, default=1, help="timed runs per point (median)")
+    parser.add_argument("--threads", type=int, default=None)
+    parser.add_argument("--quick", action="store_true", help="4 spp and 4 targets, 1024-spp ref")
+    parser.add_argument("--no-docs", action="store_true", help="print only")
+    args = parser.parse_args(argv)
+    args.command_line = " ".join(["benchmarks/ao_error.py", *(argv or sys.argv[1:])])
+    args.ref_spp = args.ref_spp or (1024 if args.quick else 4096)
+    wp.config.quiet = True
+    wp.init()
+    names = args.scenes.split(",") if args.scenes else list(shared_scene_infos())
+    unknown = sorted(set(names) - set(shared_scene_infos()))
+    if unknown:
+        parser.error(f"unknown scenes {unknown}; shared scenes are {sorted(shared_scene_infos())}")
+    results = [run_scene(name, args) for name in names]
+    print(table([r for r, _ in results], args))
+    if not args.no_docs:
+        write_docs(results, args)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,507 @@
+"""Ambient occlusion per primary ray, with fixed or adaptive sample counts.
+
+Definition (issue 4): for a primary ray's closest hit p with geometric normal n turned
+toward the ray's origin, AO(p) = (1/pi) * integral over the hemisphere around n of
+V(p, w) cos(theta) dw, where V = 1 when no triangle lies within `distance` along w. It is
+estimated with cosine-weighted directions, so each sample is V itself (0 or 1) and the
+estimate is the fraction of unoccluded occlusion rays. A primary ray that misses gets 1.0.
+
+Guarantees:
+- Occlusion rays start at p pushed off the surface along n by OFFSET_ULPS float32 ulps of
+  the hit's local scale (max of |p| and the triangle's extent around p), computed in
+  float64 and rounded once: a flat surface never occludes itself, at any scale or offset.
+- Every sample is a pure function of (seed, ray index, sample index): the result is
+  bit-identical for any thread count, round split or device.
+- Skipped work: primary rays that miss the scene box are not traced, missed pixels get no
+  occlusion rays, and (with `target_error`) converged pixels get no more samples.
+
+Adaptive sampling (`target_error`): rounds of samples; a pixel stops once the half-width
+of its 95% interval is below the target (or it has `max_spp`). The interval is Wilson's
+for a proportion, measured from the estimate. Owen-scrambled Sobol samples have less
+variance than independent ones, so for pixels whose samples disagree the half-width is
+scaled by sqrt(efficiency), the sampler's variance ratio measured in every round on all
+such pixels from the spread between each pixel's estimate after half and after all of
+its new samples (`sampler_efficiency`); for independent samples it is 1.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from .api import Bvh, _threads, launch_split
+from .bvh_trace import BvhArrays, any_hit, closest_hit
+from .sampling import SAMPLERS, cosine_direction, pixel_key
+from .validate import as_rays, per_ray
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+DISTANCE_FRACTION = 0.1  # distance=None: this fraction of the scene box's diagonal
+OFFSET_ULPS = 128.0  # occlusion-ray origin offset, in float32 ulps of the local scale
+Z95 = 1.959963984540054  # two-sided 95% normal quantile
+MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted
+DEFAULT_MAX_SPP = 1024
+EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
+EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in a round
+ROUND_RAYS = 1 << 21  # occlusion rays per round (between progress calls) in fixed mode
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass
+class AoResult:
+    ao: np.ndarray  # (R,) float32 in [0, 1]
+    spp_used: np.ndarray  # (R,) int32 occlusion samples per ray (0 where the ray missed)
+    timings_ms: dict[str, float] = field(default_factory=dict)  # setup, primary, occlusion, total
+    rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion
+
+
+@dataclass
+class PrimaryHits:
+    """The hit pixels of a batch of primary rays, ready to spawn occlusion rays."""
+
+    pixels: np.ndarray  # (H,) int32 index of each hit ray in the caller's arrays
+    points: wp.array  # (H,) vec3 offset occlusion-ray origins
+    normals: wp.array  # (H,) vec3 unit geometric normals facing the primary ray's origin
+    traced: int  # primary rays traced (those that entered the scene box)
+
+
+@wp.func
+def spawn_point(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, u: float, v: float, n: wp.vec3d) -> wp.vec3:
+    # Robust spawn point (Ray Tracing Gems ch. 6, Waechter and Binder; PBR 4th ed. 6.8.6):
+    # p from barycentrics in float64 lies on the triangle's plane; it is pushed along n by
+    # OFFSET_ULPS float32 ulps of its local scale, which bounds both the float32 rounding
+    # of the result and the watertight test's error in t for triangles this size.
+    a = wp.vec3d(v0)
+    b = wp.vec3d(v1)
+    c = wp.vec3d(v2)
+    bu = wp.float64(u)
+    bv = wp.float64(v)
+    p = a + (b - a) * bu + (c - a) * bv
+    scale = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.abs(p[2]))
+    for k in range(3):
+        reach = wp.max(wp.max(wp.abs(a[k] - p[k]), wp.abs(b[k] - p[k])), wp.abs(c[k] - p[k]))
+        scale = wp.max(scale, reach)
+    offset = scale * wp.float64(OFFSET_ULPS * 5.9604645e-08)
+    return wp.vec3(p + n * offset)
+
+
+@wp.kernel
+def primary_kernel(
+    bvh: BvhArrays,
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),
+    tmax: wp.array(dtype=float),
+    out_point: wp.array(dtype=wp.vec3),
+    out_normal: wp.array(dtype=wp.vec3),
+    out_hit: wp.array(dtype=int),
+):
+    i = wp.tid()
+    d = directions[i]
+    h = closest_hit(bvh, origins[i], d, tmin[i], tmax[i])
+    out_hit[i] = 0
+    if h.triangle < 0:
+        return
+    f = indices[h.triangle]
+    v0 = vertices[f[0]]
+    v1 = vertices[f[1]]
+    v2 = vertices[f[2]]
+    # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
+    n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
+    if wp.dot(n, wp.vec3d(d)) > wp.float64(0.0):
+        n = -n
+    out_point[i] = spawn_point(v0, v1, v2, h.u, h.v, n)
+    out_normal[i] = wp.vec3(n)
+    out_hit[i] = 1
+
+
+@wp.kernel
+def occlusion_kernel(
+    bvh: BvhArrays,
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    pixels: wp.array(dtype=int),
+    first: wp.array(dtype=int),
+    count: wp.array(dtype=int),
+    sampler: int,
+    seed: int,
+    distance: float,
+    out_open: wp.array(dtype=int),
+    out_open_half: wp.array(dtype=int),
+):
+    # Cosine-weighted estimator (PBR 4th ed. 13.6.3 / A.5.3): each sample is V(p, w) itself.
+    # The open count after the first half of the batch feeds the adaptive error estimate.
+    i = wp.tid()
+    o = points[i]
+    n = normals[i]
+    key = pixel_key(pixels[i], seed)
+    half = first[i] + count[i] / 2
+    open_count = int(0)
+    open_half = int(0)
+    for s in range(first[i], first[i] + count[i]):
+        if s == half:
+            open_half = open_count
+        w = cosine_direction(n, sampler, key, s)
+        if not any_hit(bvh, o, w, 0.0, distance):
+            open_count += 1
+    out_open[i] = open_count
+    out_open_half[i] = open_half
+
+
+@wp.kernel
+def directions_kernel(
+    normals: wp.array(dtype=wp.vec3),
+    pixels: wp.array(dtype=int),
+    first: int,
+    count: int,
+    sampler: int,
+    seed: int,
+    out_dir: wp.array(dtype=wp.vec3),
+):
+    i, s = wp.tid()
+    key = pixel_key(pixels[i], seed)
+    out_dir[i * count + s] = cosine_direction(normals[i], sampler, key, first + s)
+
+
+# --- host side ---------------------------------------------------------------------------
+
+
+def default_distance(bvh: Bvh) -> float:
+    """distance=None: DISTANCE_FRACTION of the scene box's diagonal (1.0 for an empty scene)."""
+    diag = float(np.linalg.norm(bvh.bounds[1].astype(np.float64) - bvh.bounds[0]))
+    return DISTANCE_FRACTION * diag if math.isfinite(diag) and diag > 0.0 else 1.0
+
+
+def box_candidates(bounds: np.ndarray, o: np.ndarray, d: np.ndarray, tmin: np.ndarray,
+                   tmax: np.ndarray) -> np.ndarray:
+    """Indices of rays whose [tmin, tmax] segment may touch the box (conservative: the box
+    is widened by 1e-5 of its size so float error never drops a ray that hits)."""
+    lo = bounds[0].astype(np.float64)
+    hi = bounds[1].astype(np.float64)
+    if not np.all(np.isfinite(lo)):
+        return np.zeros(0, dtype=np.int32)
+    pad = 1e-5 * (np.abs(hi - lo).max() + np.abs(lo).max() + np.abs(hi).max()) + 1e-30
+    lo, hi = lo - pad, hi + pad
+    o64 = o.astype(np.float64)
+    d64 = d.astype(np.float64)
+    t0 = tmin.astype(np.float64)
+    t1 = tmax.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d64
+        a = (lo - o64) * inv
+        b = (hi - o64) * inv
+    near = np.where(d64 == 0.0, np.where((o64 >= lo) & (o64 <= hi), -np.inf, np.inf),
+                    np.minimum(a, b))
+    far = np.where(d64 == 0.0, np.where((o64 >= lo) & (o64 <= hi), np.inf, -np.inf),
+                   np.maximum(a, b))
+    enter = np.maximum(t0, near.max(axis=1))
+    leave = np.minimum(t1, far.min(axis=1))
+    return np.flatnonzero(enter <= leave).astype(np.int32)
+
+
+def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
+                  tmax=np.inf, threads: int | None = None) -> PrimaryHits:
+    """Closest hits of the primary rays that enter the scene box, as spawn points and
+    normals for occlusion rays."""
+    r = len(origins)
+    tmin_a = per_ray(tmin, r, "tmin")
+    tmax_a = per_ray(tmax, r, "tmax")
+    if np.any(tmax_a < tmin_a):
+        raise ValueError("tmax must be >= tmin for every ray")
+    device = bvh.device
+    cand = box_candidates(bvh.bounds, origins, directions, tmin_a, tmax_a)
+    m = len(cand)
+    pts = wp.empty(m, dtype=wp.vec3, device=device)
+    nrm = wp.empty(m, dtype=wp.vec3, device=device)
+    hit = wp.empty(m, dtype=int, device=device)
+    if m:
+        verts = wp.array(bvh.vertices, dtype=wp.vec3, device=device)
+        tris = wp.array(bvh.indices, dtype=wp.vec3i, device=device)
+        per_item = [wp.array(x[cand], dtype=dt, device=device)
+                    for x, dt in ((origins, wp.vec3), (directions, wp.vec3),
+                                  (tmin_a, float), (tmax_a, float))]
+        launch_split(primary_kernel, m, [bvh.arrays, verts, tris], per_item, [],
+                     [pts, nrm, hit], device, _threads(device, threads))
+    keep = np.flatnonzero(hit.numpy())
+    sel = wp.array(keep.astype(np.int32), dtype=int, device=device)
+    return PrimaryHits(
+        pixels=cand[keep],
+        points=_gather(pts, sel, wp.vec3),
+        normals=_gather(nrm, sel, wp.vec3),
+        traced=m,
+    )
+
+
+@wp.kernel
+def _gather_vec3(src: wp.array(dtype=wp.vec3), sel: wp.array(dtype=int),
+                 dst: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    dst[i] = src[sel[i]]
+
+
+def _gather(src: wp.array, sel: wp.array, dtype) -> wp.array:
+    dst = wp.empty(len(sel), dtype=dtype, device=src.device)
+    if len(sel):
+        wp.launch(_gather_vec3, dim=len(sel), inputs=[src, sel, dst], device=src.device)
+    return dst
+
+
+def occlusion_directions(hits: PrimaryHits, first: int, count: int, seed: int = 0,
+                         sampler: str = "sobol") -> np.ndarray:
+    """The unit directions of samples first..first+count-1 of every hit pixel, (H*count, 3)
+    float32, pixel-major: exactly those `render_ao` traces (for peers in benchmarks/tests)."""
+    sampler_id = _sampler(sampler)
+    h = len(hits.pixels)
+    device = hits.points.device
+    out = wp.empty(h * count, dtype=wp.vec3, device=device)
+    if h and count:
+        pix = wp.array(hits.pixels, dtype=int, device=device)
+        wp.launch(directions_kernel, dim=(h, count),
+                  inputs=[hits.normals, pix, int(first), int(count), sampler_id, int(seed)],
+                  outputs=[out], device=device)
+    return out.numpy().reshape(-1, 3)
+
+
+def _sampler(sampler: str) -> int:
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler must be one of {sorted(SAMPLERS)}, got {sampler!r}")
+    return SAMPLERS[sampler]
+
+
+def wilson_half_width(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Half-width of the 95% Wilson score interval of a proportion (open_count of n),
+    measured from the estimate open_count/n: the largest distance from the estimate to
+    either end of the interval.
+
+    The Wilson interval does not collapse to 0 when every sample agreed, so a pixel needs
+    enough samples to show that it is really fully open or fully occluded. Its centre is
+    pulled toward 1/2, so the side away from it is the one that bounds the estimate's
+    error (Wilson 1927; Brown, Cai and DasGupta 2001)."""
+    n = n.astype(np.float64)
+    p = open_count / n
+    z2 = Z95 * Z95
+    centre = (p + z2 / (2.0 * n)) / (1.0 + z2 / n)
+    half = Z95 / (1.0 + z2 / n) * np.sqrt(p * (1.0 - p) / n + z2 / (4.0 * n * n))
+    return half + np.abs(centre - p)
+
+
+def _check_args(spp, distance, seed, target_error, min_spp_max) -> None:
+    if isinstance(spp, bool) or not isinstance(spp, int | np.integer) or spp < 1:
+        raise ValueError(f"spp must be an integer >= 1, got {spp!r}")
+    if distance is not None and not (float(distance) > 0.0):
+        raise ValueError(f"distance must be > 0 (or None for the scene default), got {distance!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if target_error is not None and not (0.0 < float(target_error) < 1.0):
+        raise ValueError(f"target_error must be in (0, 1) or None, got {target_error!r}")
+    if target_error is not None and min_spp_max[1] < min_spp_max[0]:
+        raise ValueError(
+            f"max_spp ({min_spp_max[1]}) must be >= the minimum spp ({min_spp_max[0]}): "
+            "raise max_spp or lower spp"
+        )
+
+
+def render_ao(
+    bvh: Bvh,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    spp: int = 16,
+    distance: float | None = None,
+    seed: int = 0,
+    target_error: float | None = None,
+    *,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    threads: int | None = None,
+    max_spp: int = DEFAULT_MAX_SPP,
+    sampler: str = "sobol",
+    progress: Progress | None = None,
+) -> AoResult:
+    """AO per primary ray (see the module docstring for the definition and guarantees).
+
+    Fixed mode (`target_error=None`): `spp` samples per hit pixel. Adaptive mode: each hit
+    pixel gets at least max(spp, MIN_ADAPTIVE_SPP) samples, then more in rounds until the
+    half-width of its 95% confidence interval (Wilson) is below `target_error` or it has
+    `max_spp`. `distance=None` is DISTANCE_FRACTION of the scene box diagonal. `sampler`:
+    "sobol" (Owen-scrambled, default) or "random"; both unbiased. `progress(fraction,
+    phase)` is called between rounds; an exception it raises cancels the render.
+    """
+    wp.load_module(occlusion_kernel.module, device=bvh.device)  # compiling is not rendering
+    t_start = time.perf_counter()
+    min_spp = max(int(spp), MIN_ADAPTIVE_SPP) if target_error is not None else int(spp)
+    _check_args(spp, distance, seed, target_error, (min_spp, int(max_spp)))
+    sampler_id = _sampler(sampler)
+    origins, directions = as_rays(origins, directions)
+    r = len(origins)
+    dist = default_distance(bvh) if distance is None else float(distance)
+    device = bvh.device
+    nthreads = _threads(device, threads)
+    last = [0.0]
+
+    def report(fraction: float, phase: str) -> None:
+        last[0] = max(last[0], fraction)  # adaptive estimates may dip; the bar never does
+        if progress is not None:
+            progress(last[0], phase)
+
+    timings: dict[str, float] = {"setup": (time.perf_counter() - t_start) * 1e3}
+
+    report(0.0, "primary")
+    t0 = time.perf_counter()
+    hits = trace_primary(bvh, origins, directions, tmin, tmax, threads)
+    wp.synchronize_device(device)
+    timings["primary"] = (time.perf_counter() - t0) * 1e3
+
+    t0 = time.perf_counter()
+    h = len(hits.pixels)
+    n_done = np.zeros(h, dtype=np.int64)
+    n_open = np.zeros(h, dtype=np.int64)
+    pix = wp.array(hits.pixels, dtype=int, device=device)
+    rounds = 0
+    if h:
+        fixed = target_error is None
+        active = np.arange(h)
+        batch = np.full(h, min_spp, dtype=np.int64)
+        if fixed:  # rounds only bound the time between progress calls
+            batch[:] = max(1, min(min_spp, ROUND_RAYS // h))
+        while len(active):
+            report(_fraction(n_done, min_spp, fixed, active, batch), "occlusion")
+            counts = batch[active]
+            open_before = n_open[active]
+            open_mid = open_before + _occlusion_round(
+                bvh, hits, pix, active, n_done[active], counts, sampler_id, int(seed), dist,
+                nthreads, n_open)
+            n_mid = n_done[active] + counts // 2
+            n_done[active] += counts
+            rounds += 1
+            if fixed:
+                active = active[n_done[active] < min_spp]
+                batch[active] = np.minimum(batch[active], min_spp - n_done[active])
+            else:
+                efficiency = sampler_efficiency(open_mid, n_mid, n_open[active],
+                                                n_done[active])
+                active, batch = _next_round(n_open, n_done, active, float(target_error),
+                                            int(max_spp), efficiency)
+    timings["occlusion"] = (time.perf_counter() - t0) * 1e3
+
+    ao = np.ones(r, dtype=np.float32)
+    spp_used = np.zeros(r, dtype=np.int32)
+    if h:
+        ao[hits.pixels] = (n_open / n_done).astype(np.float32)
+        spp_used[hits.pixels] = n_done.astype(np.int32)
+    timings["total"] = (time.perf_counter() - t_start) * 1e3
+    report(1.0, "done")
+    return AoResult(
+        ao=ao,
+        spp_used=spp_used,
+        timings_ms=timings,
+        rays={"primary": hits.traced, "occlusion": int(n_done.sum()), "rounds": rounds},
+    )
+
+
+def _occlusion_round(bvh, hits, pix, active, first, counts, sampler_id, seed, dist,
+                     nthreads, n_open) -> np.ndarray:
+    """Trace `counts` more samples for the `active` pixels and add the open ones; returns
+    the open samples among the first counts // 2 of them."""
+    device = bvh.device
+    sel = wp.array(active.astype(np.int32), dtype=int, device=device)
+    per_item = [
+        _gather(hits.points, sel, wp.vec3),
+        _gather(hits.normals, sel, wp.vec3),
+        wp.array(hits.pixels[active], dtype=int, device=device),
+        wp.array(first.astype(np.int32), dtype=int, device=device),
+        wp.array(counts.astype(np.int32), dtype=int, device=device),
+    ]
+    out = wp.empty(len(active), dtype=int, device=device)
+    out_half = wp.empty(len(active), dtype=int, device=device)
+    launch_split(occlusion_kernel, len(active), [bvh.arrays], per_item,
+                 [sampler_id, seed, dist], [out, out_half], device, nthreads)
+    n_open[active] += out.numpy()
+    return out_half.numpy()
+
+
+def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
+                       n_end: np.ndarray) -> float:
+    """The sampler's variance relative to independent samples, pooled over pixels.
+
+    For nested estimates m_mid (first n_mid samples) and m_end (all n_end), independent
+    samples give E[(m_mid - m_end)^2] = Var(m_end) (n_end - n_mid) / n_mid; a stratified
+    (Sobol) sequence gives less. The ratio of the summed squared differences to the summed
+    Bernoulli variances p(1-p)(n_end - n_mid)/(n_mid n_end) estimates Var(sampler) /
+    Var(independent) at this sample count. Only pixels whose samples disagree take part
+    (fully open or occluded ones would pull it toward 0). Clipped to [EFFICIENCY_MIN, 1]:
+    1 when too few pixels disagree to tell."""
+    p = open_end / n_end
+    mixed = (open_end > 0) & (open_end < n_end) & (n_mid > 0) & (n_end > n_mid)
+    if mixed.sum() < EFFICIENCY_PIXELS:
+        return 1.0
+    p, n_mid, n_end = p[mixed], n_mid[mixed].astype(np.float64), n_end[mixed]
+    diff2 = (open_mid[mixed] / n_mid - p) ** 2
+    bernoulli = p * (1.0 - p) * (n_end - n_mid) / (n_mid * n_end)
+    return float(np.clip(diff2.sum() / bernoulli.sum(), EFFICIENCY_MIN, 1.0))
+
+
+def half_width(open_count: np.ndarray, n: np.ndarray, efficiency: float) -> np.ndarray:
+    """95% interval half-width of each pixel's estimate: the Wilson half-width measured
+    from the estimate (see `wilson_half_width`), scaled by sqrt(efficiency) for pixels
+    whose samples disagree. Pixels whose samples all agreed keep the plain Wilson bound:
+    they show no variance for the efficiency to scale."""
+    wilson = wilson_half_width(open_count, n)
+    agree = (open_count == 0) | (open_count == n)
+    return np.where(agree, wilson, np.sqrt(efficiency) * wilson)
+
+
+def _next_round(n_open, n_done, active, target, max_spp,
+                efficiency) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels still above the target and their next batch: the samples the current
+    interval predicts they need (half-width ~ 1/sqrt(n)), at most doubling, at least 4."""
+    half = half_width(n_open[active], n_done[active], efficiency)
+    more = (half >= target) & (n_done[active] < max_spp)
+    active = active[more]
+    n = n_done[active]
+    agree = (n_open[active] == 0) | (n_open[active] == n)
+    z2 = Z95 * Z95
+    # All samples agreeing, the half-width is z^2 / (n + z^2): solve it for n exactly.
+    need = np.where(agree, np.floor(z2 / target - z2) + 1, np.ceil(n * (half[more] / target) ** 2))
+    need -= n
+    batch = np.zeros(len(n_done), dtype=np.int64)
+    batch[active] = np.clip(need, 4, n).astype(np.int64)
+    batch[active] = np.minimum(batch[active], max_spp - n)
+    return active, batch
+
+
+def _fraction(n_done, min_spp, fixed, active, batch) -> float:
+    """Progress: samples done over samples planned (adaptive: planned grows, so this is an
+    estimate, never above 1)."""
+    done = float(n_done.sum())
+    if fixed:
+        return done / (min_spp * len(n_done))
+    planned = done + float(batch[active].sum())
+    return min(done / planned, 1.0) if planned > 0 else 0.0
+
+
+def ambient_occlusion(
+    bvh: Bvh,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    spp: int = 16,
+    distance: float | None = None,
+    seed: int = 0,
+    target_error: float | None = None,
+    *,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    threads: int | None = None,
+    max_spp: int = DEFAULT_MAX_SPP,
+    sampler: str = "sobol",
+) -> np.ndarray:
+    """AO per primary ray, (R,) float32: `render_ao(...).ao` (see there)."""
+    return render_ao(bvh, origins, directions, spp, distance, seed, target_error, tmin=tmin,
+                     tmax=tmax, threads=threads, max_spp=max_spp, sampler=sampler).ao

@@ -1,0 +1,161 @@
+"""Sample points for Monte Carlo integration on the device: hashes, Owen-scrambled Sobol
+points in 2D, cosine-weighted hemisphere directions and an orthonormal frame per normal.
+
+Every sample is a pure function of (pixel key, sample index), so results do not depend
+on how the work is split between launches or threads. Both samplers give points that are
+each uniformly distributed in [0,1)^2, so every estimator built on them stays unbiased.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+SAMPLER_RANDOM = wp.constant(0)
+SAMPLER_SOBOL = wp.constant(1)
+SAMPLERS: dict[str, int] = {"random": 0, "sobol": 1}
+
+# Laine-Karras permutation constants (Burley 2020, JCGT 9(4), listing 3).
+LK0 = wp.constant(wp.uint32(0x6C50B47C))
+LK1 = wp.constant(wp.uint32(0xB82F1E52))
+LK2 = wp.constant(wp.uint32(0xC7AFE638))
+LK3 = wp.constant(wp.uint32(0x8D22F6E6))
+# PCG hash constants (Jarzynski and Olano 2020, JCGT 9(3), "pcg").
+PCG_MUL = wp.constant(wp.uint32(747796405))
+PCG_INC = wp.constant(wp.uint32(2891336453))
+PCG_OUT = wp.constant(wp.uint32(277803737))
+GOLDEN = wp.constant(wp.uint32(0x9E3779B9))  # 2^32 / golden ratio: decorrelates seeds
+TOP_BIT = wp.constant(wp.uint32(0x80000000))
+TO_UNIT = wp.constant(5.9604645e-08)  # 2^-24: 24 random bits to a float in [0, 1)
+MIN_COS = wp.constant(2.4414062e-04)  # 2^-12: keeps every direction strictly above the surface
+PI = wp.constant(3.14159265358979)
+
+
+@wp.func
+def pcg_hash(x: wp.uint32) -> wp.uint32:
+    # Jarzynski and Olano 2020, sec. 2: one PCG step with an output permutation.
+    state = x * PCG_MUL + PCG_INC
+    word = ((state >> ((state >> wp.uint32(28)) + wp.uint32(4))) ^ state) * PCG_OUT
+    return (word >> wp.uint32(22)) ^ word
+
+
+@wp.func
+def pixel_key(pixel: int, seed: int) -> wp.uint32:
+    """The scramble key of one pixel for one seed."""
+    return pcg_hash(wp.uint32(pixel) ^ pcg_hash(wp.uint32(seed) + GOLDEN))
+
+
+@wp.func
+def swap_bits(x: wp.uint32, mask: wp.uint32, shift: wp.uint32) -> wp.uint32:
+    return ((x >> shift) & mask) | ((x & mask) << shift)
+
+
+@wp.func
+def reverse_bits(x: wp.uint32) -> wp.uint32:
+    # Hacker's Delight 7-1: swap ever larger bit groups.
+    x = swap_bits(x, wp.uint32(0x55555555), wp.uint32(1))
+    x = swap_bits(x, wp.uint32(0x33333333), wp.uint32(2))
+    x = swap_bits(x, wp.uint32(0x0F0F0F0F), wp.uint32(4))
+    x = swap_bits(x, wp.uint32(0x00FF00FF), wp.uint32(8))
+    return (x >> wp.uint32(16)) | (x << wp.uint32(16))
+
+
+@wp.func
+def laine_karras(x: wp.uint32, seed: wp.uint32) -> wp.uint32:
+    # Burley 2020, listing 3: a hash in which each bit depends only on lower bits.
+    x = x + seed
+    x = x ^ (x * LK0)
+    x = x ^ (x * LK1)
+    x = x ^ (x * LK2)
+    x = x ^ (x * LK3)
+    return x
+
+
+@wp.func
+def owen_scramble(x: wp.uint32, seed: wp.uint32) -> wp.uint32:
+    # Burley 2020, listing 4: nested uniform (Owen) scrambling of a 32-bit fraction.
+    return reverse_bits(laine_karras(reverse_bits(x), seed))
+
+
+@wp.func
+def sobol_dim1(index: wp.uint32) -> wp.uint32:
+    """The second Sobol dimension (the first is reverse_bits(index))."""
+    r = wp.uint32(0)
+    v = TOP_BIT
+    i = index
+    while i != wp.uint32(0):
+        if (i & wp.uint32(1)) != wp.uint32(0):
+            r = r ^ v
+        i = i >> wp.uint32(1)
+        v = v ^ (v >> wp.uint32(1))
+    return r
+
+
+@wp.func
+def to_unit(x: wp.uint32) -> float:
+    return float(x >> wp.uint32(8)) * TO_UNIT
+
+
+@wp.func
+def sample_2d(sampler: int, key: wp.uint32, index: int) -> wp.vec2:
+    """Point `index` of the pixel's sequence: independent hashes, or Owen-scrambled Sobol
+    (each pixel its own scramble, so pixels are decorrelated and each point uniform)."""
+    k = wp.uint32(index)
+    if sampler == SAMPLER_SOBOL:
+        x = owen_scramble(reverse_bits(k), key)
+        y = owen_scramble(sobol_dim1(k), pcg_hash(key))
+        return wp.vec2(to_unit(x), to_unit(y))
+    h = pcg_hash(key ^ pcg_hash(k))
+    return wp.vec2(to_unit(h), to_unit(pcg_hash(h)))
+
+
+@wp.func
+def cosine_hemisphere(u: wp.vec2) -> wp.vec3:
+    """Cosine-weighted direction around +z from a point in [0,1)^2; z > 0 always.
+
+    Concentric disk mapping (Shirley and Chiu 1997; PBR 4th ed., A.5.1) lifted to the
+    hemisphere (Malley's method, PBR A.5.3); it keeps the points' stratification."""
+    ox = 2.0 * u[0] - 1.0
+    oy = 2.0 * u[1] - 1.0
+    x = float(0.0)
+    y = float(0.0)
+    if ox != 0.0 or oy != 0.0:
+        r = float(0.0)
+        theta = float(0.0)
+        if wp.abs(ox) > wp.abs(oy):
+            r = ox
+            theta = 0.25 * PI * (oy / ox)
+        else:
+            r = oy
+            theta = 0.5 * PI - 0.25 * PI * (ox / oy)
+        x = r * wp.cos(theta)
+        y = r * wp.sin(theta)
+    # Clamping z only moves directions within 2^-12 of the horizon (probability ~2^-24).
+    z = wp.max(wp.sqrt(wp.max(1.0 - x * x - y * y, 0.0)), MIN_COS)
+    return wp.vec3(x, y, z)
+
+
+@wp.func
+def frame_x(n: wp.vec3) -> wp.vec3:
+    # Duff et al. 2017, "Building an orthonormal basis, revisited" (JCGT 6(1)), listing 3.
+    s = wp.where(n[2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (s + n[2])
+    b = n[0] * n[1] * a
+    return wp.vec3(1.0 + s * n[0] * n[0] * a, s * b, -s * n[0])
+
+
+@wp.func
+def frame_y(n: wp.vec3) -> wp.vec3:
+    # Duff et al. 2017, listing 3 (second tangent).
+    s = wp.where(n[2] >= 0.0, 1.0, -1.0)
+    a = -1.0 / (s + n[2])
+    b = n[0] * n[1] * a
+    return wp.vec3(b, s + n[1] * n[1] * a, -n[1])
+
+
+@wp.func
+def cosine_direction(n: wp.vec3, sampler: int, key: wp.uint32, index: int) -> wp.vec3:
+    """Sample `index` of the pixel with `key`: a cosine-weighted unit direction about n."""
+    w = cosine_hemisphere(sample_2d(sampler, key, index))
+    return frame_x(n) * w[0] + frame_y(n) * w[1] + n * w[2]
