@@ -418,7 +418,7 @@ def swap_exchange_chunk(b: BuildData, t: BuildTask, chunk: int):
 def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
     """Reduction of boxes over the two halves [0, pivot) and [pivot, count) separately; chunks
     of the left half come first."""
-    n_left_chunks = level_size(t.pivot, level)
+    n_left_chunks = segment_chunks(t.pivot, level)
     base = t.start
     n = t.pivot
     c = chunk
@@ -455,15 +455,24 @@ def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
 
 
 @wp.func
+def segment_chunks(n: int, level: int) -> int:
+    """AABB chunks of one half at `level`: none once that half is reduced to one box (its
+    range has room for its own levels only)."""
+    if level > level_count(n):
+        return 0
+    return level_size(n, level)
+
+
+@wp.func
 def aabb_levels(t: BuildTask) -> int:
     return wp.max(level_count(t.pivot), level_count(t.count - t.pivot))
 
 
 @wp.func
 def aabb_result(b: BuildData, t: BuildTask) -> BuildTask:
-    levels = aabb_levels(t)
-    left = level_base(t.start, t.pivot, levels)
-    right = level_base(t.start + t.pivot, t.count - t.pivot, levels)
+    left = level_base(t.start, t.pivot, level_count(t.pivot))
+    n_right = t.count - t.pivot
+    right = level_base(t.start + t.pivot, n_right, level_count(n_right))
     t.llo = b.box_lo[left]
     t.lhi = b.box_hi[left]
     t.lclo = b.cbox_lo[left]
@@ -500,7 +509,7 @@ def step_chunks(t: BuildTask) -> int:
         return ceil_div(t.pivot, CHUNK)
     if t.phase == PHASE_AABB:
         level = t.step + 1
-        return level_size(t.pivot, level) + level_size(t.count - t.pivot, level)
+        return segment_chunks(t.pivot, level) + segment_chunks(t.count - t.pivot, level)
     return 0
 
 
