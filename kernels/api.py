@@ -127,7 +127,7 @@ def build_bvh(
     b.tasks = wp.empty(capacity, dtype=bb.BuildTask, device=device)
     b.nodes = wp.empty(max(2 * n - 1, 1), dtype=bb.BvhNode, device=device)
     b.counters = wp.zeros(2, dtype=int, device=device)
-    b.phase_cycles = wp.zeros(workers * len(bb.PHASE_NAMES), dtype=wp.int64, device=device)
+    b.phase_cycles = wp.zeros(workers * bb.CYCLE_ROW, dtype=wp.int64, device=device)
     b.method = METHODS[method]
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)
@@ -144,7 +144,8 @@ def build_bvh(
         launch_workers(bb.build_worker, workers, [b, pool], device)
     pool_state = check_pool(pool)
     build_ms = _sync_ms(device, t0)
-    cycles = b.phase_cycles.numpy().reshape(workers, -1).sum(axis=0).astype(np.float64)
+    cycles = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(bb.PHASE_NAMES)]
+    cycles = cycles.sum(axis=0).astype(np.float64)
     share = cycles / cycles.sum() if cycles.sum() > 0 else np.zeros_like(cycles)
     for name, s in zip(bb.PHASE_NAMES, share, strict=True):
         phase_ms[name] = float(build_ms * s)
