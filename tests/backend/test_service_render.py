@@ -1,0 +1,64 @@
+"""Upload -> BVH -> AO over HTTP returns exactly what the direct kernel calls return."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import kernels
+
+
+@pytest.fixture(scope="module")
+def scene_id(api, box_scene) -> str:
+    response = api.upload(*box_scene)
+    assert response.status_code in (200, 201), response.text
+    return response.json()["scene_id"]
+
+
+@pytest.mark.parametrize(("method", "leaf_size"), [("sah", 8), ("median", 4)])
+def test_bvh_over_http_matches_a_direct_build(api, box_scene, method, leaf_size):
+    vertices = box_scene[0] * np.float32(2.0) + np.float32(leaf_size)  # no other test's scene
+    scene = (vertices, box_scene[1])
+    scene_id = api.upload(*scene).json()["scene_id"]
+    spec = {"method": method, "leaf_size": leaf_size}
+    first = api.client.post(f"/v1/scenes/{scene_id}/bvh", json=spec)
+    assert first.status_code == 200, first.text
+    info = first.json()
+    direct = kernels.build_bvh(*scene, method=method, leaf_size=leaf_size, device="cpu")
+    for key in ("nodes", "leaves", "depth", "triangles", "degenerate"):
+        assert info["stats"][key] == direct.stats[key], key
+    assert info["stats"]["sah_cost"] == pytest.approx(direct.stats["sah_cost"], rel=1e-12)
+    assert set(direct.stats["phase_ms"]) | {"total"} == set(info["timings_ms"])
+    again = api.client.post(f"/v1/scenes/{scene_id}/bvh", json=spec).json()
+    assert (info["cached"], again["cached"]) == (False, True)
+    assert again["timings_ms"] == info["timings_ms"]  # the original build's, reused
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"spp": 8, "seed": 3},
+        {"spp": 4, "distance": 0.25, "seed": 0},
+        {"spp": 16, "seed": 7, "target_error": 0.05, "method": "median", "leaf_size": 4},
+    ],
+    ids=["spp8", "distance", "target-error"],
+)
+def test_ao_over_http_equals_the_direct_call(api, box_scene, scene_id, make_rays, params):
+    origins, directions = make_rays(300, seed=params["seed"] + 1)
+    response = api.ao(scene_id, origins, directions, **params)
+    assert response.status_code == 200, response.text
+    assert response.headers["content-type"] == "application/octet-stream"
+    timing = response.headers["server-timing"]
+    assert all(f"{name};dur=" in timing for name in ("decode", "ao", "total"))
+    got = np.frombuffer(response.content, "<f4")
+    engine_params = {k: v for k, v in params.items() if k not in ("method", "leaf_size")}
+    bvh = kernels.build_bvh(
+        *box_scene,
+        method=params.get("method", "sah"),
+        leaf_size=params.get("leaf_size", 8),
+        device="cpu",
+    )
+    expected = kernels.ambient_occlusion(bvh, origins, directions, **engine_params)
+    assert got.shape == (300,)
+    np.testing.assert_array_equal(got, np.asarray(expected, np.float32))
+    assert 0.0 < got.min() < 1.0 and got.max() == 1.0  # occluded floor and missed rays
