@@ -123,7 +123,9 @@ def build_bvh(
     )
     bins = (capacity + workers) * bb.BIN_SLOTS  # per slot, then per worker
     b.bin_count = wp.empty(bins, dtype=int, device=device)
-    b.bin_lo, b.bin_hi = (wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(2))
+    b.bin_lo, b.bin_hi, b.bin_clo, b.bin_chi = (
+        wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(4)
+    )
     b.tasks = wp.empty(capacity, dtype=bb.BuildTask, device=device)
     b.nodes = wp.empty(max(2 * n - 1, 1), dtype=bb.BvhNode, device=device)
     b.counters = wp.zeros(2, dtype=int, device=device)

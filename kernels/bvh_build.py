@@ -39,7 +39,7 @@ wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
 CHUNK = wp.constant(32)  # items per work chunk (the paper's warp width)
 BINS = wp.constant(32)  # SAH candidate planes per axis (sec. 4.1)
-BIN_SLOTS = 3 * 32  # bins per pool slot
+BIN_SLOTS = 32  # bins per pool slot
 BinFloats = wp.types.vector(length=32, dtype=wp.float32)
 
 METHOD_MEDIAN = wp.constant(0)
@@ -79,7 +79,7 @@ class BuildTask:
     chunks: int  # work chunks of the current step
     lo: wp.vec3  # node box
     hi: wp.vec3
-    clo: wp.vec3  # centroid box: the median plane lives in it (SAH bins span lo..hi)
+    clo: wp.vec3  # centroid box: the split axis, SAH bins and median plane live in it
     chi: wp.vec3
     axis: int
     split_bin: int  # SAH: bins <= split_bin go left
@@ -114,8 +114,10 @@ class BuildData:
     cbox_lo: wp.array(dtype=wp.vec3)
     cbox_hi: wp.array(dtype=wp.vec3)
     bin_count: wp.array(dtype=int)  # BIN_SLOTS per pool slot, then per worker
-    bin_lo: wp.array(dtype=wp.vec3)
+    bin_lo: wp.array(dtype=wp.vec3)  # box of the bin's triangles
     bin_hi: wp.array(dtype=wp.vec3)
+    bin_clo: wp.array(dtype=wp.vec3)  # box of their centroids
+    bin_chi: wp.array(dtype=wp.vec3)
     tasks: wp.array(dtype=BuildTask)  # the task data array, one entry per pool slot
     nodes: wp.array(dtype=BvhNode)
     counters: wp.array(dtype=int)
@@ -182,14 +184,9 @@ def half_area(lo: wp.vec3, hi: wp.vec3) -> float:
 
 
 @wp.func
-def bin_scale(lo: wp.vec3, hi: wp.vec3) -> wp.vec3:
-    """Bins per unit length on each axis of a node's box (0 on a flat axis)."""
-    e = hi - lo
-    s = wp.vec3(0.0)
-    for axis in range(3):
-        if e[axis] > 0.0:
-            s[axis] = float(BINS) / e[axis]
-    return s
+def bin_scale(t: BuildTask) -> float:
+    """Bins per unit length along the split axis of the task's centroid box."""
+    return float(BINS) / (t.chi[t.axis] - t.clo[t.axis])
 
 
 @wp.func
@@ -203,7 +200,7 @@ def goes_right(b: BuildData, t: BuildTask, scale: float, i: int) -> bool:
     """Marked 1 in PPS: right of the SAH plane (`scale` from bin_scale) or the median."""
     c = b.centroid[i][t.axis]
     if b.method == METHOD_SAH:
-        return bin_of(c, t.lo[t.axis], scale) > t.split_bin
+        return bin_of(c, t.clo[t.axis], scale) > t.split_bin
     return c > t.split
 
 
@@ -212,22 +209,23 @@ def goes_right(b: BuildData, t: BuildTask, scale: float, i: int) -> bool:
 
 @wp.func
 def split_plane_chunk(b: BuildData, t: BuildTask, bin_slot: int, chunk: int):
-    """Bin one chunk's triangles on all three axes (sec. 4.1, SplitPlane) into bins that
-    only this worker writes (plain updates). Bins span the node's box: cheaper than a
-    centroid box, and the bins then give the children's boxes."""
+    """Bin one chunk's triangles into the 32 bins of the split axis (sec. 4.1, SplitPlane),
+    bins that only this worker writes (plain updates). The bins span the centroid box on
+    its longest axis and keep both the triangles' box and their centroids' box, which give
+    the children's boxes and the next level's bins."""
     first = t.start + chunk * CHUNK
     last = wp.min(first + CHUNK, t.start + t.count)
-    scale = bin_scale(t.lo, t.hi)
+    scale = bin_scale(t)
+    origin = t.clo[t.axis]
     base = bin_slot * BIN_SLOTS
     for i in range(first, last):
         c = b.centroid[i]
-        lo = b.tri_lo[i]
-        hi = b.tri_hi[i]
-        for axis in range(3):
-            k = base + axis * BINS + bin_of(c[axis], t.lo[axis], scale[axis])
-            b.bin_count[k] = b.bin_count[k] + 1
-            b.bin_lo[k] = min3(b.bin_lo[k], lo)
-            b.bin_hi[k] = max3(b.bin_hi[k], hi)
+        k = base + bin_of(c[t.axis], origin, scale)
+        b.bin_count[k] = b.bin_count[k] + 1
+        b.bin_lo[k] = min3(b.bin_lo[k], b.tri_lo[i])
+        b.bin_hi[k] = max3(b.bin_hi[k], b.tri_hi[i])
+        b.bin_clo[k] = min3(b.bin_clo[k], c)
+        b.bin_chi[k] = max3(b.bin_chi[k], c)
 
 
 @wp.func
@@ -235,6 +233,8 @@ def reset_bin(b: BuildData, k: int):
     b.bin_count[k] = 0
     b.bin_lo[k] = wp.vec3(INF)
     b.bin_hi[k] = wp.vec3(-INF)
+    b.bin_clo[k] = wp.vec3(INF)
+    b.bin_chi[k] = wp.vec3(-INF)
 
 
 @wp.func
@@ -249,61 +249,66 @@ def merge_bins(b: BuildData, from_slot: int, to_slot: int):
             shared_add(b.bin_count, dst + k, n)
             shared_min_vec3(b.bin_lo, dst + k, b.bin_lo[src + k])
             shared_max_vec3(b.bin_hi, dst + k, b.bin_hi[src + k])
+            shared_min_vec3(b.bin_clo, dst + k, b.bin_clo[src + k])
+            shared_max_vec3(b.bin_chi, dst + k, b.bin_chi[src + k])
             reset_bin(b, src + k)
 
 
 @wp.func
 def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
-    """The last finisher of SplitPlane picks the cheapest of the 3 x 31 planes with a suffix
-    and a prefix sweep over the bins; the bins give the children's exact boxes. Leaves the
-    bins cleared for the slot's next task."""
+    """The last finisher of SplitPlane picks the cheapest of the 31 planes with a suffix and
+    a prefix sweep over the bins; the bins give the children's exact boxes and centroid
+    boxes. Leaves the bins cleared for the slot's next task."""
     best_cost = float(INF)
     base = slot * BIN_SLOTS
-    for axis in range(3):
-        a = base + axis * BINS
-        right_area = BinFloats()
-        lo = wp.vec3(INF)
-        hi = wp.vec3(-INF)
-        for k in range(BINS - 1, 0, -1):  # right_area[k]: bins k.. BINS-1
-            if b.bin_count[a + k] > 0:
-                lo = min3(lo, b.bin_lo[a + k])
-                hi = max3(hi, b.bin_hi[a + k])
-            right_area[k] = half_area(lo, hi)
-        lo = wp.vec3(INF)
-        hi = wp.vec3(-INF)
-        n_left = int(0)
-        for k in range(BINS - 1):  # plane between bins k and k + 1
-            n = b.bin_count[a + k]
-            if n > 0:
-                n_left += n
-                lo = min3(lo, b.bin_lo[a + k])
-                hi = max3(hi, b.bin_hi[a + k])
-            n_right = t.count - n_left
-            if n_left > 0 and n_right > 0:
-                cost = float(n_left) * half_area(lo, hi) + float(n_right) * right_area[k + 1]
-                if cost < best_cost:
-                    best_cost = cost
-                    t.axis = axis
-                    t.split_bin = k
-                    t.pivot = n_left
-    if best_cost < INF:
-        a = base + t.axis * BINS
-        t.llo = wp.vec3(INF)
-        t.lhi = wp.vec3(-INF)
-        t.rlo = wp.vec3(INF)
-        t.rhi = wp.vec3(-INF)
-        for k in range(BINS):
-            if k <= t.split_bin:
-                t.llo = min3(t.llo, b.bin_lo[a + k])
-                t.lhi = max3(t.lhi, b.bin_hi[a + k])
-            else:
-                t.rlo = min3(t.rlo, b.bin_lo[a + k])
-                t.rhi = max3(t.rhi, b.bin_hi[a + k])
-    else:
-        t.pivot = -1  # no plane separates the centroids
-    for k in range(BIN_SLOTS):  # untouched bins are still clear
+    right_area = BinFloats()
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    for k in range(BINS - 1, 0, -1):  # right_area[k]: bins k .. BINS-1
         if b.bin_count[base + k] > 0:
-            reset_bin(b, base + k)
+            lo = min3(lo, b.bin_lo[base + k])
+            hi = max3(hi, b.bin_hi[base + k])
+        right_area[k] = half_area(lo, hi)
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    n_left = int(0)
+    for k in range(BINS - 1):  # the plane between bins k and k + 1
+        n = b.bin_count[base + k]
+        if n > 0:
+            n_left += n
+            lo = min3(lo, b.bin_lo[base + k])
+            hi = max3(hi, b.bin_hi[base + k])
+        n_right = t.count - n_left
+        if n_left > 0 and n_right > 0:
+            cost = float(n_left) * half_area(lo, hi) + float(n_right) * right_area[k + 1]
+            if cost < best_cost:
+                best_cost = cost
+                t.split_bin = k
+                t.pivot = n_left
+    t.llo = wp.vec3(INF)
+    t.lhi = wp.vec3(-INF)
+    t.lclo = wp.vec3(INF)
+    t.lchi = wp.vec3(-INF)
+    t.rlo = wp.vec3(INF)
+    t.rhi = wp.vec3(-INF)
+    t.rclo = wp.vec3(INF)
+    t.rchi = wp.vec3(-INF)
+    for k in range(BINS):
+        i = base + k
+        if b.bin_count[i] > 0:
+            if k <= t.split_bin:
+                t.llo = min3(t.llo, b.bin_lo[i])
+                t.lhi = max3(t.lhi, b.bin_hi[i])
+                t.lclo = min3(t.lclo, b.bin_clo[i])
+                t.lchi = max3(t.lchi, b.bin_chi[i])
+            else:
+                t.rlo = min3(t.rlo, b.bin_lo[i])
+                t.rhi = max3(t.rhi, b.bin_hi[i])
+                t.rclo = min3(t.rclo, b.bin_clo[i])
+                t.rchi = max3(t.rchi, b.bin_chi[i])
+            reset_bin(b, i)
+    if best_cost == INF:
+        t.pivot = -1  # all centroids fell into one bin
     return t
 
 
@@ -319,7 +324,9 @@ def pps_up_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
     if level == 1:
         first = t.start + chunk * CHUNK
         last = wp.min(first + CHUNK, t.start + t.count)
-        scale = bin_scale(t.lo, t.hi)[t.axis]
+        scale = float(0.0)
+        if b.method == METHOD_SAH:
+            scale = bin_scale(t)
         for i in range(first, last):
             right = int(0)
             if goes_right(b, t, scale, i):
@@ -598,9 +605,11 @@ def new_task(
     t.chi = chi
     t.pivot = 0
     t.ones_left = 0
-    if b.method == METHOD_SAH:
-        return enter(t, PHASE_SPLIT_PLANE)
     t.axis = longest_axis(clo, chi)
+    if b.method == METHOD_SAH:
+        if chi[t.axis] <= clo[t.axis]:
+            return halve(t)  # coincident centroids: no plane separates them
+        return enter(t, PHASE_SPLIT_PLANE)
     t.split = 0.5 * (clo[t.axis] + chi[t.axis])
     if not (t.split >= clo[t.axis] and t.split < chi[t.axis]):
         return halve(t)  # coincident centroids, or a midpoint that rounds onto the upper end
