@@ -11,6 +11,11 @@ def _float_array(a, name: str, width: int) -> np.ndarray:
         raise ValueError(f"{name} must have shape (N, {width}), got {a.shape}")
     if not np.issubdtype(a.dtype, np.floating):
         raise ValueError(f"{name} must be a float32 array, got dtype {a.dtype}")
+    if a.dtype != np.float32 and a.size:
+        big = np.abs(np.where(np.isfinite(a), a, 0.0)).max()
+        if big > np.finfo(np.float32).max:
+            raise ValueError(f"{name} has values beyond the float32 range (|x| up to {big:.3g}); "
+                             "the engine computes in float32: rescale the input")
     a = np.ascontiguousarray(a, dtype=np.float32)
     if np.isfinite(a).all():
         return a

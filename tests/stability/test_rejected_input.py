@@ -31,7 +31,7 @@ def _with(a: np.ndarray, row: int, value) -> np.ndarray:
         (_with(V, 0, [0, np.inf, 0]), F, "NaN or Inf"),
         (_with(V, 8, [0, 0, -np.inf]), F, "NaN or Inf"),
         # Finite in float64 but not in float32: must not become a silent inf vertex.
-        (_with(V.astype(np.float64), 2, [1e39, 0, 0]), F, "NaN or Inf"),
+        (_with(V.astype(np.float64), 2, [1e39, 0, 0]), F, "beyond the float32 range"),
         (V, _with(F, 1, [0, 1, len(V)]), "indices must lie in"),
         (V, _with(F, 0, [-1, 1, 2]), "indices must lie in"),
         (V, _with(F, 0, [0, 1, 2**31 - 1]), "indices must lie in"),
@@ -64,7 +64,8 @@ DIRS = np.tile(np.array([[0.0, -1.0, 0.0]], np.float32), (6, 1))
     [
         ({"origins": _with(ORIGINS, 5, [0, -np.inf, 0])}, "origins contains NaN or Inf in 1 rows"),
         ({"directions": _with(DIRS, 4, [np.nan, -1, 0])}, "directions contains NaN or Inf"),
-        ({"origins": _with(ORIGINS.astype(np.float64), 1, [3e38 * 10, 0, 0])}, "NaN or Inf"),
+        ({"origins": _with(ORIGINS.astype(np.float64), 1, [3e38 * 10, 0, 0])},
+         "beyond the float32 range"),
         ({"directions": _with(DIRS, 2, [-0.0, 0.0, -0.0])}, "zero-length rows .first: row 2"),
         ({"tmax": np.array([1, 1, 1, 0.5, 1, 1], np.float32),
           "tmin": np.array([0, 0, 0, 0.6, 0, 0], np.float32)}, "tmax must be >= tmin"),
