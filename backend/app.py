@@ -21,20 +21,31 @@ import numpy as np
 from fastapi import FastAPI, Path, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
-from pydantic import BaseModel, ConfigDict, Field
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from backend import __version__, jobs, wire
 from backend.jobs import AoParams, DeviceWorker, JobManager, QueueFull
+from backend.models import (
+    OCTET,
+    BvhInfo,
+    BvhRequest,
+    BvhStats,
+    CacheUse,
+    Health,
+    JobRequest,
+    JobStatus,
+    SceneInfo,
+    binary_body,
+    error_responses,
+)
 from backend.store import Store
 from backend.wire import ApiError
 
 log = logging.getLogger("scenesort.app")
 
 MAX_JOB_PIXELS = 4096 * 4096
-OCTET = "application/octet-stream"
 SceneId = Annotated[
     str, Path(pattern=r"^[0-9a-f]{32}$", description="32 hex characters (see docs/api.md)")
 ]
@@ -49,132 +60,6 @@ class Settings:
     token: str | None = None
     max_body_bytes: int = 512 * 2**20
     cache_bytes: int = 2048 * 2**20
-
-
-# --- models -------------------------------------------------------------------------
-
-
-class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid")
-
-
-class ErrorBody(Strict):
-    error: str = Field(description="machine-readable code, e.g. bad_body_length")
-    parameter: str = Field(description="the query/path/body parameter or header at fault")
-    message: str
-    fix: str = Field(description="what the client should change")
-
-
-class CacheUse(Strict):
-    bytes: int
-    max_bytes: int
-    scenes: int
-    bvhs: int
-    evictions: int
-
-
-class Health(Strict):
-    status: Literal["ok"] = "ok"
-    version: str
-    warp_version: str
-    device: str
-    cache: CacheUse
-    queued: int
-    active_jobs: int
-
-
-class SceneInfo(Strict):
-    scene_id: str
-    vertices: int
-    triangles: int
-    bounds: list[list[float]] = Field(description="[[xmin, ymin, zmin], [xmax, ymax, zmax]]")
-    degenerate: int = Field(description="zero-area triangles (kept, never hit)")
-    bytes: int
-
-
-class BvhRequest(Strict):
-    method: Literal["sah", "median"] = "sah"
-    leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
-
-
-class BvhStats(Strict):
-    nodes: int
-    leaves: int
-    depth: int
-    sah_cost: float
-    triangles: int
-    degenerate: int
-
-
-class BvhInfo(Strict):
-    scene_id: str
-    method: Literal["sah", "median"]
-    leaf_size: int
-    cached: bool = Field(description="true when an earlier build was reused")
-    timings_ms: dict[str, float] = Field(description="total and one entry per build phase")
-    stats: BvhStats
-
-
-class CameraModel(Strict):
-    """Blender's camera model: the wire form of kernels.Camera (kernels/camera.py)."""
-
-    matrix_world: Annotated[
-        list[Annotated[list[float], Field(min_length=4, max_length=4)]],
-        Field(min_length=4, max_length=4, description="4x4 camera-to-world, row-major"),
-    ]
-    width: Annotated[int, Field(ge=1, le=65536)]
-    height: Annotated[int, Field(ge=1, le=65536)]
-    type: Literal["PERSP", "ORTHO"] = "PERSP"
-    lens: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 50.0
-    sensor_width: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 36.0
-    sensor_height: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 24.0
-    sensor_fit: Literal["AUTO", "HORIZONTAL", "VERTICAL"] = "AUTO"
-    ortho_scale: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 6.0
-    shift_x: Annotated[float, Field(allow_inf_nan=False)] = 0.0
-    shift_y: Annotated[float, Field(allow_inf_nan=False)] = 0.0
-    clip_start: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.1
-    clip_end: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1000.0
-
-
-class JobRequest(Strict):
-    scene_id: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
-    camera: CameraModel
-    spp: Annotated[int, Field(ge=1, le=4096)] = 16
-    distance: Annotated[float | None, Field(gt=0, allow_inf_nan=False)] = None
-    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    target_error: Annotated[float | None, Field(gt=0, lt=1, allow_inf_nan=False)] = None
-    engine: Literal["bvh", "dacrt"] = "bvh"
-    method: Literal["sah", "median"] = "sah"
-    leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
-
-
-class JobStatus(Strict):
-    job_id: str
-    scene_id: str
-    state: Literal["queued", "running", "done", "failed", "cancelled"]
-    phase: str
-    progress: float = Field(ge=0, le=1)
-    width: int
-    height: int
-    timings_ms: dict[str, float]
-    spp_mean: float | None
-    error: str | None
-
-
-def _errors(*codes: int) -> dict[int | str, dict[str, Any]]:
-    """OpenAPI `responses` entries: each listed status returns an ErrorBody."""
-    return {code: {"model": ErrorBody} for code in codes}
-
-
-def _binary_body(description: str) -> dict[str, Any]:
-    """OpenAPI for a raw little-endian body (FastAPI cannot infer it from the signature)."""
-    return {
-        "requestBody": {
-            "required": True,
-            "description": description,
-            "content": {OCTET: {"schema": {"type": "string", "format": "binary"}}},
-        }
-    }
 
 
 # --- request helpers ----------------------------------------------------------------
@@ -448,7 +333,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_exception_handler(Exception, _internal_error)
     app.add_middleware(AccessMiddleware, token=settings.token)
-    common = _errors(400, 401, 422, 429)
+    common = error_responses(400, 401, 422, 429)
 
     @app.get("/v1/health", response_model=Health)
     async def health() -> Health:
@@ -470,9 +355,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         status_code=201,
         responses={
             200: {"model": SceneInfo, "description": "already known"},
-            **_errors(400, 401, 413, 415, 422),
+            **error_responses(400, 401, 413, 415, 422),
         },
-        openapi_extra=_binary_body(
+        openapi_extra=binary_body(
             "V*3 little-endian float32 positions, then T*3 little-endian int32 indices "
             "(0-based), no header or padding: exactly 12*V + 12*T bytes."
         ),
@@ -522,7 +407,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         """200 if the service holds this scene, else 404: clients skip unchanged uploads."""
         return Response(status_code=200 if store.get(scene_id) is not None else 404)
 
-    @app.get("/v1/scenes/{scene_id}", response_model=SceneInfo, responses=_errors(404, 422))
+    @app.get("/v1/scenes/{scene_id}", response_model=SceneInfo, responses=error_responses(404, 422))
     async def scene_info(scene_id: SceneId) -> SceneInfo:
         """What the service knows about a scene."""
         scene = _scene_or_404(store, scene_id)
@@ -535,7 +420,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             bytes=scene.nbytes,
         )
 
-    @app.post("/v1/scenes/{scene_id}/bvh", response_model=BvhInfo, responses=_errors(404, *common))
+    @app.post("/v1/scenes/{scene_id}/bvh", response_model=BvhInfo,
+              responses=error_responses(404, *common))
     async def build_bvh(scene_id: SceneId, spec: BvhRequest, response: Response) -> BvhInfo:
         """Build (or reuse) the scene's BVH with these parameters; per-phase timings.
 
@@ -569,9 +455,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "description": "R little-endian float32 AO values, one per ray, in order; "
                 "a Server-Timing header lists the phases in ms.",
             },
-            **_errors(404, 413, 415, *common),
+            **error_responses(404, 413, 415, *common),
         },
-        openapi_extra=_binary_body(
+        openapi_extra=binary_body(
             "R*6 little-endian float32: origin xyz then direction xyz per ray (directions "
             "need not be unit length, must be nonzero): exactly 24*R bytes."
         ),
@@ -634,7 +520,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         )
 
     @app.post(
-        "/v1/jobs", response_model=JobStatus, status_code=202, responses=_errors(404, *common)
+        "/v1/jobs", response_model=JobStatus, status_code=202,
+        responses=error_responses(404, *common),
     )
     async def create_job(request: JobRequest) -> JobStatus:
         """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
@@ -698,12 +585,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             )
         return job
 
-    @app.get("/v1/jobs/{job_id}", response_model=JobStatus, responses=_errors(404, 422))
+    @app.get("/v1/jobs/{job_id}", response_model=JobStatus, responses=error_responses(404, 422))
     async def job_status(job_id: JobId) -> JobStatus:
         """State, phase, progress (0..1) and per-phase timings of a job."""
         return JobStatus(**job_or_404(job_id).snapshot())
 
-    @app.delete("/v1/jobs/{job_id}", response_model=JobStatus, responses=_errors(404, 422))
+    @app.delete("/v1/jobs/{job_id}", response_model=JobStatus, responses=error_responses(404, 422))
     async def cancel_job(job_id: JobId) -> JobStatus:
         """Cancel a job: a queued one never starts, a running one stops at its next step."""
         manager.cancel(job_id)
@@ -721,7 +608,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "description": "format=f32: height*width little-endian float32, row 0 at "
                 "the top; format=png: 8-bit grayscale PNG. X-Width/X-Height headers.",
             },
-            **_errors(404, 409, 422),
+            **error_responses(404, 409, 422),
         },
     )
     async def job_result(job_id: JobId, format: Literal["f32", "png"] = "f32") -> Response:
@@ -755,7 +642,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "description": "server-sent events: `progress` on each change (data "
                 "is a JobStatus), then one `end`",
             },
-            **_errors(404, 422),
+            **error_responses(404, 422),
         },
     )
     async def job_events(job_id: JobId, request: Request) -> StreamingResponse:

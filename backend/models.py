@@ -1,0 +1,133 @@
+"""The HTTP API's data: Pydantic models (extra fields forbidden) and the OpenAPI pieces
+that FastAPI cannot infer, such as raw binary bodies."""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+OCTET = "application/octet-stream"
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class ErrorBody(Strict):
+    error: str = Field(description="machine-readable code, e.g. bad_body_length")
+    parameter: str = Field(description="the query/path/body parameter or header at fault")
+    message: str
+    fix: str = Field(description="what the client should change")
+
+
+class CacheUse(Strict):
+    bytes: int
+    max_bytes: int
+    scenes: int
+    bvhs: int
+    evictions: int
+
+
+class Health(Strict):
+    status: Literal["ok"] = "ok"
+    version: str
+    warp_version: str
+    device: str
+    cache: CacheUse
+    queued: int
+    active_jobs: int
+
+
+class SceneInfo(Strict):
+    scene_id: str
+    vertices: int
+    triangles: int
+    bounds: list[list[float]] = Field(description="[[xmin, ymin, zmin], [xmax, ymax, zmax]]")
+    degenerate: int = Field(description="zero-area triangles (kept, never hit)")
+    bytes: int
+
+
+class BvhRequest(Strict):
+    method: Literal["sah", "median"] = "sah"
+    leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
+
+
+class BvhStats(Strict):
+    nodes: int
+    leaves: int
+    depth: int
+    sah_cost: float
+    triangles: int
+    degenerate: int
+
+
+class BvhInfo(Strict):
+    scene_id: str
+    method: Literal["sah", "median"]
+    leaf_size: int
+    cached: bool = Field(description="true when an earlier build was reused")
+    timings_ms: dict[str, float] = Field(description="total and one entry per build phase")
+    stats: BvhStats
+
+
+class CameraModel(Strict):
+    """Blender's camera model: the wire form of kernels.Camera (kernels/camera.py)."""
+
+    matrix_world: Annotated[
+        list[Annotated[list[float], Field(min_length=4, max_length=4)]],
+        Field(min_length=4, max_length=4, description="4x4 camera-to-world, row-major"),
+    ]
+    width: Annotated[int, Field(ge=1, le=65536)]
+    height: Annotated[int, Field(ge=1, le=65536)]
+    type: Literal["PERSP", "ORTHO"] = "PERSP"
+    lens: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 50.0
+    sensor_width: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 36.0
+    sensor_height: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 24.0
+    sensor_fit: Literal["AUTO", "HORIZONTAL", "VERTICAL"] = "AUTO"
+    ortho_scale: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 6.0
+    shift_x: Annotated[float, Field(allow_inf_nan=False)] = 0.0
+    shift_y: Annotated[float, Field(allow_inf_nan=False)] = 0.0
+    clip_start: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.1
+    clip_end: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1000.0
+
+
+class JobRequest(Strict):
+    scene_id: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
+    camera: CameraModel
+    spp: Annotated[int, Field(ge=1, le=4096)] = 16
+    distance: Annotated[float | None, Field(gt=0, allow_inf_nan=False)] = None
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    target_error: Annotated[float | None, Field(gt=0, lt=1, allow_inf_nan=False)] = None
+    engine: Literal["bvh", "dacrt"] = "bvh"
+    method: Literal["sah", "median"] = "sah"
+    leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
+
+
+class JobStatus(Strict):
+    job_id: str
+    scene_id: str
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+    phase: str
+    progress: float = Field(ge=0, le=1)
+    width: int
+    height: int
+    timings_ms: dict[str, float]
+    spp_mean: float | None
+    error: str | None
+
+
+def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
+    """OpenAPI `responses` entries: each listed status returns an ErrorBody."""
+    return {code: {"model": ErrorBody} for code in codes}
+
+
+def binary_body(description: str) -> dict[str, Any]:
+    """OpenAPI for a raw little-endian body (FastAPI cannot infer it from the signature)."""
+    return {
+        "requestBody": {
+            "required": True,
+            "description": description,
+            "content": {OCTET: {"schema": {"type": "string", "format": "binary"}}},
+        }
+    }
