@@ -226,7 +226,7 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
         f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
         f"spp mean {spp.mean() if len(spp) else 0:.1f} (max {spp.max(initial=0)})"
     )
-    table = Table(title=title)
+    table = Table(title=title, min_width=len(title) + 4)
     table.add_column("phase")
     table.add_column("ms", justify="right")
     table.add_column("rays", justify="right")
