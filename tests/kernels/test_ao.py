@@ -10,7 +10,7 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 import kernels
-from kernels.ao import EFFICIENCY_MIN, Z95, sampler_efficiency, wilson_half_width
+from kernels.ao import EFFICIENCY_MIN, Z95, half_width, sampler_efficiency
 from kernels.camera import Camera
 
 SAMPLERS = ("random", "sobol")
@@ -226,13 +226,18 @@ def test_target_error_is_met(sponza, sponza_reference):
     assert (np.abs(res_sobol.ao - sponza_reference)[hit] <= target).mean() >= 0.95
 
 
-def test_wilson_half_width_never_collapses():
-    n = np.array([16, 16, 100, 1000])
-    half = wilson_half_width(np.array([16, 8, 50, 0]), n)
-    assert half[0] > 0.1 and half[3] > 0  # all-agreeing samples still leave doubt
-    assert abs(half[0] - Z95**2 / (16 + Z95**2)) < 1e-12  # = 1 - the lower Wilson bound
-    assert half[1] > half[0]  # p = 0.5 is the least certain
-    assert abs(half[2] - 1.96 * 0.05) < 0.003  # the normal interval for large n
+def test_half_width_is_the_sample_variance_interval():
+    """Disagreeing samples: z * sqrt(efficiency * s^2 / n) with the unbiased sample
+    variance. Agreeing samples never give 0: the Jeffreys posterior mean stands in."""
+    n = np.array([16, 100, 16, 16, 64])
+    k = np.array([8, 50, 16, 0, 64])
+    half = half_width(k, n, 1.0)
+    assert abs(half[0] - Z95 * np.sqrt(0.25 * 16 / 15 / 16)) < 1e-12
+    assert abs(half[1] - Z95 * np.sqrt(0.25 * 100 / 99 / 100)) < 1e-12
+    q = 0.5 / 17
+    assert abs(half[2] - half[3]) < 1e-15 and abs(half[2] - Z95 * np.sqrt(q * (1 - q) / 16)) < 1e-12
+    assert 0 < half[4] < half[2] / 3  # ~1/n, not 1/sqrt(n)
+    assert np.allclose(half_width(k, n, 0.25), half / 2)
 
 
 def test_sampler_efficiency_of_independent_and_perfect_samples():
@@ -251,9 +256,10 @@ def test_sampler_efficiency_of_independent_and_perfect_samples():
 # --- skipping, determinism, progress, bad input ------------------------------------------
 
 
-def test_adaptive_open_plane_stops_at_the_wilson_bound():
-    """Open-plane pixels agree on every sample: they stop as soon as the interval allows,
-    far below max_spp; rays that miss the scene box are never traced."""
+def test_adaptive_open_plane_stops_at_the_first_power_of_two_within_target():
+    """Open-plane pixels agree on every sample: they double from the minimum spp until the
+    half-width of agreeing samples is below the target, far below max_spp; rays that miss
+    the scene box are never traced."""
     v, f = grid_plane(2)
     bvh = kernels.build_bvh(v.astype(np.float32), f)
     r = 200
@@ -266,9 +272,9 @@ def test_adaptive_open_plane_stops_at_the_wilson_bound():
     assert np.all(res.ao == 1.0)
     assert np.all(res.spp_used[r // 2 :] == 0)
     used = res.spp_used[: r // 2]
-    assert np.all(used == used[0]) and used[0] == 73  # the least n with z^2/(n+z^2) < 0.05
-    assert np.all(wilson_half_width(used, used) < 0.05)
-    assert res.rays["occlusion"] == int(used.sum())
+    assert np.all(used == 32)  # 16 (the default minimum) doubled once
+    assert half_width(used // 2, used // 2, 1.0)[0] >= 0.05 > half_width(used, used, 1.0)[0]
+    assert res.rays["occlusion"] == int(used.sum()) and res.rays["rounds"] == 2
 
 
 def test_deterministic_for_any_thread_count(shared_scene):
