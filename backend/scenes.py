@@ -113,7 +113,7 @@ def shared_scene(name: str, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HE
 # --- the built-in default scene ----------------------------------------------------------
 # A room corner (floor, back and left walls) holding an icosphere, a torus lying flat and
 # a stack of boxes, all resting on the floor so that AO shows in corners and contacts.
-# Z is up (Blender's convention). About 117k triangles.
+# Z is up (Blender's convention). 109,312 triangles.
 
 
 def _grid(origin, du, dv, nu: int, nv: int) -> tuple[np.ndarray, np.ndarray]:
@@ -194,13 +194,14 @@ def _merge(parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.n
 
 
 def default_scene(width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT) -> Scene:
-    """The built-in scene: a room corner with a sphere, a torus and boxes (~117k triangles)."""
-    half, wall = 5.0, 4.0
+    """The built-in scene: a room corner with a sphere, a torus and boxes (109,312 triangles)."""
+    lo, hi, wall = -5.0, 9.0, 5.0  # walls stand at x = lo and y = -lo; floor reaches hi
+    size = hi - lo
     parts = [
-        _grid((-half, -half, 0), (2 * half, 0, 0), (0, 2 * half, 0), 128, 128),  # floor
-        _grid((-half, half, 0), (2 * half, 0, 0), (0, 0, wall), 128, 64),  # back wall
-        _grid((-half, -half, 0), (0, 2 * half, 0), (0, 0, wall), 128, 64),  # left wall
-        _icosphere((-1.2, 1.0, 1.2), 1.2, 5),  # touches the floor at one point
+        _grid((lo, -hi, 0), (size, 0, 0), (0, size, 0), 128, 128),  # floor
+        _grid((lo, -lo, 0), (size, 0, 0), (0, 0, wall), 128, 48),  # back wall
+        _grid((lo, -hi, 0), (0, size, 0), (0, 0, wall), 128, 48),  # left wall
+        _icosphere((0.2, 2.3, 1.2), 1.2, 5),  # touches the floor at one point
         _torus((1.9, -1.0, 0.4), 1.1, 0.4, 192, 64),  # lies on the floor
         _box((-4.35, 4.35, 0.6), (1.2, 1.2, 1.2), 0.0, 12),  # in the corner, 5 cm off both walls
         _box((-4.35, 4.35, 1.55), (0.7, 0.7, 0.7), 30.0, 12),  # stacked on it, turned
@@ -208,7 +209,7 @@ def default_scene(width: int = DEFAULT_WIDTH, height: int = DEFAULT_HEIGHT) -> S
         _box((-2.6, -2.4, 0.35), (0.7, 0.7, 0.7), 45.0, 12),
     ]
     vertices, indices = _merge(parts)
-    camera = Camera.look_at((9.0, -9.5, 6.5), (-0.8, 0.9, 0.9), (0, 0, 1), 40.0, width, height)
+    camera = Camera.look_at((6.0, -6.0, 4.5), (-1.0, 1.2, 0.9), (0, 0, 1), 50.0, width, height)
     return Scene(
         "default",
         np.ascontiguousarray(vertices, dtype=np.float32),
