@@ -17,7 +17,8 @@ from kernels.api import launch_split
 
 wp.set_module_options({"enable_backward": False})
 
-MESH_CONSTRUCTORS = ("sah", "median", "lbvh")  # lbvh falls back to sah on CPU (Warp warns)
+# Warp's CPU builders ("lbvh" is GPU only: on CPU Warp warns and builds "sah" instead).
+MESH_CONSTRUCTORS = ("sah", "median", "cubql")
 
 
 @wp.kernel

@@ -131,45 +131,51 @@ def build_rows(name: str, v: np.ndarray, f: np.ndarray, repeat: int) -> tuple[li
 
 
 def trace_rows(name: str, scene, repeat: int, width: int, height: int) -> list[dict]:
+    """MRays/s for each ray kind through our BVH (both methods, leaf 8) and `wp.Mesh` built
+    with the same method at its default leaf size; Embree once per ray kind."""
     v, f = scene.vertices, scene.indices
     cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": width,
                                         "height": height})
     o, d, _, _ = cam.rays()
-    bvh = kernels.build_bvh(v, f)
-    mesh = peers.WarpMesh(v, f, "sah")
+    sah = kernels.build_bvh(v, f)
     embree = peers.Embree(v, f) if peers.embree_available() else None
-    hits = kernels.trace(bvh, o, d)
-    dist = default_distance(bvh)
+    hits = kernels.trace(sah, o, d)
+    dist = default_distance(sah)
     ao_o, ao_d = peers.ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=7)
-    rand_o, rand_d = peers.random_rays(bvh.bounds, len(o))  # as many as primary (paper)
-    cores = cpu_cores()
-    out = []
-    for kind, (ro, rd, tmax, any_hit) in {
+    rand_o, rand_d = peers.random_rays(sah.bounds, len(o))  # as many as primary (paper)
+    kinds = {
         "primary": (o, d, 1e30, False),
         "AO (7/hit)": (ao_o, ao_d, dist, True),
         "random": (rand_o, rand_d, 1e30, False),
-    }.items():
-        row = {"scene": name, "rays": kind, "count": len(ro)}
-        for threads, key in ((1, "1t"), (cores, f"{cores}t")):
-            ours = peers.timeit(lambda t=threads, ro=ro, rd=rd, tmax=tmax, a=any_hit:
-                                kernels.trace(bvh, ro, rd, tmax=tmax, any_hit=a, threads=t),
-                                repeat)
-            theirs = peers.timeit(
-                (lambda t=threads, ro=ro, rd=rd, tmax=tmax: mesh.occluded(ro, rd, tmax, t))
-                if any_hit else (lambda t=threads, ro=ro, rd=rd: mesh.closest(ro, rd, 1e30, t)),
-                repeat)
-            row[f"ours {key}"] = len(ro) / ours / 1e6
-            row[f"wp.Mesh {key}"] = len(ro) / theirs / 1e6
-        if embree is not None:
-            t = peers.timeit((lambda ro=ro, rd=rd, tmax=tmax: embree.occluded(ro, rd, tmax))
-                             if any_hit else (lambda ro=ro, rd=rd: embree.closest(ro, rd)),
-                             max(1, repeat // 2))
-            row["Embree 1t"] = len(ro) / t / 1e6
-            ours = kernels.trace(bvh, ro, rd, tmax=tmax, any_hit=any_hit).triangle >= 0
-            ref = (embree.occluded(ro, rd, tmax) if any_hit
-                   else embree.closest(ro, rd)[1] >= 0)
-            row["hit/miss differences vs Embree"] = int((ours != ref).sum())
-        out.append(row)
+    }
+    cores = cpu_cores()
+    out = []
+    for method in METHODS:
+        bvh = sah if method == "sah" else kernels.build_bvh(v, f, method=method)
+        mesh = peers.WarpMesh(v, f, method)
+        for kind, (ro, rd, tmax, any_hit) in kinds.items():
+            row = {"scene": name, "bvh": method, "rays": kind, "count": len(ro)}
+            for threads, key in ((1, "1t"), (cores, f"{cores}t")):
+                ours = peers.timeit(lambda t=threads, ro=ro, rd=rd, tmax=tmax, a=any_hit, b=bvh:
+                                    kernels.trace(b, ro, rd, tmax=tmax, any_hit=a, threads=t),
+                                    repeat)
+                theirs = peers.timeit(
+                    (lambda t=threads, ro=ro, rd=rd, tmax=tmax, m=mesh:
+                     m.occluded(ro, rd, tmax, t)) if any_hit else
+                    (lambda t=threads, ro=ro, rd=rd, m=mesh: m.closest(ro, rd, 1e30, t)),
+                    repeat)
+                row[f"ours {key}"] = len(ro) / ours / 1e6
+                row[f"wp.Mesh {key}"] = len(ro) / theirs / 1e6
+            if embree is not None and method == "sah":
+                t = peers.timeit((lambda ro=ro, rd=rd, tmax=tmax: embree.occluded(ro, rd, tmax))
+                                 if any_hit else (lambda ro=ro, rd=rd: embree.closest(ro, rd)),
+                                 max(1, repeat // 2))
+                row["Embree 1t"] = len(ro) / t / 1e6
+                ours = kernels.trace(bvh, ro, rd, tmax=tmax, any_hit=any_hit).triangle >= 0
+                ref = (embree.occluded(ro, rd, tmax) if any_hit
+                       else embree.closest(ro, rd)[1] >= 0)
+                row["hit/miss differences vs Embree"] = int((ours != ref).sum())
+            out.append(row)
     return out
 
 
@@ -213,9 +219,10 @@ def markdown(build: list[dict], peer_build: dict, traces: list[dict], compile_s:
     lines.append("")
     lines += ["### Trace (trace columns of Tables 6.1/6.2, our SAH leaf 8 against wp.Mesh sah): "
               "MRays/s", ""]
-    keys = [k for k in traces[0] if k not in ("scene", "rays", "count")]
-    lines.append("| scene | rays | count | " + " | ".join(keys) + " | ours / wp.Mesh (1t, all) |")
-    lines.append("|---|---|---:|" + "---:|" * len(keys) + "---|")
+    keys = [k for k in traces[0] if k not in ("scene", "bvh", "rays", "count")]
+    lines.append("| scene | bvh | rays | count | " + " | ".join(keys)
+                 + " | ours / wp.Mesh (1t, all) |")
+    lines.append("|---|---|---|---:|" + "---:|" * len(keys) + "---|")
     cores = cpu_cores()
     for r in traces:
         cells = [f"{r[k]:.2f}" if isinstance(r[k], float) else str(r[k]) for k in keys]

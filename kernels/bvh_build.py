@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from .chunks import CHUNK, ceil_div, level_base, level_count, level_size
 from .geometry import INF, max3, min3
 from .pool import (
     Pool,
@@ -37,7 +38,6 @@ from .pool import (
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
-CHUNK = wp.constant(32)  # items per work chunk (the paper's warp width)
 BINS = wp.constant(32)  # SAH candidate planes per axis (sec. 4.1)
 BIN_SLOTS = 32  # bins per pool slot
 BinFloats = wp.types.vector(length=32, dtype=wp.float32)
@@ -128,42 +128,6 @@ class BuildData:
 
 
 # ---------------------------------------------------------------- small helpers
-
-
-@wp.func
-def ceil_div(a: int, b: int) -> int:
-    return (a + b - 1) / b
-
-
-@wp.func
-def level_count(n: int) -> int:
-    """Levels of the 32-ary reduction tree over n items (level 1 holds one value per chunk)."""
-    levels = int(1)
-    s = ceil_div(n, CHUNK)
-    while s > 1:
-        s = ceil_div(s, CHUNK)
-        levels += 1
-    return levels
-
-
-@wp.func
-def level_size(n: int, level: int) -> int:
-    s = n
-    for _ in range(level):
-        s = ceil_div(s, CHUNK)
-    return s
-
-
-@wp.func
-def level_base(base: int, n: int, level: int) -> int:
-    """Where `level` (>= 1) of a reduction over [base, base + n) is stored: levels are packed
-    after each other inside the range itself, which always has room for them."""
-    off = base
-    s = n
-    for _ in range(level - 1):
-        s = ceil_div(s, CHUNK)
-        off += s
-    return off
 
 
 @wp.func

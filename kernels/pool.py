@@ -197,6 +197,9 @@ def pool_acquire(pool: Pool, start_slot: int) -> wp.vec3i:
     worker starts where it worked last, so that it finishes a task and then a child before it
     turns to other tasks (depth first: the pool stays small).
 
+    The chunks are taken with a compare-and-swap of the header value just read rather than
+    the paper's blind decrement: a decrement based on a stale read could land on a slot that
+    has since been reused for a dependent task and corrupt its dependency count.
     Returns (slot, first chunk, chunk count), or slot -1 when no active task was found."""
     used = pool_load(pool.state, HIGH_WATER)
     if used == 0:
@@ -205,13 +208,14 @@ def pool_acquire(pool: Pool, start_slot: int) -> wp.vec3i:
     for j in range(used):  # downwards: the most recently stored tasks sit in high slots
         slot = (start - j + used) % used
         h = pool_load(pool.header, slot)
-        if h > 0:
+        while h > 0:
             # eq. 3.1: N_w = max(ceil(S / W), K)
             want = wp.max((h + pool.workers - 1) / pool.workers, pool.min_chunks)
-            old = shared_add(pool.header, slot, -want)
-            if old > 0:
-                take = wp.min(want, old)
-                return wp.vec3i(slot, old - take, take)
+            take = wp.min(want, h)
+            seen = shared_cas(pool.header, slot, h, h - take)
+            if seen == h:
+                return wp.vec3i(slot, h - take, take)
+            h = seen
     return wp.vec3i(-1, 0, 0)
 
 

@@ -1,0 +1,1176 @@
+"""Task-pool divide-and-conquer ray tracing (2012 paper, sec. 5).
+
+No acceleration structure: a task holds a node box, an interval of the ray index array and
+one of the triangle index array. Two task kinds share the pool of `pool.py`:
+  intersection   one step; each work chunk covers CHUNK ray-triangle pairs; the closest hit
+                 per ray is an atomic min on a packed (t, triangle) key (deterministic)
+  subdivision    SplitPlane (spatial median or RDH), PPS1, Swap1, PPS2, Swap2, AABB, then
+                 seven children chosen from the dependency table (`dacrt_table.py`)
+Rays are classified left / straddling / right / clipped against the plane within the node
+box; triangles left / straddling / right by their boxes. A ray whose closest hit so far lies
+before its entry into the node box is clipped too (ordered early termination). Boxes and
+ray spans are widened by `margin`, so no hit that the watertight test reports is lost to
+rounding.
+
+PPS, Swap and AABB work on up to three segments at once (PPS2: the left and right ray parts
+and the left triangle part); a step's chunks are the segments' chunks one after another.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from . import dacrt_table as tb
+from .chunks import CHUNK, ceil_div, level_base, level_count, level_size
+from .geometry import INF, intersect_triangle, make_ray, refine_hit
+from .pool import (
+    Pool,
+    cycles,
+    pool_acquire,
+    pool_alloc,
+    pool_finish,
+    pool_hand_over,
+    pool_idle,
+    pool_publish,
+    pool_release,
+    pool_resolve,
+    pool_running,
+    pool_wait,
+    shared_add,
+    shared_max,
+    shared_max_vec3,
+    shared_min_vec3,
+)
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+CANDIDATES = wp.constant(32)  # RDH candidate planes over the three axes (sec. 5.2)
+PLANES = wp.constant(33)  # ... and the spatial median as one more, so RDH can choose it
+MEDIAN_TRUST = wp.constant(0.6)  # RDH keeps the median unless a candidate is 40% cheaper
+CAND_INTS = 33 * 5  # per pool slot and plane: tris L, S, R; rays hitting either child
+CAND_BOXES = 33 * 2  # per pool slot and plane: the sampled children's boxes
+KEY_NONE = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
+T_WIDEN = wp.constant(1.0e-5)  # relative widening of [tmin, tmax] for classification
+
+SPLIT_MEDIAN = wp.constant(0)
+SPLIT_RDH = wp.constant(1)
+
+PH_SPLIT_PLANE = wp.constant(0)
+PH_PPS1 = wp.constant(1)
+PH_SWAP1 = wp.constant(2)
+PH_PPS2 = wp.constant(3)
+PH_SWAP2 = wp.constant(4)
+PH_AABB = wp.constant(5)
+PH_INTERSECT = wp.constant(6)
+PH_DONE = wp.constant(7)
+PHASE_NAMES = ("SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2", "AABB", "Intersect")
+PHASES = wp.constant(7)
+
+# element classes (ray_cls / tri_cls)
+CLS_LEFT = wp.constant(0)
+CLS_STRADDLE = wp.constant(1)
+CLS_RIGHT = wp.constant(2)
+CLS_CLIPPED = wp.constant(3)
+
+# segment roles
+ROLE_RAYS = wp.constant(0)  # PPS1: all rays, mark right or clipped
+ROLE_TRIS = wp.constant(1)  # PPS1: all triangles, mark right
+ROLE_RAYS_LEFT = wp.constant(2)  # PPS2: left/straddling rays, mark straddling
+ROLE_RAYS_RIGHT = wp.constant(3)  # PPS2: right/clipped rays, mark clipped
+ROLE_TRIS_LEFT = wp.constant(4)  # PPS2: left/straddling triangles, mark straddling
+ROLE_BOX = wp.constant(5)  # AABB: one of the three triangle intervals
+
+# counters[]
+C_TASKS = wp.constant(0)
+C_LEAVES = wp.constant(1)
+C_MAX_DEPTH = wp.constant(2)
+C_OVERFLOW = wp.constant(3)  # an intersection task with more than 2^31 pairs
+C_RAYS_SORTED = wp.constant(4)  # rays entering PPS1, summed over subdivision tasks
+C_KPAIRS = wp.constant(5)  # ray-triangle pairs of intersection tasks, in thousands
+COUNTERS = 6
+
+TABLE = wp.constant(tb.ROW)  # row length of the flat dependency table, and its fields
+T_COUNT = wp.constant(tb.COUNT)
+T_SINKS = wp.constant(tb.SINKS)
+T_ORDER = wp.constant(tb.ORDER)
+T_PREDS = wp.constant(tb.PREDS)
+T_IS_SINK = wp.constant(tb.IS_SINK)
+T_SUCC = wp.constant(tb.SUCC)
+MAX_SUCC = wp.constant(tb.MAX_SUCC)
+Slots7 = wp.types.vector(length=7, dtype=wp.int32)
+RAY_INTERVAL = wp.constant(Slots7(*(int(x) for x in tb.RAY_INTERVAL)))  # of T1..T7
+TRI_INTERVAL = wp.constant(Slots7(*(int(x) for x in tb.TRI_INTERVAL)))
+
+
+@wp.struct
+class Segment3:
+    """Up to three index-array segments that one PPS, Swap or AABB phase works on."""
+
+    count: int  # segments in use
+    is_tri: wp.vec3i  # 1: triangle index array, 0: ray index array
+    start: wp.vec3i  # first position
+    size: wp.vec3i
+    role: wp.vec3i
+    pivot: wp.vec3i  # after PPS: unmarked items (they stay in front)
+    ones_left: wp.vec3i  # marked items in front of the pivot: what Swap exchanges
+
+
+@wp.struct
+class DacrtTask:
+    ray_start: int
+    ray_count: int
+    tri_start: int
+    tri_count: int
+    depth: int
+    phase: int
+    step: int
+    chunks: int
+    leaf: int  # 1: intersection task
+    tries: int  # planes that separated nothing (all rays and triangles straddling)
+    lo: wp.vec3  # node box (widened by the margin)
+    hi: wp.vec3
+    axis: int
+    split: float
+    seg: Segment3
+    rays: wp.vec4i  # rays left, straddling, right, clipped (after PPS2)
+    tris: wp.vec3i  # triangles left, straddling, right
+    box_lo: wp.mat33  # rows: boxes of the left, straddling, right triangles (after AABB)
+    box_hi: wp.mat33
+    succ: wp.vec2i  # slots this task activates when it finishes (sec. 5.3)
+    nsucc: int
+
+
+@wp.struct
+class DacrtData:
+    origins: wp.array(dtype=wp.vec3)  # per ray id
+    directions: wp.array(dtype=wp.vec3)
+    inv_dir: wp.array(dtype=wp.vec3)  # 1/d (inf where d == 0)
+    tmin: wp.array(dtype=float)
+    tmax: wp.array(dtype=float)
+    tri_verts: wp.array(dtype=wp.vec3)  # v0, v1, v2 per triangle id
+    tri_lo: wp.array(dtype=wp.vec3)
+    tri_hi: wp.array(dtype=wp.vec3)
+    ray_ids: wp.array(dtype=int)  # the ray index array
+    tri_ids: wp.array(dtype=int)  # the triangle index array
+    ray_cls: wp.array(dtype=wp.int8)  # per ray id, CLS_*
+    tri_cls: wp.array(dtype=wp.int8)
+    ray_mark: wp.array(dtype=wp.int8)  # per position: 1 = goes behind the pivot
+    tri_mark: wp.array(dtype=wp.int8)
+    ray_scan: wp.array(dtype=int)  # PPS levels packed inside each segment
+    tri_scan: wp.array(dtype=int)
+    ray_swap_id: wp.array(dtype=int)  # Swap's separate index arrays
+    ray_swap_pos: wp.array(dtype=int)
+    tri_swap_id: wp.array(dtype=int)
+    tri_swap_pos: wp.array(dtype=int)
+    box_lo: wp.array(dtype=wp.vec3)  # AABB levels, per triangle position
+    box_hi: wp.array(dtype=wp.vec3)
+    cand: wp.array(dtype=wp.int32)  # RDH sample counts, CAND_INTS per pool slot
+    cand_lo: wp.array(dtype=wp.vec3)  # RDH children's boxes, CAND_BOXES per pool slot
+    cand_hi: wp.array(dtype=wp.vec3)
+    neg: wp.array(dtype=wp.int32)  # per slot: straddling rays heading to -axis
+    best: wp.array(dtype=wp.uint64)  # per ray id: packed (t, triangle) of the closest hit
+    tasks: wp.array(dtype=DacrtTask)
+    table: wp.array(dtype=wp.int32)  # dacrt_table.flat_table()
+    counters: wp.array(dtype=wp.int32)
+    phase_cycles: wp.array(dtype=wp.int64)  # PHASES per worker
+    split_method: int
+    rdh_min_rays: int  # tasks with fewer rays take the median (cheaper than sampling)
+    margin: float
+    max_depth: int
+    c_inters: float
+    c_sort: float
+    min_rays: int
+    min_tris: int
+
+
+# ---------------------------------------------------------------- keys and atomics
+
+
+@wp.func_native(
+    """
+union { float f; uint32_t u; } c;
+c.f = t;
+uint32_t b = (c.u & 0x80000000u) ? ~c.u : (c.u | 0x80000000u);
+return ((uint64_t)b << 32) | (uint64_t)(uint32_t)tri;
+"""
+)
+def hit_key(t: float, tri: int) -> wp.uint64:
+    """(t, triangle) packed so that unsigned order is t order, then triangle order."""
+    ...
+
+
+@wp.func_native(
+    """
+uint32_t b = (uint32_t)(key >> 32);
+union { float f; uint32_t u; } c;
+c.u = (b & 0x80000000u) ? (b & 0x7FFFFFFFu) : ~b;
+return c.f;
+"""
+)
+def key_t(key: wp.uint64) -> float: ...
+
+
+@wp.func_native(
+    """
+#if defined(__CUDA_ARCH__)
+    atomicMin((unsigned long long*)&a[i], (unsigned long long)v);
+#else
+    uint64_t old;
+    __atomic_load(&a[i], &old, __ATOMIC_SEQ_CST);
+    while (v < old && !__atomic_compare_exchange_n(&a[i], &old, v, false, __ATOMIC_SEQ_CST,
+                                                   __ATOMIC_SEQ_CST)) {}
+#endif
+"""
+)
+def shared_min_u64(a: wp.array(dtype=wp.uint64), i: int, v: wp.uint64): ...
+
+
+# ---------------------------------------------------------------- small helpers
+
+
+@wp.func
+def widen(lo: wp.vec3, hi: wp.vec3, m: float) -> wp.mat33:
+    """Rows 0, 1: the box grown by m on every side."""
+    return wp.matrix_from_rows(lo - wp.vec3(m), hi + wp.vec3(m), wp.vec3(0.0))
+
+
+@wp.struct
+class SlabRay:
+    """What the box and plane tests need of a ray (1/d precomputed per ray)."""
+
+    origin: wp.vec3
+    direction: wp.vec3
+    inv_dir: wp.vec3  # 1/d; unused where d == 0
+
+
+@wp.func
+def slab_ray(d: DacrtData, ray: int) -> SlabRay:
+    r = SlabRay()
+    r.origin = d.origins[ray]
+    r.direction = d.directions[ray]
+    r.inv_dir = d.inv_dir[ray]
+    return r
+
+
+@wp.func
+def ray_span(r: SlabRay, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: float) -> wp.vec2:
+    """(entry, exit) of the ray in [lo, hi] within [tmin, tmax]; entry inf on a miss."""
+    t0 = tmin
+    t1 = tmax
+    for k in range(3):
+        if r.direction[k] == 0.0:
+            if r.origin[k] < lo[k] or r.origin[k] > hi[k]:
+                return wp.vec2(INF, INF)
+        else:
+            a = (lo[k] - r.origin[k]) * r.inv_dir[k]
+            b = (hi[k] - r.origin[k]) * r.inv_dir[k]
+            t0 = wp.max(t0, wp.min(a, b))
+            t1 = wp.min(t1, wp.max(a, b))
+    if t0 <= t1:
+        return wp.vec2(t0, t1)
+    return wp.vec2(INF, INF)
+
+
+@wp.func
+def widened_range(d: DacrtData, ray: int) -> wp.vec2:
+    lo = d.tmin[ray]
+    hi = d.tmax[ray]
+    return wp.vec2(lo - T_WIDEN * wp.abs(lo), hi + T_WIDEN * wp.abs(hi))
+
+
+@wp.func
+def axis_range(r: SlabRay, span: wp.vec2, axis: int) -> wp.vec2:
+    """(min, max) coordinate on `axis` of the ray's points within the span."""
+    if r.direction[axis] == 0.0:
+        return wp.vec2(r.origin[axis], r.origin[axis])
+    a = r.origin[axis] + span[0] * r.direction[axis]
+    b = r.origin[axis] + span[1] * r.direction[axis]
+    return wp.vec2(wp.min(a, b), wp.max(a, b))
+
+
+@wp.func
+def side_of(lo_hi: wp.vec2, split: float, m: float) -> int:
+    if lo_hi[1] < split - m:
+        return CLS_LEFT
+    if lo_hi[0] > split + m:
+        return CLS_RIGHT
+    return CLS_STRADDLE
+
+
+@wp.func
+def classify_ray(d: DacrtData, t: DacrtTask, ray: int) -> int:
+    """Left / straddling / right of the plane within the node box, or clipped: misses the
+    box, or already hit something before entering it (sec. 5.2, PPS1)."""
+    r = slab_ray(d, ray)
+    w = widened_range(d, ray)
+    span = ray_span(r, t.lo, t.hi, w[0], w[1])
+    if span[0] == INF or key_t(d.best[ray]) < span[0]:
+        return CLS_CLIPPED
+    return side_of(axis_range(r, span, t.axis), t.split, d.margin)
+
+
+@wp.func
+def classify_tri(d: DacrtData, t: DacrtTask, tri: int) -> int:
+    return side_of(wp.vec2(d.tri_lo[tri][t.axis], d.tri_hi[tri][t.axis]), t.split, 0.0)
+
+
+# ---------------------------------------------------------------- segment storage
+
+
+@wp.func
+def get_id(d: DacrtData, is_tri: int, i: int) -> int:
+    if is_tri != 0:
+        return d.tri_ids[i]
+    return d.ray_ids[i]
+
+
+@wp.func
+def get_mark(d: DacrtData, is_tri: int, i: int) -> int:
+    if is_tri != 0:
+        return int(d.tri_mark[i])
+    return int(d.ray_mark[i])
+
+
+@wp.func
+def get_scan(d: DacrtData, is_tri: int, i: int) -> int:
+    if is_tri != 0:
+        return d.tri_scan[i]
+    return d.ray_scan[i]
+
+
+@wp.func
+def set_scan(d: DacrtData, is_tri: int, i: int, x: int):
+    if is_tri != 0:
+        d.tri_scan[i] = x
+    else:
+        d.ray_scan[i] = x
+
+
+@wp.func
+def mark_item(d: DacrtData, t: DacrtTask, slot: int, role: int, i: int) -> int:
+    """Classify (PPS1) or look up (PPS2) the item at position i; 1 = behind the pivot."""
+    if role == ROLE_RAYS:
+        ray = d.ray_ids[i]
+        c = classify_ray(d, t, ray)
+        d.ray_cls[ray] = wp.int8(c)
+        if c == CLS_STRADDLE and d.directions[ray][t.axis] < 0.0:
+            shared_add(d.neg, slot, 1)
+        m = int(c >= CLS_RIGHT)
+        d.ray_mark[i] = wp.int8(m)
+        return m
+    if role == ROLE_TRIS:
+        tri = d.tri_ids[i]
+        c = classify_tri(d, t, tri)
+        d.tri_cls[tri] = wp.int8(c)
+        m = int(c >= CLS_RIGHT)
+        d.tri_mark[i] = wp.int8(m)
+        return m
+    if role == ROLE_TRIS_LEFT:
+        m = int(int(d.tri_cls[d.tri_ids[i]]) >= CLS_STRADDLE)
+        d.tri_mark[i] = wp.int8(m)
+        return m
+    c = int(d.ray_cls[d.ray_ids[i]])
+    m = int(c >= CLS_STRADDLE)
+    if role == ROLE_RAYS_RIGHT:
+        m = int(c >= CLS_CLIPPED)
+    d.ray_mark[i] = wp.int8(m)
+    return m
+
+
+@wp.func
+def add_segment(s: Segment3, is_tri: int, start: int, size: int, role: int) -> Segment3:
+    if size > 0:
+        k = s.count
+        s.is_tri[k] = is_tri
+        s.start[k] = start
+        s.size[k] = size
+        s.role[k] = role
+        s.count = k + 1
+    return s
+
+
+@wp.func
+def segment_levels(t: DacrtTask) -> int:
+    levels = int(0)
+    for k in range(t.seg.count):
+        levels = wp.max(levels, level_count(t.seg.size[k]))
+    return levels
+
+
+# ---------------------------------------------------------------- PPS1 / PPS2
+
+
+@wp.func
+def pps_chunks(n: int, levels: int, top: int, step: int) -> int:
+    """Chunks of one segment (with `levels` of its own, `top` the most of any segment) at
+    this step: up-sweep at steps < levels, down-sweep aligned to end together."""
+    if step < levels:
+        return level_size(n, step + 1)
+    if step >= top:
+        level = 2 * top - 1 - step
+        if level <= levels - 1:
+            return level_size(n, level + 1)
+    return 0
+
+
+@wp.func
+def pps_chunk(d: DacrtData, t: DacrtTask, slot: int, k: int, chunk: int):
+    """One chunk of segment k (sec. 5.2, PPS1 and PPS2: the 32-ary PPS of sec. 4.1):
+    up-sweep (level 1 marks and counts) or down-sweep."""
+    is_tri = t.seg.is_tri[k]
+    base = t.seg.start[k]
+    n = t.seg.size[k]
+    levels = level_count(n)
+    top = segment_levels(t)
+    if t.step < levels:
+        level = t.step + 1
+        total = int(0)
+        if level == 1:
+            first = base + chunk * CHUNK
+            for i in range(first, wp.min(first + CHUNK, base + n)):
+                total += mark_item(d, t, slot, t.seg.role[k], i)
+        else:
+            src = level_base(base, n, level - 1)
+            m = level_size(n, level - 1)
+            for i in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, m)):
+                total += get_scan(d, is_tri, src + i)
+        set_scan(d, is_tri, level_base(base, n, level) + chunk, total)
+    else:
+        level = 2 * top - 1 - t.step
+        src = level_base(base, n, level)
+        m = level_size(n, level)
+        running = get_scan(d, is_tri, level_base(base, n, level + 1) + chunk)
+        for i in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, m)):
+            x = get_scan(d, is_tri, src + i)
+            set_scan(d, is_tri, src + i, running)
+            running += x
+
+
+@wp.func
+def ones_before(d: DacrtData, is_tri: int, base: int, n: int, local: int) -> int:
+    """Marked items before local position `local` of a segment, from the PPS result."""
+    c = local / CHUNK
+    ones = int(0)
+    if c < ceil_div(n, CHUNK):
+        ones = get_scan(d, is_tri, base + c)
+    for i in range(base + c * CHUNK, base + local):
+        ones += get_mark(d, is_tri, i)
+    return ones
+
+
+@wp.func
+def pps_top(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    """After the up-sweep: each segment's pivot; its top becomes the 0 offset."""
+    for k in range(t.seg.count):
+        n = t.seg.size[k]
+        top = level_base(t.seg.start[k], n, level_count(n))
+        t.seg.pivot[k] = n - get_scan(d, t.seg.is_tri[k], top)
+        set_scan(d, t.seg.is_tri[k], top, 0)
+    return t
+
+
+# ---------------------------------------------------------------- Swap1 / Swap2
+
+
+@wp.func
+def swap_chunks(t: DacrtTask, k: int) -> int:
+    n = t.seg.size[k]
+    if t.step == 0:
+        return ceil_div(n, CHUNK) - t.seg.pivot[k] / CHUNK
+    return ceil_div(t.seg.pivot[k], CHUNK)
+
+
+@wp.func
+def swap_chunk(d: DacrtData, t: DacrtTask, k: int, chunk: int):
+    """Step 0 gathers the unmarked items behind the pivot into the separate index array,
+    step 1 trades them for the marked items in front of it (as Swap of sec. 4.1)."""
+    is_tri = t.seg.is_tri[k]
+    base = t.seg.start[k]
+    pivot = t.seg.pivot[k]
+    if t.step == 0:
+        c = pivot / CHUNK + chunk
+        ones = get_scan(d, is_tri, base + c)
+        zeros_left = pivot - t.seg.ones_left[k]
+        for j in range(c * CHUNK, wp.min(c * CHUNK + CHUNK, t.seg.size[k])):
+            if get_mark(d, is_tri, base + j) != 0:
+                ones += 1
+            elif j >= pivot:
+                r = base + (j - ones) - zeros_left
+                if is_tri != 0:
+                    d.tri_swap_id[r] = d.tri_ids[base + j]
+                    d.tri_swap_pos[r] = base + j
+                else:
+                    d.ray_swap_id[r] = d.ray_ids[base + j]
+                    d.ray_swap_pos[r] = base + j
+    else:
+        ones = get_scan(d, is_tri, base + chunk)
+        for j in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, pivot)):
+            if get_mark(d, is_tri, base + j) != 0:
+                item = get_id(d, is_tri, base + j)
+                if is_tri != 0:
+                    d.tri_ids[base + j] = d.tri_swap_id[base + ones]
+                    d.tri_ids[d.tri_swap_pos[base + ones]] = item
+                else:
+                    d.ray_ids[base + j] = d.ray_swap_id[base + ones]
+                    d.ray_ids[d.ray_swap_pos[base + ones]] = item
+                ones += 1
+
+
+# ---------------------------------------------------------------- AABB
+
+
+@wp.func
+def aabb_chunk(d: DacrtData, t: DacrtTask, k: int, chunk: int):
+    """Box reduction of one triangle interval, one level per step (sec. 5.2, AABB)."""
+    base = t.seg.start[k]
+    n = t.seg.size[k]
+    level = t.step + 1
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    if level == 1:
+        first = base + chunk * CHUNK
+        for i in range(first, wp.min(first + CHUNK, base + n)):
+            tri = d.tri_ids[i]
+            lo = wp.min(lo, d.tri_lo[tri])
+            hi = wp.max(hi, d.tri_hi[tri])
+    else:
+        src = level_base(base, n, level - 1)
+        first = src + chunk * CHUNK
+        for i in range(first, wp.min(first + CHUNK, src + level_size(n, level - 1))):
+            lo = wp.min(lo, d.box_lo[i])
+            hi = wp.max(hi, d.box_hi[i])
+    dst = level_base(base, n, level) + chunk
+    d.box_lo[dst] = lo
+    d.box_hi[dst] = hi
+
+
+@wp.func
+def aabb_chunks(t: DacrtTask, k: int) -> int:
+    n = t.seg.size[k]
+    if t.step < level_count(n):
+        return level_size(n, t.step + 1)
+    return 0
+
+
+# ---------------------------------------------------------------- SplitPlane (RDH)
+
+
+@wp.func
+def median_plane(lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
+    """(axis, position): the middle of the box's longest axis."""
+    e = hi - lo
+    axis = int(0)
+    if e[1] > e[axis]:
+        axis = 1
+    if e[2] > e[axis]:
+        axis = 2
+    return wp.vec2(float(axis), 0.5 * (lo[axis] + hi[axis]))
+
+
+@wp.func
+def candidate(t: DacrtTask, c: int) -> wp.vec2:
+    """(axis, position) of RDH candidate c: 32 planes over the three axes in proportion to
+    the node's extent, uniformly spaced on each (sec. 5.2); c = CANDIDATES: the median."""
+    if c == CANDIDATES:
+        return median_plane(t.lo, t.hi)
+    e = wp.max(t.hi - t.lo, wp.vec3(0.0))
+    total = e[0] + e[1] + e[2]
+    n0 = int(0)
+    n1 = int(0)
+    if total > 0.0:
+        n0 = int(float(CANDIDATES) * e[0] / total)
+        n1 = int(float(CANDIDATES) * e[1] / total)
+    n2 = CANDIDATES - n0 - n1
+    axis = int(0)
+    i = c
+    n = n0
+    if c >= n0 + n1:
+        axis = 2
+        i = c - n0 - n1
+        n = n2
+    elif c >= n0:
+        axis = 1
+        i = c - n0
+        n = n1
+    pos = t.lo[axis] + e[axis] * (float(i) + 0.5) / float(n)
+    return wp.vec2(float(axis), pos)
+
+
+@wp.func
+def sample_counts(t: DacrtTask) -> wp.vec2i:
+    """N_T = sqrt(#tris), N_R = sqrt(#rays) samples (sec. 5.2)."""
+    return wp.vec2i(wp.max(1, int(wp.sqrt(float(t.tri_count)))),
+                    wp.max(1, int(wp.sqrt(float(t.ray_count)))))
+
+
+@wp.func
+def half_box(t: DacrtTask, lo: wp.vec3, hi: wp.vec3, axis: int, pos: float,
+             right: int) -> wp.mat33:
+    """Rows 0, 1: a triangle box cut to the node box and to one side of a plane."""
+    blo = wp.max(lo, t.lo)
+    bhi = wp.min(hi, t.hi)
+    if right != 0:
+        blo[axis] = wp.max(blo[axis], pos)
+    else:
+        bhi[axis] = wp.min(bhi[axis], pos)
+    return wp.matrix_from_rows(blo, bhi, wp.vec3(0.0))
+
+
+@wp.func
+def split_plane_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
+    """RDH sampling (sec. 5.2). Step 0: sampled triangles left / straddling / right of every
+    candidate, and the boxes of each candidate's two children. Step 1: sampled rays that hit
+    each child box: the ray distribution estimates how often a child is visited."""
+    ns = sample_counts(t)
+    base = slot * CAND_INTS
+    boxes = slot * CAND_BOXES
+    if t.step == 0:
+        for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[0])):
+            tri = d.tri_ids[t.tri_start + s * (t.tri_count / ns[0])]
+            lo = d.tri_lo[tri]
+            hi = d.tri_hi[tri]
+            for c in range(PLANES):
+                p = candidate(t, c)
+                a = int(p[0])
+                side = side_of(wp.vec2(lo[a], hi[a]), p[1], 0.0)
+                shared_add(d.cand, base + 5 * c + side, 1)
+                if side != CLS_RIGHT:
+                    shared_min_vec3(d.cand_lo, boxes + 2 * c, lo)
+                    shared_max_vec3(d.cand_hi, boxes + 2 * c, hi)
+                if side != CLS_LEFT:
+                    shared_min_vec3(d.cand_lo, boxes + 2 * c + 1, lo)
+                    shared_max_vec3(d.cand_hi, boxes + 2 * c + 1, hi)
+        return
+    for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[1])):
+        ray = d.ray_ids[t.ray_start + s * (t.ray_count / ns[1])]
+        r = slab_ray(d, ray)
+        w = widened_range(d, ray)
+        if ray_span(r, t.lo, t.hi, w[0], w[1])[0] < INF:
+            for c in range(PLANES):
+                p = candidate(t, c)
+                for side in range(2):
+                    k = boxes + 2 * c + side
+                    box = half_box(t, d.cand_lo[k], d.cand_hi[k], int(p[0]), p[1], side)
+                    grown = widen(box[0], box[1], d.margin)
+                    if ray_span(r, grown[0], grown[1], w[0], w[1])[0] < INF:
+                        shared_add(d.cand, base + 5 * c + 3 + side, 1)
+
+
+@wp.func
+def choose_rdh_split(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
+    """The cheapest candidate by the ray distribution heuristic (Bittner & Havran 2009):
+    triangles of each child times the rays that hit its box, estimated from the samples.
+    Clears the samples for the slot's next task."""
+    base = slot * CAND_INTS
+    boxes = slot * CAND_BOXES
+    ns = sample_counts(t)
+    tri_scale = float(t.tri_count) / float(ns[0])  # samples -> estimated counts
+    ray_scale = float(t.ray_count) / float(ns[1])
+    best = float(INF)
+    for c in range(PLANES):
+        k = base + 5 * c
+        tl = tri_scale * float(d.cand[k] + d.cand[k + 1])
+        tr = tri_scale * float(d.cand[k + 1] + d.cand[k + 2])
+        rl = ray_scale * float(d.cand[k + 3])
+        rr = ray_scale * float(d.cand[k + 4])
+        # sec. 5.2's costs: the children's pairs, plus sorting what they hold (straddling
+        # triangles and rays counted on both sides)
+        cost = d.c_inters * (tl * rl + tr * rr) + d.c_sort * (tl + tr + rl + rr)
+        if c == CANDIDATES:
+            # the median, evaluated last, must lose clearly: the other costs come from
+            # samples, and an estimate that is only a little lower is mostly noise
+            cost *= MEDIAN_TRUST
+        if cost < best:
+            best = cost
+            p = candidate(t, c)
+            t.axis = int(p[0])
+            t.split = p[1]
+    for k in range(CAND_INTS):
+        d.cand[base + k] = 0
+    for k in range(CAND_BOXES):
+        d.cand_lo[boxes + k] = wp.vec3(INF)
+        d.cand_hi[boxes + k] = wp.vec3(-INF)
+    return t
+
+
+# ---------------------------------------------------------------- steps and tasks
+
+
+@wp.func
+def step_chunks(d: DacrtData, t: DacrtTask) -> int:
+    """Work chunks of the task's current step."""
+    if t.phase == PH_INTERSECT:
+        return ceil_div(t.ray_count * t.tri_count, CHUNK)
+    if t.phase == PH_SPLIT_PLANE:
+        return ceil_div(sample_counts(t)[t.step], CHUNK)
+    total = int(0)
+    top = segment_levels(t)
+    for k in range(t.seg.count):
+        if t.phase == PH_PPS1 or t.phase == PH_PPS2:
+            total += pps_chunks(t.seg.size[k], level_count(t.seg.size[k]), top, t.step)
+        elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
+            total += swap_chunks(t, k)
+        elif t.phase == PH_AABB:
+            total += aabb_chunks(t, k)
+    return total
+
+
+@wp.func
+def intersect_chunk(d: DacrtData, t: DacrtTask, chunk: int):
+    """CHUNK ray-triangle pairs, ray-major; one atomic min per ray of the chunk (sec. 5.2)."""
+    first = chunk * CHUNK
+    last = wp.min(first + CHUNK, t.ray_count * t.tri_count)
+    p = first
+    while p < last:
+        i = p / t.tri_count
+        ray = d.ray_ids[t.ray_start + i]
+        r = make_ray(d.origins[ray], d.directions[ray])
+        tmin = d.tmin[ray]
+        tmax = d.tmax[ray]
+        key = KEY_NONE
+        end = wp.min(last, (i + 1) * t.tri_count)
+        w = widened_range(d, ray)
+        span = ray_span(slab_ray(d, ray), t.lo, t.hi, w[0], w[1])
+        if span[0] == INF or key_t(d.best[ray]) < span[0]:
+            end = p  # clipped by this task's box, or already hit nearer: no pair to test
+        for q in range(p, end):
+            tri = d.tri_ids[t.tri_start + q - i * t.tri_count]
+            h = intersect_triangle(r, d.tri_verts[3 * tri], d.tri_verts[3 * tri + 1],
+                                   d.tri_verts[3 * tri + 2], tmin, tmax)
+            if h[0] < INF:
+                key = wp.min(key, hit_key(h[0], tri))
+        if key != KEY_NONE:
+            shared_min_u64(d.best, ray, key)
+        p = wp.min(last, (i + 1) * t.tri_count)
+
+
+@wp.func
+def run_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
+    if t.phase == PH_INTERSECT:
+        intersect_chunk(d, t, chunk)
+    elif t.phase == PH_SPLIT_PLANE:
+        split_plane_chunk(d, t, slot, chunk)
+    else:
+        # chunks of the segments one after another
+        c = chunk
+        top = segment_levels(t)
+        for k in range(t.seg.count):
+            n = int(0)
+            if t.phase == PH_PPS1 or t.phase == PH_PPS2:
+                n = pps_chunks(t.seg.size[k], level_count(t.seg.size[k]), top, t.step)
+            elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
+                n = swap_chunks(t, k)
+            else:
+                n = aabb_chunks(t, k)
+            if c >= 0 and c < n:
+                if t.phase == PH_PPS1 or t.phase == PH_PPS2:
+                    pps_chunk(d, t, slot, k, c)
+                elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
+                    swap_chunk(d, t, k, c)
+                else:
+                    aabb_chunk(d, t, k, c)
+            c -= n
+
+
+@wp.func
+def enter(d: DacrtData, t: DacrtTask, phase: int) -> DacrtTask:
+    t.phase = phase
+    t.step = 0
+    t.chunks = step_chunks(d, t)
+    return t
+
+
+@wp.func
+def enter_pps1(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    shared_add(d.counters, C_RAYS_SORTED, t.ray_count)
+    s = Segment3()
+    s.count = 0
+    s = add_segment(s, 0, t.ray_start, t.ray_count, ROLE_RAYS)
+    s = add_segment(s, 1, t.tri_start, t.tri_count, ROLE_TRIS)
+    t.seg = s
+    return enter(d, t, PH_PPS1)
+
+
+@wp.func
+def terminate(d: DacrtData, n_tris: int, n_rays: int) -> bool:
+    """sec. 5.2: #tris #rays C_INTERS < (#tris + #rays) C_SORT, or few rays or triangles."""
+    cost = float(n_tris) * float(n_rays) * d.c_inters
+    return (cost < float(n_tris + n_rays) * d.c_sort or n_rays < d.min_rays
+            or n_tris < d.min_tris)
+
+
+@wp.func
+def make_leaf(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    t.leaf = 1
+    pairs = float(t.ray_count) * float(t.tri_count)
+    if pairs > 2.0e9:
+        shared_add(d.counters, C_OVERFLOW, 1)
+        t.ray_count = 0
+    shared_add(d.counters, C_KPAIRS, int(pairs / 1000.0 + 0.5))
+    return enter(d, t, PH_INTERSECT)
+
+
+@wp.func
+def new_task(d: DacrtData, ray_start: int, ray_count: int, tri_start: int, tri_count: int,
+             depth: int, lo: wp.vec3, hi: wp.vec3) -> DacrtTask:
+    """A task ready for its first step; the median plane is chosen here."""
+    t = DacrtTask()
+    t.ray_start = ray_start
+    t.ray_count = ray_count
+    t.tri_start = tri_start
+    t.tri_count = tri_count
+    t.depth = depth
+    t.lo = lo
+    t.hi = hi
+    t.leaf = 0
+    t.tries = 0
+    t.nsucc = 0
+    t.seg = Segment3()
+    if terminate(d, tri_count, ray_count) or depth >= d.max_depth:
+        return make_leaf(d, t)
+    if d.split_method == SPLIT_RDH and ray_count >= d.rdh_min_rays:
+        return enter(d, t, PH_SPLIT_PLANE)
+    plane = median_plane(lo, hi)
+    t.axis = int(plane[0])
+    t.split = plane[1]
+    return enter_pps1(d, t)
+
+
+@wp.func
+def complete_step(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
+    """The last finisher interprets the step's results and moves the task on."""
+    if t.phase == PH_INTERSECT:
+        t.phase = PH_DONE
+        return t
+    if t.phase == PH_SPLIT_PLANE and t.step == 1:
+        return enter_pps1(d, choose_rdh_split(d, t, slot))
+    if t.phase == PH_PPS1 or t.phase == PH_PPS2:
+        top = segment_levels(t)
+        if t.step == top - 1:
+            t = pps_top(d, t)
+        if t.step == 2 * top - 2:
+            for k in range(t.seg.count):
+                t.seg.ones_left[k] = ones_before(d, t.seg.is_tri[k], t.seg.start[k],
+                                                 t.seg.size[k], t.seg.pivot[k])
+            return enter(d, t, t.phase + 1)
+    elif t.phase == PH_SWAP1 and t.step == 1:
+        return enter_pps2(d, t)
+    elif t.phase == PH_SWAP2 and t.step == 1:
+        return enter_aabb(d, t)
+    elif t.phase == PH_AABB and t.step == segment_levels(t) - 1:
+        return aabb_result(d, t)
+    t.step += 1
+    t.chunks = step_chunks(d, t)
+    return t
+
+
+@wp.func
+def enter_pps2(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    """Swap1 left [left + straddling | right + clipped] rays and [left + straddling | right]
+    triangles; PPS2 splits the front parts, and the rays' back part (sec. 5.2)."""
+    ray_front = int(0)
+    tri_front = int(0)
+    for k in range(t.seg.count):
+        if t.seg.role[k] == ROLE_RAYS:
+            ray_front = t.seg.pivot[k]
+        else:
+            tri_front = t.seg.pivot[k]
+    t.rays = wp.vec4i(ray_front, 0, t.ray_count - ray_front, 0)
+    t.tris = wp.vec3i(tri_front, 0, t.tri_count - tri_front)
+    s = Segment3()
+    s.count = 0
+    s = add_segment(s, 0, t.ray_start, ray_front, ROLE_RAYS_LEFT)
+    s = add_segment(s, 0, t.ray_start + ray_front, t.ray_count - ray_front, ROLE_RAYS_RIGHT)
+    s = add_segment(s, 1, t.tri_start, tri_front, ROLE_TRIS_LEFT)
+    t.seg = s
+    return enter(d, t, PH_PPS2)
+
+
+@wp.func
+def enter_aabb(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    """Counts of the four ray and three triangle intervals; then the boxes of the three
+    triangle intervals, unless the split made no progress (then intersect here)."""
+    for k in range(t.seg.count):
+        n = t.seg.size[k]
+        p = t.seg.pivot[k]
+        if t.seg.role[k] == ROLE_RAYS_LEFT:
+            t.rays[0] = p
+            t.rays[1] = n - p
+        elif t.seg.role[k] == ROLE_RAYS_RIGHT:
+            t.rays[2] = p
+            t.rays[3] = n - p
+        else:
+            t.tris[0] = p
+            t.tris[1] = n - p
+    if t.rays[1] == t.ray_count and t.tris[1] == t.tri_count:
+        # nothing separated: try the midplanes of the other two axes, then intersect here
+        t.tries += 1
+        if t.tries >= 3:
+            return make_leaf(d, t)
+        t.axis = (t.axis + 1) % 3
+        t.split = 0.5 * (t.lo[t.axis] + t.hi[t.axis])
+        return enter_pps1(d, t)
+    s = Segment3()
+    s.count = 0
+    s = add_segment(s, 1, t.tri_start, t.tris[0], ROLE_BOX)
+    s = add_segment(s, 1, t.tri_start + t.tris[0], t.tris[1], ROLE_BOX + 1)
+    s = add_segment(s, 1, t.tri_start + t.tris[0] + t.tris[1], t.tris[2], ROLE_BOX + 2)
+    t.seg = s
+    return enter(d, t, PH_AABB)
+
+
+@wp.func
+def aabb_result(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    for k in range(3):
+        t.box_lo[k] = wp.vec3(INF)
+        t.box_hi[k] = wp.vec3(-INF)
+    for k in range(t.seg.count):
+        n = t.seg.size[k]
+        top = level_base(t.seg.start[k], n, level_count(n))
+        which = t.seg.role[k] - ROLE_BOX
+        t.box_lo[which] = d.box_lo[top]
+        t.box_hi[which] = d.box_hi[top]
+    t.phase = PH_DONE
+    return t
+
+
+# ---------------------------------------------------------------- children (sec. 5.3)
+
+
+@wp.func
+def child_box(d: DacrtData, t: DacrtTask, ray_side: int, tri_side: int) -> wp.mat33:
+    """The half of the node box the pair can meet in, cut to its triangles' box, widened."""
+    lo = wp.max(t.lo, t.box_lo[tri_side])
+    hi = wp.min(t.hi, t.box_hi[tri_side])
+    if ray_side == CLS_LEFT or tri_side == CLS_LEFT:
+        hi[t.axis] = wp.min(hi[t.axis], t.split)
+    if ray_side == CLS_RIGHT or tri_side == CLS_RIGHT:
+        lo[t.axis] = wp.max(lo[t.axis], t.split)
+    return widen(lo, hi, d.margin)
+
+
+@wp.func
+def finish_task(d: DacrtData, pool: Pool, t: DacrtTask, slot: int) -> int:
+    """A finished intersection task releases its slot and activates its dependants; a
+    finished subdivision stores its children. Returns a locked slot to continue with, or -1."""
+    if t.leaf != 0:
+        shared_add(d.counters, C_LEAVES, 1)
+        pool_release(pool, slot)
+        return activate(d, pool, t)
+    return spawn_children(d, pool, t, slot)
+
+
+@wp.func
+def activate(d: DacrtData, pool: Pool, t: DacrtTask) -> int:
+    keep = int(-1)
+    for k in range(t.nsucc):
+        s = t.succ[k]
+        if pool_resolve(pool, s):
+            if keep < 0:
+                keep = s
+            else:
+                pool_publish(pool, s, wp.max(d.tasks[s].chunks, 1))  # 0 would mean locked
+    return keep
+
+
+@wp.func
+def spawn_children(d: DacrtData, pool: Pool, t: DacrtTask, slot: int) -> int:
+    """Store the (up to) seven children of the look-up table (sec. 5.3): successors first,
+    dependants with their counts, the last group inheriting the parent's dependants. Rays
+    mostly heading to -axis make the right side 'near', so straddling rays meet near
+    triangles first (T3 before T5). Continues with the first active child."""
+    flip = 2 * d.neg[slot] > t.rays[1]
+    ray_n = wp.vec3i(t.rays[0], t.rays[1], t.rays[2])
+    tri_n = t.tris
+    ray_first = wp.vec3i(t.ray_start, t.ray_start + t.rays[0],
+                         t.ray_start + t.rays[0] + t.rays[1])
+    tri_first = wp.vec3i(t.tri_start, t.tri_start + t.tris[0],
+                         t.tri_start + t.tris[0] + t.tris[1])
+    mask = int(0)
+    for i in range(3):
+        side = i
+        if flip and i != 1:
+            side = 2 - i
+        if ray_n[side] == 0:
+            mask |= 1 << i
+        if tri_n[side] == 0:
+            mask |= 1 << (3 + i)
+    row = mask * TABLE
+    count = d.table[row + T_COUNT]
+    if count == 0:
+        pool_release(pool, slot)
+        return activate(d, pool, t)
+    sinks = d.table[row + T_SINKS]
+    for k in range(t.nsucc):  # the sinks now finish for the parent: sinks - 1 more to wait on
+        shared_add(pool.header, t.succ[k], 1 - sinks)
+    slots = Slots7()
+    keep = int(-1)
+    depth = t.depth + 1
+    for j in range(count):
+        task_id = d.table[row + T_ORDER + j]
+        rs = RAY_INTERVAL[task_id]
+        ts = TRI_INTERVAL[task_id]
+        if flip:
+            rs = 2 - rs
+            ts = 2 - ts
+        box = child_box(d, t, rs, ts)
+        c = new_task(d, ray_first[rs], ray_n[rs], tri_first[ts], tri_n[ts], depth, box[0],
+                     box[1])
+        if d.table[row + T_IS_SINK + task_id] != 0:
+            c.succ = t.succ
+            c.nsucc = t.nsucc
+        else:
+            c.nsucc = 0
+            for k in range(MAX_SUCC):
+                y = d.table[row + T_SUCC + task_id * MAX_SUCC + k]
+                if y >= 0:
+                    c.succ[c.nsucc] = slots[y]
+                    c.nsucc += 1
+        s = slot
+        if j > 0:
+            s = pool_alloc(pool)
+            if s < 0:
+                return -1
+        slots[task_id] = s
+        d.neg[s] = 0
+        d.tasks[s] = c
+        shared_add(d.counters, C_TASKS, 1)
+        preds = d.table[row + T_PREDS + task_id]
+        if preds > 0:
+            pool_wait(pool, s, preds)
+        elif keep < 0:
+            keep = s
+        else:
+            pool_publish(pool, s, wp.max(c.chunks, 1))  # 0 would mean locked
+    shared_max(d.counters, C_MAX_DEPTH, depth)
+    return keep
+
+
+# ---------------------------------------------------------------- the worker
+
+
+@wp.func
+def add_cycles(d: DacrtData, worker: int, phase: int, since: wp.int64):
+    i = worker * PHASES + phase
+    d.phase_cycles[i] = d.phase_cycles[i] + (cycles() - since)
+
+
+@wp.func
+def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask) -> int:
+    """Run steps inline while they have fewer than K chunks (2012 paper, sec. 3.4), finishing
+    tasks and continuing with a child or an activated dependant; publish the first step big
+    enough for the pool. Returns the slot last worked on."""
+    s = slot
+    task = t
+    while True:
+        phase = task.phase
+        since = cycles()
+        task = complete_step(d, task, s)
+        if task.phase == PH_DONE:
+            next_slot = finish_task(d, pool, task, s)
+            add_cycles(d, worker, phase, since)
+            if next_slot < 0:
+                return s
+            s = next_slot
+            task = d.tasks[s]
+        else:
+            add_cycles(d, worker, phase, since)
+        if task.chunks >= pool.min_chunks:
+            d.tasks[s] = task
+            pool_hand_over(pool, s, task.chunks)
+            return s
+        since = cycles()
+        for c in range(task.chunks):
+            run_chunk(d, task, s, c)
+        add_cycles(d, worker, task.phase, since)
+
+
+@wp.kernel
+def dacrt_worker(d: DacrtData, pool: Pool, first_worker: int):
+    """The persistent worker of Algorithm 1 (2012 paper, sec. 3.3)."""
+    worker = first_worker + wp.tid()
+    last_slot = worker
+    idle_since = wp.int64(-1)
+    while pool_running(pool):
+        got = pool_acquire(pool, last_slot)
+        slot = got[0]
+        if slot < 0:
+            idle_since = pool_idle(pool, idle_since)
+            continue
+        idle_since = wp.int64(-1)
+        last_slot = slot
+        t = d.tasks[slot]
+        since = cycles()
+        for c in range(got[1], got[1] + got[2]):
+            run_chunk(d, t, slot, c)
+        add_cycles(d, worker, t.phase, since)
+        if pool_finish(pool, slot, got[2]):
+            last_slot = advance(d, pool, worker, slot, d.tasks[slot])
+
+
+@wp.kernel
+def start_trace(d: DacrtData, pool: Pool, lo: wp.vec3, hi: wp.vec3, rays: int, tris: int):
+    """Store the root task: every ray, every (non-degenerate) triangle, the scene box."""
+    slot = pool_alloc(pool)
+    t = new_task(d, 0, rays, 0, tris, 0, lo, hi)
+    t.nsucc = 0
+    d.neg[slot] = 0
+    d.tasks[slot] = t
+    pool_publish(pool, slot, wp.max(t.chunks, 1))
+
+
+@wp.kernel
+def prepare_triangles(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    tri_verts: wp.array(dtype=wp.vec3),
+    tri_lo: wp.array(dtype=wp.vec3),
+    tri_hi: wp.array(dtype=wp.vec3),
+):
+    i = wp.tid()
+    f = indices[i]
+    a = vertices[f[0]]
+    b = vertices[f[1]]
+    c = vertices[f[2]]
+    tri_verts[3 * i] = a
+    tri_verts[3 * i + 1] = b
+    tri_verts[3 * i + 2] = c
+    tri_lo[i] = wp.min(wp.min(a, b), c)
+    tri_hi[i] = wp.max(wp.max(a, b), c)
+
+
+@wp.kernel
+def write_hits(
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),
+    tmax: wp.array(dtype=float),
+    tri_verts: wp.array(dtype=wp.vec3),
+    best: wp.array(dtype=wp.uint64),
+    out_t: wp.array(dtype=float),
+    out_triangle: wp.array(dtype=int),
+    out_u: wp.array(dtype=float),
+    out_v: wp.array(dtype=float),
+):
+    """Unpack the closest hit; t (and u, v) refined in float64 as `kernels.trace` does."""
+    i = wp.tid()
+    key = best[i]
+    out_t[i] = INF
+    out_triangle[i] = -1
+    out_u[i] = 0.0
+    out_v[i] = 0.0
+    if key == KEY_NONE:
+        return
+    tri = int(key & wp.uint64(0xFFFFFFFF))
+    r = make_ray(origins[i], directions[i])
+    v0 = tri_verts[3 * tri]
+    v1 = tri_verts[3 * tri + 1]
+    v2 = tri_verts[3 * tri + 2]
+    h = intersect_triangle(r, v0, v1, v2, tmin[i], tmax[i])
+    exact = refine_hit(r, v0, v1, v2)
+    if exact[0] < INF:
+        h = exact
+    out_t[i] = h[0]
+    out_triangle[i] = tri
+    out_u[i] = h[1]
+    out_v[i] = h[2]
