@@ -129,20 +129,8 @@ def _queue_full(exc: QueueFull) -> ApiError:
     )
 
 
-def _check_engine(engine: str) -> None:
-    if not jobs.engine_available(engine):
-        raise ApiError(
-            422,
-            "engine",
-            f"engine {engine!r} is not available in this build of the kernels",
-            "use engine=bvh",
-            "engine_unavailable",
-        )
-
-
 def _check_ao(params: AoParams) -> None:
     """Refuse what the engine would refuse, naming the query parameter."""
-    _check_engine(params.engine)
     max_spp = jobs.adaptive_max_spp()
     if params.target_error is not None and params.spp > max_spp:
         raise ApiError(

@@ -276,21 +276,8 @@ class AoParams:
             out["distance"] = self.distance
         if self.target_error is not None:
             out["target_error"] = self.target_error
-        if self.engine != "bvh":  # only passed when asked, so a bvh-only engine still works
-            out["engine"] = self.engine
+        out["engine"] = self.engine
         return out
-
-
-def engine_available(engine: str) -> bool:
-    """Whether the installed kernels can run AO with `engine` (bvh always can)."""
-    if engine == "bvh":
-        return True
-    import inspect
-
-    import kernels
-
-    fn = getattr(kernels, "render_ao", None)
-    return fn is not None and "engine" in inspect.signature(fn).parameters
 
 
 def warm_up(device: str) -> None:

@@ -57,7 +57,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sampler", choices=SAMPLERS, default="sobol")
-    parser.add_argument("--engine", choices=("bvh", "dacrt"), default="bvh")
+    parser.add_argument("--engine", choices=("bvh", "dacrt"), default="bvh",
+                        help="trace through the BVH, or with the task-pool DACRT (no BVH)")
     parser.add_argument("--threads", type=int, default=None, help="host threads (default: all)")
     parser.add_argument("--out", type=Path, default=Path("ao.png"), help="8-bit PNG to write")
     parser.add_argument("--npy", type=Path, default=None, help="also write float32 AO (.npy)")
@@ -132,8 +133,6 @@ def _check(args: argparse.Namespace) -> None:
         raise ValueError(f"--distance must be > 0, got {args.distance}")
     if args.target_error is not None and not 0 < args.target_error < 1:
         raise ValueError(f"--target-error must be in (0, 1), got {args.target_error}")
-    if args.engine != "bvh":
-        raise ValueError("--engine dacrt is not available yet (issue 3); use --engine bvh")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -169,6 +168,7 @@ def _render(args: argparse.Namespace, console: Any) -> int:
         distance=args.distance,
         seed=args.seed,
         target_error=args.target_error,
+        engine=args.engine,
         tmin=tmin,
         tmax=tmax,
         threads=args.threads,

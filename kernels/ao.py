@@ -40,6 +40,7 @@ import warp as wp
 
 from .api import Bvh, _threads, launch_split
 from .bvh_trace import BvhArrays, closest_hit, traverse
+from .dacrt_api import dacrt_trace
 from .geometry import make_ray
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .validate import as_rays, per_ray
@@ -56,6 +57,7 @@ EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in
 ROUND_RAYS = 1 << 21  # occlusion rays per round (between progress calls) in fixed mode
 PART_RAYS = 4096  # fewest occlusion rays worth a host thread of their own
 LAUNCH_RAYS = 1 << 30  # most rays per launch (a launch's thread index is int32)
+ENGINES = ("bvh", "dacrt")
 
 Progress = Callable[[float, str], None]
 
@@ -98,6 +100,21 @@ def spawn_point(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, u: float, v: float, n: wp
     return wp.vec3(p + n * offset)
 
 
+@wp.func
+def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i), d: wp.vec3,
+            triangle: int, u: float, v: float) -> wp.mat33:
+    """Rows: the spawn point and the geometric normal (turned toward the viewer) of a hit."""
+    f = indices[triangle]
+    v0 = vertices[f[0]]
+    v1 = vertices[f[1]]
+    v2 = vertices[f[2]]
+    # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
+    n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
+    if wp.dot(n, wp.vec3d(d)) > wp.float64(0.0):
+        n = -n
+    return wp.matrix_from_rows(spawn_point(v0, v1, v2, u, v, n), wp.vec3(n), wp.vec3(0.0))
+
+
 @wp.kernel
 def primary_kernel(
     bvh: BvhArrays,
@@ -112,22 +129,31 @@ def primary_kernel(
     out_hit: wp.array(dtype=int),
 ):
     i = wp.tid()
-    d = directions[i]
-    h = closest_hit(bvh, origins[i], d, tmin[i], tmax[i])
+    h = closest_hit(bvh, origins[i], directions[i], tmin[i], tmax[i])
     out_hit[i] = 0
-    if h.triangle < 0:
-        return
-    f = indices[h.triangle]
-    v0 = vertices[f[0]]
-    v1 = vertices[f[1]]
-    v2 = vertices[f[2]]
-    # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
-    n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
-    if wp.dot(n, wp.vec3d(d)) > wp.float64(0.0):
-        n = -n
-    out_point[i] = spawn_point(v0, v1, v2, h.u, h.v, n)
-    out_normal[i] = wp.vec3(n)
-    out_hit[i] = 1
+    if h.triangle >= 0:
+        s = surface(vertices, indices, directions[i], h.triangle, h.u, h.v)
+        out_point[i] = s[0]
+        out_normal[i] = s[1]
+        out_hit[i] = 1
+
+
+@wp.kernel
+def surface_kernel(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    directions: wp.array(dtype=wp.vec3),
+    triangle: wp.array(dtype=int),
+    u: wp.array(dtype=float),
+    v: wp.array(dtype=float),
+    out_point: wp.array(dtype=wp.vec3),
+    out_normal: wp.array(dtype=wp.vec3),
+):
+    """Spawn points and normals of hits found by another tracer (engine="dacrt")."""
+    i = wp.tid()
+    s = surface(vertices, indices, directions[i], triangle[i], u[i], v[i])
+    out_point[i] = s[0]
+    out_normal[i] = s[1]
 
 
 @wp.kernel
@@ -216,7 +242,7 @@ def box_candidates(bounds: np.ndarray, o: np.ndarray, d: np.ndarray, tmin: np.nd
 
 
 def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
-                  tmax=np.inf, threads: int | None = None) -> PrimaryHits:
+                  tmax=np.inf, threads: int | None = None, engine: str = "bvh") -> PrimaryHits:
     """Closest hits of the primary rays that enter the scene box, as spawn points and
     normals for occlusion rays."""
     r = len(origins)
@@ -227,12 +253,25 @@ def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.
     device = bvh.device
     cand = box_candidates(bvh.bounds, origins, directions, tmin_a, tmax_a)
     m = len(cand)
+    verts = wp.array(bvh.vertices, dtype=wp.vec3, device=device)
+    tris = wp.array(bvh.indices, dtype=wp.vec3i, device=device)
+    if engine == "dacrt":
+        h = dacrt_trace(bvh.vertices, bvh.indices, origins[cand], directions[cand],
+                        tmin_a[cand], tmax_a[cand], device=device)
+        keep = np.flatnonzero(h.triangle >= 0)
+        n = len(keep)
+        pts = wp.empty(n, dtype=wp.vec3, device=device)
+        nrm = wp.empty(n, dtype=wp.vec3, device=device)
+        if n:
+            wp.launch(surface_kernel, dim=n, inputs=[
+                verts, tris, wp.array(directions[cand][keep], dtype=wp.vec3, device=device),
+                *(wp.array(x[keep], device=device) for x in (h.triangle, h.u, h.v)),
+            ], outputs=[pts, nrm], device=device)
+        return PrimaryHits(pixels=cand[keep], points=pts, normals=nrm, traced=m)
     pts = wp.empty(m, dtype=wp.vec3, device=device)
     nrm = wp.empty(m, dtype=wp.vec3, device=device)
     hit = wp.empty(m, dtype=int, device=device)
     if m:
-        verts = wp.array(bvh.vertices, dtype=wp.vec3, device=device)
-        tris = wp.array(bvh.indices, dtype=wp.vec3i, device=device)
         per_item = [wp.array(x[cand], dtype=dt, device=device)
                     for x, dt in ((origins, wp.vec3), (directions, wp.vec3),
                                   (tmin_a, float), (tmax_a, float))]
@@ -314,6 +353,7 @@ def render_ao(
     threads: int | None = None,
     max_spp: int = DEFAULT_MAX_SPP,
     sampler: str = "sobol",
+    engine: str = "bvh",
     progress: Progress | None = None,
 ) -> AoResult:
     """AO per primary ray (see the module docstring for the definition and guarantees).
@@ -323,6 +363,9 @@ def render_ao(
     until the half-width of its 95% confidence interval (`half_width`) is below
     `target_error` or it has `max_spp`. `distance=None` is DISTANCE_FRACTION of the scene
     box diagonal. `sampler`: "sobol" (Owen-scrambled, default) or "random"; both unbiased.
+    `engine`: "bvh" traces through `bvh`; "dacrt" traces the same rays (primary, then each
+    round's occlusion rays) with the task-pool DACRT, without using the BVH: the same result
+    to float32 rounding.
     `progress(fraction, phase)` is called between rounds; an exception it raises cancels
     the render.
     """
@@ -331,6 +374,8 @@ def render_ao(
     min_spp = max(int(spp), MIN_ADAPTIVE_SPP) if target_error is not None else int(spp)
     _check_args(spp, distance, seed, target_error, (min_spp, int(max_spp)))
     sampler_id = _sampler(sampler)
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
     origins, directions = as_rays(origins, directions)
     r = len(origins)
     dist = default_distance(bvh) if distance is None else float(distance)
@@ -347,7 +392,7 @@ def render_ao(
 
     report(0.0, "primary")
     t0 = time.perf_counter()
-    hits = trace_primary(bvh, origins, directions, tmin, tmax, threads)
+    hits = trace_primary(bvh, origins, directions, tmin, tmax, threads, engine)
     wp.synchronize_device(device)
     timings["primary"] = (time.perf_counter() - t0) * 1e3
 
@@ -363,8 +408,9 @@ def render_ao(
     while h and len(active):
         first = int(n_done[active[0]])
         report(_fraction(n_done, min_spp, target_error is None, len(active), count), "occlusion")
-        opened, opened_half = _occlusion_round(bvh, hits, pix, active, first, count,
-                                               sampler_id, int(seed), dist, nthreads)
+        trace_round = _occlusion_round if engine == "bvh" else _occlusion_round_dacrt
+        opened, opened_half = trace_round(bvh, hits, pix, active, first, count, sampler_id,
+                                          int(seed), dist, nthreads)
         n_open[active] += opened
         n_done[active] += count
         rounds += 1
@@ -421,6 +467,24 @@ def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dis
         with ThreadPoolExecutor(min(parts, nthreads)) as ex:
             list(ex.map(run, range(parts)))
     return out.numpy().astype(np.int64), out_half.numpy().astype(np.int64)
+
+
+def _occlusion_round_dacrt(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
+                           nthreads) -> tuple[np.ndarray, np.ndarray]:
+    """`_occlusion_round` with the round's rays traced by DACRT (closest hit within the AO
+    distance: occluded if there is one)."""
+    device = bvh.device
+    m = len(active)
+    points = hits.points.numpy()[active]
+    dirs = wp.empty(m * count, dtype=wp.vec3, device=device)
+    wp.launch(directions_kernel, dim=(m, count),
+              inputs=[wp.array(hits.normals.numpy()[active], dtype=wp.vec3, device=device),
+                      wp.array(hits.pixels[active], dtype=int, device=device), int(first),
+                      int(count), sampler_id, seed], outputs=[dirs], device=device)
+    h = dacrt_trace(bvh.vertices, bvh.indices, np.repeat(points, count, axis=0), dirs.numpy(),
+                    0.0, dist, device=device)
+    opened = (h.triangle < 0).reshape(m, count)
+    return opened.sum(axis=1), opened[:, : count // 2].sum(axis=1)
 
 
 def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
@@ -486,7 +550,9 @@ def ambient_occlusion(
     threads: int | None = None,
     max_spp: int = DEFAULT_MAX_SPP,
     sampler: str = "sobol",
+    engine: str = "bvh",
 ) -> np.ndarray:
     """AO per primary ray, (R,) float32: `render_ao(...).ao` (see there)."""
     return render_ao(bvh, origins, directions, spp, distance, seed, target_error, tmin=tmin,
-                     tmax=tmax, threads=threads, max_spp=max_spp, sampler=sampler).ao
+                     tmax=tmax, threads=threads, max_spp=max_spp, sampler=sampler,
+                     engine=engine).ao

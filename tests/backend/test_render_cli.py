@@ -117,7 +117,6 @@ def _bunny(folder):
     [
         (["--width", "0"], "--width"),
         (["--scene", "no-such-scene"], "no-such-scene"),
-        (["--engine", "dacrt"], "dacrt"),
         (["--distance", "-1"], "distance"),
         (["--scene", "missing.ply"], "missing.ply"),
     ],

@@ -369,20 +369,12 @@ def test_service_healthy_after_bad_requests(api, scene_id, service) -> None:
     assert "500" not in [line.split(" -> ")[-1][:3] for line in service.log().splitlines()]
 
 
-def test_dacrt_engine_is_served_or_refused_clearly(api, scene_id) -> None:
-    """Until render_ao takes `engine` (issue 3), engine=dacrt is a 422 naming it."""
-    from backend.jobs import engine_available
-
-    response = api.client.post(
-        f"/v1/scenes/{scene_id}/ao",
-        params={"rays": 1, "engine": "dacrt"},
-        content=ONE_RAY,
-        headers=OCTET,
-    )
-    if engine_available("dacrt"):
-        assert response.status_code == 200, response.text
-        assert len(response.content) == 4
-    else:
-        assert response.status_code == 422
-        assert response.json()["parameter"] == "engine"
-        assert "engine=bvh" in response.json()["fix"]
+def test_dacrt_engine_gives_the_bvh_answer(api, scene_id) -> None:
+    """engine=dacrt traces the same rays without the BVH: the same AO, bit for bit."""
+    answers = [
+        api.client.post(f"/v1/scenes/{scene_id}/ao", params={"rays": 1, "engine": engine},
+                        content=ONE_RAY, headers=OCTET)
+        for engine in ("bvh", "dacrt")
+    ]
+    assert [r.status_code for r in answers] == [200, 200], answers[1].text
+    assert answers[0].content == answers[1].content and len(answers[0].content) == 4

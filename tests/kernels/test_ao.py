@@ -290,6 +290,23 @@ def test_deterministic_for_any_thread_count(shared_scene):
     assert not np.array_equal(one.ao, other)
 
 
+@pytest.mark.parametrize("target_error", [None, 0.05])
+def test_dacrt_engine_gives_the_bvh_answer(shared_scene, target_error):
+    """engine="dacrt" traces the same primary and occlusion rays without the BVH: the hit
+    decisions agree, so the AO and the samples per pixel are identical."""
+    scene = shared_scene("sibenik")
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    cam = Camera.look_at((-15.0, -5.0, 0.0), (-14.0, -5.2, 0.0), (0, 1, 0), 60.0, 40, 30)
+    o, d, tmin, tmax = cam.rays()
+    kw = {"spp": 8, "seed": 2, "tmin": tmin, "tmax": tmax, "target_error": target_error,
+          "max_spp": 64}
+    with_bvh = kernels.render_ao(bvh, o, d, **kw)
+    with_dacrt = kernels.render_ao(bvh, o, d, engine="dacrt", **kw)
+    assert with_bvh.rays["occlusion"] > 0
+    assert np.array_equal(with_bvh.ao, with_dacrt.ao)
+    assert np.array_equal(with_bvh.spp_used, with_dacrt.spp_used)
+
+
 def test_progress_reports_and_cancels():
     v, f = grid_plane(2)
     bvh = kernels.build_bvh(v.astype(np.float32), f)
@@ -313,7 +330,8 @@ def test_progress_reports_and_cancels():
     "kwargs,field",
     [({"spp": 0}, "spp"), ({"distance": 0.0}, "distance"), ({"target_error": 1.5}, "target_error"),
      ({"sampler": "halton"}, "sampler"), ({"target_error": 0.1, "spp": 64, "max_spp": 32},
-                                          "max_spp"), ({"seed": 1.5}, "seed")],
+                                          "max_spp"), ({"seed": 1.5}, "seed"),
+     ({"engine": "optix"}, "engine")],
 )
 def test_bad_arguments_name_the_field(kwargs, field):
     v, f = grid_plane(1)
