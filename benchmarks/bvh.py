@@ -225,11 +225,11 @@ def markdown(build: list[dict], peer_build: dict, traces: list[dict], compile_s:
     lines.append("|---|---|---|---:|" + "---:|" * len(keys) + "---|")
     cores = cpu_cores()
     for r in traces:
-        cells = [f"{r[k]:.2f}" if isinstance(r[k], float) else str(r[k]) for k in keys]
+        cells = [f"{r[k]:.2f}" if isinstance(r.get(k), float) else str(r.get(k, "")) for k in keys]
         ratio = (f"{r['ours 1t'] / r['wp.Mesh 1t']:.2f}, "
                  f"{r[f'ours {cores}t'] / r[f'wp.Mesh {cores}t']:.2f}")
-        lines.append(f"| {r['scene']} | {r['rays']} | {r['count']:,} | " + " | ".join(cells)
-                     + f" | {ratio} |")
+        lines.append(f"| {r['scene']} | {r['bvh']} | {r['rays']} | {r['count']:,} | "
+                     + " | ".join(cells) + f" | {ratio} |")
     return "\n".join(lines) + "\n"
 
 
