@@ -18,6 +18,8 @@ from .validate import as_rays, as_triangle_mesh, per_ray
 Method = Literal["sah", "median"]
 METHODS: dict[str, int] = {"median": int(bb.METHOD_MEDIAN), "sah": int(bb.METHOD_SAH)}
 DEFAULT_MIN_CHUNKS = 14  # K of eq. 3.1 (sec. 3.4)
+PARTS_PER_THREAD = 8  # launch_split: parts per host thread, for load balance
+MIN_PART = 4096  # launch_split: fewest items worth a launch of their own
 
 
 @dataclass
@@ -260,7 +262,9 @@ def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, ou
     of length n are sliced per part; shorter ones (a broadcast scalar) are passed whole."""
     if n == 0:
         return
-    parts = min(threads, max(1, n // 4096))
+    # More parts than threads, taken in turn by the pool's threads: camera rays cost very
+    # different amounts in different parts of the image (sky against geometry).
+    parts = min(threads * PARTS_PER_THREAD, max(1, n // MIN_PART)) if threads > 1 else 1
     if parts <= 1:
         wp.launch(kernel, dim=n, inputs=[*shared, *per_item, *scalars], outputs=outputs,
                   device=device)
@@ -277,5 +281,5 @@ def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, ou
                                              *scalars],
                   outputs=[part(x, a, b) for x in outputs], device=device)
 
-    with ThreadPoolExecutor(parts) as ex:
+    with ThreadPoolExecutor(threads) as ex:
         list(ex.map(run, range(parts)))
