@@ -191,6 +191,20 @@ def build_bvh(
     return bvh
 
 
+def count_degenerate(vertices: np.ndarray, indices: np.ndarray, device=None,
+                     threads: int | None = None) -> int:
+    """Zero-area triangles of a validated mesh, as `build_bvh` counts them (the float64
+    cross product of the float32 edges is exactly zero), on every core."""
+    device = _device(device)
+    m = len(indices)
+    flags = np.empty(m, np.int8)
+    out = to_device(flags, wp.int8, device)
+    launch_split(bb.degenerate_flags, m, [to_device(vertices, wp.vec3, device)],
+                 [to_device(np.ascontiguousarray(indices, np.int32), wp.vec3i, device)], [],
+                 [out], device, _threads(device, threads))
+    return int(np.count_nonzero(flags if device.is_cpu else out.numpy()))
+
+
 def _empty_root(device) -> wp.array:
     """The BVH of a mesh with no triangles: a root whose box, a point at infinity, no ray
     enters (an inverted box would look like all of space to the slab test)."""

@@ -725,6 +725,25 @@ def reset_bins(b: BuildData):
     reset_bin(b, wp.tid())
 
 
+@wp.func
+def is_degenerate(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> bool:
+    """Zero area: the float64 cross product of the float32 edges is exactly zero."""
+    a64 = wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
+    e1 = wp.vec3d(wp.float64(b[0]), wp.float64(b[1]), wp.float64(b[2])) - a64
+    e2 = wp.vec3d(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2])) - a64
+    n = wp.cross(e1, e2)
+    zero = wp.float64(0.0)
+    return n[0] == zero and n[1] == zero and n[2] == zero
+
+
+@wp.kernel
+def degenerate_flags(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+                     out: wp.array(dtype=wp.int8)):
+    f = indices[wp.tid()]
+    out[wp.tid()] = wp.int8(wp.where(is_degenerate(vertices[f[0]], vertices[f[1]],
+                                                   vertices[f[2]]), 1, 0))
+
+
 @wp.kernel
 def triangle_boxes(
     vertices: wp.array(dtype=wp.vec3),
@@ -749,13 +768,8 @@ def triangle_boxes(
     tri_lo[i] = lo
     tri_hi[i] = hi
     centroid[i] = mid
-    a64 = wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
-    e1 = wp.vec3d(wp.float64(bb[0]), wp.float64(bb[1]), wp.float64(bb[2])) - a64
-    e2 = wp.vec3d(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2])) - a64
-    n = wp.cross(e1, e2)
-    zero = wp.float64(0.0)
     valid[i] = 0
-    if n[0] != zero or n[1] != zero or n[2] != zero:
+    if not is_degenerate(a, bb, c):
         valid[i] = 1
         wp.atomic_min(bounds, 0, lo)
         wp.atomic_max(bounds, 1, hi)
