@@ -39,9 +39,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 import kernels  # noqa: E402
+from backend import peers  # noqa: E402
 from backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
 from kernels import ao  # noqa: E402
-from kernels.api import _threads, launch_split  # noqa: E402
+from kernels.api import _threads  # noqa: E402
 
 RMSE_GOAL = 0.02
 FIXED_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256)
@@ -80,74 +81,14 @@ class Curve:
 # --- peers: the same primary hits and occlusion directions, traced by someone else ---------
 
 
-@wp.kernel
-def mesh_closest(mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
-                 out_t: wp.array(dtype=float)):
-    i = wp.tid()
-    q = wp.mesh_query_ray(mesh, o[i], d[i], 1.0e30)
-    out_t[i] = wp.where(q.result, q.t, -1.0)
-
-
-@wp.kernel
-def mesh_open(mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
-              dist: float, out_open: wp.array(dtype=int)):
-    i = wp.tid()
-    out_open[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, o[i], d[i], dist), 0, 1)
-
-
-class WarpMeshPeer:
-    name = "wp.Mesh"
-
-    def __init__(self, vertices: np.ndarray, indices: np.ndarray, threads: int):
-        self.mesh = wp.Mesh(points=wp.array(vertices, dtype=wp.vec3),
-                            indices=wp.array(indices.ravel(), dtype=int))
-        self.threads = threads
-        self.device = wp.get_device("cpu")
-
-    def primary(self, o: np.ndarray, d: np.ndarray) -> float:
-        ow, dw = wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3)
-        out = wp.empty(len(o), dtype=float)
-        t = time.perf_counter()
-        launch_split(mesh_closest, len(o), [self.mesh.id], [ow, dw], [], [out], self.device,
-                     self.threads)
-        return time.perf_counter() - t
-
-    def occlusion(self, o: np.ndarray, d: np.ndarray, dist: float) -> tuple[np.ndarray, float]:
-        ow, dw = wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3)
-        out = wp.empty(len(o), dtype=int)
-        t = time.perf_counter()
-        launch_split(mesh_open, len(o), [self.mesh.id], [ow, dw], [float(dist)], [out],
-                     self.device, self.threads)
-        return out.numpy(), time.perf_counter() - t
-
-
-class EmbreePeer:
-    name = "Embree"
-
-    def __init__(self, vertices: np.ndarray, indices: np.ndarray):
-        from embreex import rtcore_scene
-        from embreex.mesh_construction import TriangleMesh
-
-        self.scene = rtcore_scene.EmbreeScene()
-        TriangleMesh(self.scene, vertices, indices)
-
-    def primary(self, o: np.ndarray, d: np.ndarray) -> float:
-        t = time.perf_counter()
-        self.scene.run(o, d)
-        return time.perf_counter() - t
-
-    def occlusion(self, o: np.ndarray, d: np.ndarray, dist: float) -> tuple[np.ndarray, float]:
-        dists = np.full(len(o), dist, np.float32)  # embreex overwrites it in place
-        t = time.perf_counter()
-        res = self.scene.run(o, d, dists=dists, query="OCCLUDED")
-        return (res != 0).astype(np.int64), time.perf_counter() - t
-
-
 def peer_ao(peer, o, d, hits: ao.PrimaryHits, spp: int, dist: float, sampler: str,
             seed: int, progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, float]:
     """Fixed-spp AO of the hit pixels with our spawn points and directions, traced by
-    `peer`: (AO per hit pixel, peer seconds)."""
-    seconds = peer.primary(o, d)
+    `peer` (a `backend.peers` tracer; `peer.threads` host threads): (AO per hit pixel, peer
+    seconds, counting only its trace calls)."""
+    start = time.perf_counter()
+    peer.closest(o, d, threads=peer.threads)
+    seconds = time.perf_counter() - start
     points = hits.points.numpy()
     h = len(points)
     n_open = np.zeros(h, dtype=np.int64)
@@ -155,9 +96,10 @@ def peer_ao(peer, o, d, hits: ao.PrimaryHits, spp: int, dist: float, sampler: st
     for first in range(0, spp, step):
         count = min(step, spp - first)
         dirs = ao.occlusion_directions(hits, first, count, seed, sampler)
-        opened, s = peer.occlusion(np.repeat(points, count, axis=0), dirs, dist)
-        n_open += opened.reshape(h, count).sum(axis=1)
-        seconds += s
+        start = time.perf_counter()
+        blocked = peer.occluded(np.repeat(points, count, axis=0), dirs, dist, peer.threads)
+        seconds += time.perf_counter() - start
+        n_open += (~blocked).reshape(h, count).sum(axis=1)
         if progress:
             progress(count)
     return n_open / spp, seconds
@@ -178,7 +120,8 @@ def reference(name: str, scene, bvh, o, d, tmin, tmax, dist: float, spp: int,
         return z["ao"], z["var"], z["hit"]
     t = time.perf_counter()
     hits = ao.trace_primary(bvh, o, d, tmin, tmax)
-    peer = EmbreePeer(scene.vertices, scene.indices)
+    peer = peers.Embree(scene.vertices, scene.indices)
+    peer.threads = 1
     values, _ = peer_ao(peer, o, d, hits, spp, dist, "random", seed=987_654)
     full = np.ones(len(o))
     var = np.zeros(len(o))
@@ -230,17 +173,19 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
               Curve("wp.Mesh"), Curve("Embree")]
     hits = ao.trace_primary(bvh, o, d, tmin, tmax)
     t = time.perf_counter()
-    peers = [WarpMeshPeer(scene.vertices, scene.indices, threads),
-             EmbreePeer(scene.vertices, scene.indices)]
+    tracers = [peers.WarpMesh(scene.vertices, scene.indices), peers.Embree(scene.vertices,
+                                                                           scene.indices)]
+    tracers[0].threads = threads  # Embree: one thread (embreex holds the Python lock)
+    tracers[1].threads = 1
     build_peers = time.perf_counter() - t
-    for peer in peers:  # Embree builds lazily and Warp compiles on first use: not timed
+    for peer in tracers:  # Embree builds lazily and Warp compiles on first use: not timed
         peer_ao(peer, o[:64], d[:64], hits, 1, dist, "sobol", 0)
     ours(spp=1)
     for spp in spps:
         for curve, sampler in ((curves[0], "sobol"), (curves[1], "random")):
             s, e = measure(lambda sampler=sampler, spp=spp: ours(spp=spp, sampler=sampler))
             curve.points.append((spp, s, e))
-        for curve, peer in zip(curves[3:], peers, strict=True):
+        for curve, peer in zip(curves[3:], tracers, strict=True):
             def traced(peer=peer, spp=spp):
                 values, s = peer_ao(peer, o, d, hits, spp, dist, "sobol", 0)
                 full = np.ones(len(o))

@@ -95,3 +95,27 @@ def random_rays(rng, count: int, lo=0.0, hi=1.0):
     o = (lo + (hi - lo) * rng.random((count, 3))).astype(np.float32)
     d = rng.normal(size=(count, 3)).astype(np.float32)
     return o, d
+
+
+def axis_aligned_cube_rays():
+    """A unit cube mesh and a 7x7 grid of rays along each axis, both ways, whose other two
+    direction components are -0.0 (or 0.0): every ray hits at t = 1.5."""
+    import trimesh
+
+    box = trimesh.creation.box(extents=(1, 1, 1))
+    g = np.linspace(-0.45, 0.45, 7, dtype=np.float32)
+    a, b = np.meshgrid(g, g)
+    origins, directions = [], []
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            o = np.zeros((a.size, 3), np.float32)
+            o[:, (axis + 1) % 3] = a.ravel()
+            o[:, (axis + 2) % 3] = b.ravel()
+            o[:, axis] = -2.0 * sign
+            d = np.full((a.size, 3), -0.0, np.float32)
+            d[:, axis] = sign
+            origins.append(o)
+            directions.append(d)
+    return (np.asarray(box.vertices, np.float32), np.asarray(box.faces, np.int32),
+            np.vstack(origins), np.vstack(directions))
+

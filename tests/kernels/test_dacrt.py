@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 import kernels
 from kernels.dacrt_api import dacrt_trace
 
-from .reference import brute_force, random_rays, random_soup
+from .reference import axis_aligned_cube_rays, brute_force, random_rays, random_soup
 from .test_trace import assert_same_hits
 
 VARIANTS = [("pool", "rdh"), ("pool", "median"), ("breadth_first", "rdh")]
@@ -69,23 +69,8 @@ def test_per_ray_range_and_shared_vertices(variant, split):
 def test_axis_aligned_rays_and_closed_mesh(variant):
     """Rays with -0.0 and 0 direction components along each axis through a cube, and rays
     from inside a closed icosphere to its vertices: none may escape."""
-    box = trimesh.creation.box(extents=(1, 1, 1))
-    v = np.asarray(box.vertices, np.float32)
-    f = np.asarray(box.faces, np.int32)
-    g = np.linspace(-0.45, 0.45, 7, dtype=np.float32)
-    a, b = np.meshgrid(g, g)
-    os, ds = [], []
-    for axis in range(3):
-        for sign in (1.0, -1.0):
-            o = np.zeros((a.size, 3), np.float32)
-            o[:, (axis + 1) % 3] = a.ravel()
-            o[:, (axis + 2) % 3] = b.ravel()
-            o[:, axis] = -2.0 * sign
-            d = np.full((a.size, 3), -0.0, np.float32)
-            d[:, axis] = sign
-            os.append(o)
-            ds.append(d)
-    h = dacrt_trace(v, f, np.vstack(os), np.vstack(ds), variant=variant, alpha=1, beta=1)
+    v, f, o, d = axis_aligned_cube_rays()
+    h = dacrt_trace(v, f, o, d, variant=variant, alpha=1, beta=1)
     assert np.all(h.triangle >= 0) and np.all(h.t == 1.5)
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=1e3)
     v = (np.asarray(sphere.vertices) + 1e4).astype(np.float32)

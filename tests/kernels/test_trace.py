@@ -10,7 +10,7 @@ from embreex.mesh_construction import TriangleMesh
 
 import kernels
 
-from .reference import brute_force, random_rays, random_soup
+from .reference import axis_aligned_cube_rays, brute_force, random_rays, random_soup
 
 
 def embree_closest(vertices, indices, origins, directions):
@@ -78,23 +78,10 @@ def test_barycentrics_reconstruct_the_hit_point():
 
 def test_axis_aligned_rays_with_zero_direction_components():
     """A grid of rays along each axis (and with -0.0 components) through a unit-cube mesh."""
-    box = trimesh.creation.box(extents=(1, 1, 1))
-    v = np.asarray(box.vertices, np.float32)
-    f = np.asarray(box.faces, np.int32)
-    bvh = kernels.build_bvh(v, f)
-    g = np.linspace(-0.45, 0.45, 7, dtype=np.float32)
-    a, b = np.meshgrid(g, g)
-    for axis in range(3):
-        for sign in (1.0, -1.0):
-            o = np.zeros((a.size, 3), np.float32)
-            o[:, (axis + 1) % 3] = a.ravel()
-            o[:, (axis + 2) % 3] = b.ravel()
-            o[:, axis] = -2.0 * sign
-            d = np.full((a.size, 3), -0.0, np.float32)
-            d[:, axis] = sign
-            h = kernels.trace(bvh, o, d)
-            assert np.all(h.triangle >= 0)
-            assert np.allclose(h.t, 1.5, rtol=0, atol=0)
+    v, f, o, d = axis_aligned_cube_rays()
+    h = kernels.trace(kernels.build_bvh(v, f), o, d)
+    assert np.all(h.triangle >= 0)
+    assert np.all(h.t == 1.5)
 
 
 def icosphere_rays(subdivisions=3, radius=1.0, offset=(0.0, 0.0, 0.0)):
