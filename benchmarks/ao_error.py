@@ -222,8 +222,8 @@ def fmt(s: float | None) -> str:
 
 def table(rows: list[dict], args) -> str:
     lines = [
-        f"Run: `{args.command_line}` on {os.cpu_count()} shared cores (timings noisy: other "
-        "work ran at the same time).",
+        f"Run: `{args.command_line}` on {os.cpu_count()} cores, CPU only. Small images: the "
+        "runs take 10-300 ms, so expect +-20% between runs.",
         "",
         f"Time (s) to reach RMSE {RMSE_GOAL} (interpolated, log-log); floor: target_error "
         "<= 0.5 x wp.Mesh.",
