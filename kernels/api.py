@@ -99,13 +99,13 @@ def build_bvh(
     v_wp = wp.array(vertices, dtype=wp.vec3, device=device)
     f_wp = wp.array(indices, dtype=wp.vec3i, device=device)
     b = bb.BuildData()
-    lo, hi, centroid = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(3))
+    lo, hi = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(2))
     valid = wp.empty(m, dtype=int, device=device)
     inf = np.float32(np.inf)
     bounds = wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
                       dtype=wp.vec3, device=device)
     wp.launch(bb.triangle_boxes, dim=m,
-              inputs=[v_wp, f_wp, lo, hi, centroid, valid, bounds], device=device)
+              inputs=[v_wp, f_wp, lo, hi, valid, bounds], device=device)
     offsets = wp.empty(m, dtype=int, device=device)
     if m:
         wp.utils.array_scan(valid, offsets, inclusive=False)
@@ -116,8 +116,8 @@ def build_bvh(
     b.perm, b.swap_id, b.swap_pos, b.scan = (
         wp.empty(max(n, 1), dtype=int, device=device) for _ in range(4)
     )
-    b.tri_lo, b.tri_hi, b.centroid, b.swap_lo, b.swap_hi, b.swap_c = (
-        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(6)
+    b.tri_lo, b.tri_hi, b.swap_lo, b.swap_hi = (
+        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
     )
     b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
     b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
@@ -136,7 +136,7 @@ def build_bvh(
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)
     pool = make_pool(capacity, workers, int(min_chunks), device)
-    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, centroid, b],
+    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, b],
               device=device)
     wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
     phase_ms["prepare"] = _sync_ms(device, t0)

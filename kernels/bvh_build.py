@@ -99,13 +99,11 @@ class BuildTask:
 @wp.struct
 class BuildData:
     perm: wp.array(dtype=int)  # the index array: triangle ids, in leaf order when done
-    tri_lo: wp.array(dtype=wp.vec3)  # each position's triangle box and centroid: they move
-    tri_hi: wp.array(dtype=wp.vec3)  # with `perm`, so every phase reads memory in order
-    centroid: wp.array(dtype=wp.vec3)  # instead of gathering by triangle id
+    tri_lo: wp.array(dtype=wp.vec3)  # each position's triangle box: it moves with `perm`, so
+    tri_hi: wp.array(dtype=wp.vec3)  # every phase reads memory in order (centroid: its middle)
     swap_id: wp.array(dtype=int)  # Swap's separate index array (with the same payload) ...
     swap_lo: wp.array(dtype=wp.vec3)
     swap_hi: wp.array(dtype=wp.vec3)
-    swap_c: wp.array(dtype=wp.vec3)
     swap_pos: wp.array(dtype=int)  # ... and where each of its entries came from
     mark: wp.array(dtype=wp.int8)  # 1 = right of the plane, per index-array position
     scan: wp.array(dtype=int)  # PPS levels, stored inside each task's own range
@@ -148,6 +146,12 @@ def half_area(lo: wp.vec3, hi: wp.vec3) -> float:
 
 
 @wp.func
+def centroid(b: BuildData, i: int) -> wp.vec3:
+    """The centroid of the triangle box at index-array position i (as triangle_boxes has it)."""
+    return 0.5 * (b.tri_lo[i] + b.tri_hi[i])
+
+
+@wp.func
 def bin_scale(t: BuildTask) -> float:
     """Bins per unit length along the split axis of the task's centroid box."""
     return float(BINS) / (t.chi[t.axis] - t.clo[t.axis])
@@ -162,7 +166,7 @@ def bin_of(c: float, lo: float, scale: float) -> int:
 @wp.func
 def goes_right(b: BuildData, t: BuildTask, scale: float, i: int) -> bool:
     """Marked 1 in PPS: right of the SAH plane (`scale` from bin_scale) or the median."""
-    c = b.centroid[i][t.axis]
+    c = 0.5 * (b.tri_lo[i][t.axis] + b.tri_hi[i][t.axis])
     if b.method == METHOD_SAH:
         return bin_of(c, t.clo[t.axis], scale) > t.split_bin
     return c > t.split
@@ -183,11 +187,13 @@ def split_plane_chunk(b: BuildData, t: BuildTask, bin_slot: int, chunk: int):
     origin = t.clo[t.axis]
     base = bin_slot * BIN_SLOTS
     for i in range(first, last):
-        c = b.centroid[i]
+        lo = b.tri_lo[i]
+        hi = b.tri_hi[i]
+        c = 0.5 * (lo + hi)
         k = base + bin_of(c[t.axis], origin, scale)
         b.bin_count[k] = b.bin_count[k] + 1
-        b.bin_lo[k] = min3(b.bin_lo[k], b.tri_lo[i])
-        b.bin_hi[k] = max3(b.bin_hi[k], b.tri_hi[i])
+        b.bin_lo[k] = min3(b.bin_lo[k], lo)
+        b.bin_hi[k] = max3(b.bin_hi[k], hi)
         b.bin_clo[k] = min3(b.bin_clo[k], c)
         b.bin_chi[k] = max3(b.bin_chi[k], c)
 
@@ -355,7 +361,6 @@ def swap_gather_chunk(b: BuildData, t: BuildTask, chunk: int):
             b.swap_id[r] = b.perm[i]
             b.swap_lo[r] = b.tri_lo[i]
             b.swap_hi[r] = b.tri_hi[i]
-            b.swap_c[r] = b.centroid[i]
             b.swap_pos[r] = i
 
 
@@ -374,11 +379,9 @@ def swap_exchange_chunk(b: BuildData, t: BuildTask, chunk: int):
             b.perm[j] = b.perm[i]
             b.tri_lo[j] = b.tri_lo[i]
             b.tri_hi[j] = b.tri_hi[i]
-            b.centroid[j] = b.centroid[i]
             b.perm[i] = b.swap_id[r]
             b.tri_lo[i] = b.swap_lo[r]
             b.tri_hi[i] = b.swap_hi[r]
-            b.centroid[i] = b.swap_c[r]
             ones += 1
 
 
@@ -407,8 +410,8 @@ def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
         for i in range(first, last):
             lo = min3(lo, b.tri_lo[i])
             hi = max3(hi, b.tri_hi[i])
-            clo = min3(clo, b.centroid[i])
-            chi = max3(chi, b.centroid[i])
+            clo = min3(clo, centroid(b, i))
+            chi = max3(chi, centroid(b, i))
     else:
         src = level_base(base, n, level - 1)
         first = src + c * CHUNK
@@ -750,11 +753,10 @@ def triangle_boxes(
     indices: wp.array(dtype=wp.vec3i),
     tri_lo: wp.array(dtype=wp.vec3),
     tri_hi: wp.array(dtype=wp.vec3),
-    centroid: wp.array(dtype=wp.vec3),
     valid: wp.array(dtype=int),
     bounds: wp.array(dtype=wp.vec3),
 ):
-    """Per-triangle boxes and centroids; `valid` is 0 for zero-area triangles (an exact
+    """Per-triangle boxes; `valid` is 0 for zero-area triangles (an exact
     float64 cross product of the float32 edges), which the build leaves out. bounds[0..3]
     get the scene's box and centroid box over the valid ones."""
     i = wp.tid()
@@ -767,7 +769,6 @@ def triangle_boxes(
     mid = 0.5 * (lo + hi)
     tri_lo[i] = lo
     tri_hi[i] = hi
-    centroid[i] = mid
     valid[i] = 0
     if not is_degenerate(a, bb, c):
         valid[i] = 1
@@ -783,7 +784,6 @@ def compact_valid(
     offsets: wp.array(dtype=int),
     lo: wp.array(dtype=wp.vec3),
     hi: wp.array(dtype=wp.vec3),
-    centroid: wp.array(dtype=wp.vec3),
     b: BuildData,
 ):
     """The initial index array: the valid triangles in order, with their boxes."""
@@ -793,7 +793,6 @@ def compact_valid(
         b.perm[k] = i
         b.tri_lo[k] = lo[i]
         b.tri_hi[k] = hi[i]
-        b.centroid[k] = centroid[i]
 
 
 @wp.kernel
