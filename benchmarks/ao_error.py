@@ -38,6 +38,8 @@ import warp as wp
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
+
 import kernels  # noqa: E402
 from backend import peers  # noqa: E402
 from backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
@@ -59,8 +61,6 @@ ADAPTIVE_NOTE = (
     'about as many rays as fixed-spp Sobol for the same RMSE (simulated from the same '
     'samples: 0.9-1.25x); the floor is not reachable by the stopping rule alone.'
 )
-SECTION_BEGIN = "<!-- ao_error:begin -->"
-SECTION_END = "<!-- ao_error:end -->"
 
 
 @dataclass
@@ -308,15 +308,7 @@ def write_docs(results: list[tuple[dict, list[Curve]]], args) -> None:
         "![AO time against error](figures/ao_error.png)",
         *[sweep_table(r["scene"], c) for r, c in results],
     ])
-    section = f"{SECTION_BEGIN}\n{body}\n{SECTION_END}"
-    doc = REPO / "docs" / "benchmarks.md"
-    text = doc.read_text() if doc.is_file() else "# Benchmarks\n"
-    if SECTION_BEGIN in text and SECTION_END in text:
-        a, b = text.index(SECTION_BEGIN), text.index(SECTION_END) + len(SECTION_END)
-        text = text[:a] + section + text[b:]
-    else:
-        text = text.rstrip("\n") + "\n\n" + section + "\n"
-    doc.write_text(text)
+    write_section("ao_error", body)
     print(f"wrote {figure.relative_to(REPO)} and the AO section of docs/benchmarks.md")
 
 

@@ -25,10 +25,11 @@ from rich.console import Console
 from rich.markdown import Markdown
 
 ROOT = Path(__file__).resolve().parents[1]
-DOCS = ROOT / "docs" / "benchmarks.md"
 FIGURES = ROOT / "docs" / "figures"
 wp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="scenesort-bench-cache-")
 wp.config.quiet = True
+
+from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
 import kernels  # noqa: E402
 from backend import peers  # noqa: E402
@@ -233,17 +234,6 @@ def markdown(build: list[dict], peer_build: dict, traces: list[dict], compile_s:
     return "\n".join(lines) + "\n"
 
 
-def write_section(text: str) -> None:
-    begin, end = "<!-- bvh:begin -->", "<!-- bvh:end -->"
-    doc = DOCS.read_text() if DOCS.exists() else "# Benchmarks\n"
-    block = f"{begin}\n## BVH construction and traversal (`benchmarks/bvh.py`)\n\n{text}{end}"
-    if begin in doc:
-        doc = doc[: doc.index(begin)] + block + doc[doc.index(end) + len(end):]
-    else:
-        doc = doc.rstrip() + "\n\n" + block + "\n"
-    DOCS.write_text(doc)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=",".join(shared_scene_infos()))
@@ -267,7 +257,8 @@ def main(argv: list[str] | None = None) -> int:
     text = markdown(build, peer_build, traces, compile_s, command.strip())
     Console(width=200).print(Markdown(text))
     if not args.no_docs:
-        write_section(text)
+        write_section("bvh", "## BVH construction and traversal (`benchmarks/bvh.py`)\n\n"
+                      + text)
         FIGURES.mkdir(parents=True, exist_ok=True)
         (FIGURES / "bvh.json").write_text(json.dumps(
             {"compile_s": compile_s, "build": build, "peer_build": peer_build,

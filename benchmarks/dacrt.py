@@ -40,12 +40,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
+
 import kernels  # noqa: E402
 from backend.scenes import shared_scene  # noqa: E402
 from kernels.dacrt_api import dacrt_trace  # noqa: E402
 
-SECTION_BEGIN = "<!-- dacrt:begin -->"
-SECTION_END = "<!-- dacrt:end -->"
 AO_SPP = 7  # 2012 paper: 7 AO rays per primary ray (the 2013 paper's 8 is close)
 ALL_SCENES = ("bunny", "dragon", "buddha", "blade", "sponza", "sibenik", "conference")
 TUNINGS = {
@@ -330,15 +330,7 @@ def write_docs(rows: list[dict], args, command: str) -> None:
         "![time against AO ray count](figures/dacrt_time_vs_rays.png)"
         if (REPO / "docs/figures/dacrt_time_vs_rays.png").is_file() else "",
     ])
-    section = f"{SECTION_BEGIN}\n{body}\n{SECTION_END}"
-    doc = REPO / "docs" / "benchmarks.md"
-    text = doc.read_text() if doc.is_file() else "# Benchmarks\n"
-    if SECTION_BEGIN in text and SECTION_END in text:
-        a, b = text.index(SECTION_BEGIN), text.index(SECTION_END) + len(SECTION_END)
-        text = text[:a] + section + text[b:]
-    else:
-        text = text.rstrip("\n") + "\n\n" + section + "\n"
-    doc.write_text(text)
+    write_section("dacrt", body)
     print("wrote the DACRT section of docs/benchmarks.md")
 
 

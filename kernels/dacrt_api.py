@@ -128,13 +128,11 @@ class DeviceArrays:
             self.bytes -= a.capacity
 
 
-def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, device,
-                info, workers, min_chunks, capacity, max_depth, c_sort, c_inters, min_rays,
-                min_tris, rdh_min_rays) -> Hits:
-    wp.load_module(dk.dacrt_worker.module, device=device)  # compile time is not trace time
-    t_start = time.perf_counter()
-    mem = DeviceArrays(device)
-    r, m, n = len(origins), len(indices), len(ids)
+def rays_and_triangles(mem: DeviceArrays, vertices, indices, origins, directions, tmin,
+                       tmax) -> dk.DacrtData:
+    """The DacrtData fields both variants share: the rays, and per triangle its vertices
+    and box (the vertex and index uploads are freed once those are made)."""
+    r, m = len(origins), len(indices)
     d = dk.DacrtData()
     d.origins = mem.new(r, wp.vec3, data=origins)
     d.directions = mem.new(r, wp.vec3, data=directions)
@@ -148,7 +146,19 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
     d.tri_hi = mem.new(max(m, 1), wp.vec3)
     if m:
         wp.launch(dk.prepare_triangles, dim=m,
-                  inputs=[v_wp, f_wp, d.tri_verts, d.tri_lo, d.tri_hi], device=device)
+                  inputs=[v_wp, f_wp, d.tri_verts, d.tri_lo, d.tri_hi], device=mem.device)
+    mem.free(v_wp, f_wp)
+    return d
+
+
+def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, device,
+                info, workers, min_chunks, capacity, max_depth, c_sort, c_inters, min_rays,
+                min_tris, rdh_min_rays) -> Hits:
+    wp.load_module(dk.dacrt_worker.module, device=device)  # compile time is not trace time
+    t_start = time.perf_counter()
+    mem = DeviceArrays(device)
+    r, m, n = len(origins), len(indices), len(ids)
+    d = rays_and_triangles(mem, vertices, indices, origins, directions, tmin, tmax)
     d.ray_ids = mem.new(max(r, 1), int, data=np.arange(max(r, 1), dtype=np.int32))
     d.tri_ids = mem.new(max(n, 1), int, data=ids if n else np.zeros(1, np.int32))
     for name, size, dtype in (("ray_cls", r, wp.int8), ("ray_mark", r, wp.int8),

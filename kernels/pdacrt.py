@@ -26,7 +26,7 @@ from warp.utils import array_scan, radix_sort_pairs, runlength_encode
 
 from . import dacrt as dk
 from .api import Hits
-from .dacrt_api import DeviceArrays, inverse_directions
+from .dacrt_api import DeviceArrays, rays_and_triangles
 from .geometry import INF, intersect_triangle, make_ray
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -352,23 +352,9 @@ def pdacrt_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin
     t_start = time.perf_counter()
     mem = DeviceArrays(device)
     r, m, n = len(origins), len(indices), len(ids)
-    d = dk.DacrtData()
-    d.origins = mem.new(r, wp.vec3, data=origins)
-    d.directions = mem.new(r, wp.vec3, data=directions)
-    d.inv_dir = mem.new(r, wp.vec3, data=inverse_directions(directions))
-    d.tmin = mem.new(r, float, data=tmin)
-    d.tmax = mem.new(r, float, data=tmax)
-    v_wp = mem.new(len(vertices), wp.vec3, data=vertices)
-    f_wp = mem.new(m, wp.vec3i, data=indices)
-    d.tri_verts = mem.new(max(3 * m, 1), wp.vec3)
-    d.tri_lo = mem.new(max(m, 1), wp.vec3)
-    d.tri_hi = mem.new(max(m, 1), wp.vec3)
+    d = rays_and_triangles(mem, vertices, indices, origins, directions, tmin, tmax)
     d.margin = margin
     d.best = mem.new(max(r, 1), wp.uint64, fill=np.uint64(0xFFFFFFFFFFFFFFFF))
-    if m:
-        wp.launch(dk.prepare_triangles, dim=m,
-                  inputs=[v_wp, f_wp, d.tri_verts, d.tri_lo, d.tri_hi], device=device)
-    mem.free(v_wp, f_wp)
     levels = 0
     peak_nodes = 0
     phase_s = dict.fromkeys(("filter", "sort", "reduce", "children", "gather", "intersect"), 0.0)
