@@ -106,15 +106,24 @@ class Embree:
 
 def timeit(fn: Callable[[], object], repeat: int = 5, warmup: int = 1) -> float:
     """Median wall seconds of `repeat` calls after `warmup` calls (device synchronised)."""
+    return timeit_each([fn], repeat, warmup)[0]
+
+
+def timeit_each(fns: list[Callable[[], object]], repeat: int = 5,
+                warmup: int = 1) -> list[float]:
+    """Median wall seconds of each function, called in turn `repeat` times after `warmup`
+    rounds: interleaved, so a burst of load on a shared machine hits all of them alike."""
     for _ in range(warmup):
-        fn()
-    times = []
+        for fn in fns:
+            fn()
+    times: list[list[float]] = [[] for _ in fns]
     for _ in range(repeat):
-        start = time.perf_counter()
-        fn()
-        wp.synchronize_device("cpu")
-        times.append(time.perf_counter() - start)
-    return float(np.median(times))
+        for fn, out in zip(fns, times, strict=True):
+            start = time.perf_counter()
+            fn()
+            wp.synchronize_device("cpu")
+            out.append(time.perf_counter() - start)
+    return [float(np.median(t)) for t in times]
 
 
 def random_rays(bounds: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

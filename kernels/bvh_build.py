@@ -11,6 +11,8 @@ are the paper's (sec. 4.1):
 A work chunk is CHUNK consecutive items; a step with fewer than K chunks runs inline in the
 worker that finished the previous step (sec. 3.4). A split that leaves one side empty
 (coincident centroids) falls back to halving the range, and takes its boxes from AABB.
+SAH nodes of at most SMALL_TASK triangles are not tasks: the worker that makes one builds
+its subtree in place with exact SAH sweeps (small_subtree), leaves where they are cheaper.
 """
 
 from __future__ import annotations
@@ -50,7 +52,8 @@ PHASE_PPS = wp.constant(1)
 PHASE_SWAP = wp.constant(2)
 PHASE_AABB = wp.constant(3)
 PHASE_DONE = wp.constant(4)
-PHASE_NAMES = ("SplitPlane", "PPS", "Swap", "AABB")
+# cycles per phase; "Nodes": writing nodes, storing child tasks and small subtrees
+PHASE_NAMES = ("SplitPlane", "PPS", "Swap", "AABB", "Nodes")
 CYCLE_ROW = wp.constant(8)  # int64 per worker in phase_cycles: a cache line, no false sharing
 
 # counters[]
@@ -280,6 +283,161 @@ def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
     if best_cost == INF:
         t.pivot = -1  # all centroids fell into one bin
     return t
+
+
+# ---------------------------------------------------------------- small ranges (SAH leaves)
+
+SMALL_TASK = wp.constant(64)  # SAH ranges up to this size are built in one worker
+SmallFloats = wp.types.vector(length=64, dtype=wp.float32)  # per item of a small range
+SmallInts = wp.types.vector(length=64, dtype=wp.int32)  # the small subtree's stack
+
+
+@wp.func
+def write_node(b: BuildData, node: int, lo: wp.vec3, hi: wp.vec3, first: int, count: int):
+    n = BvhNode()
+    n.lo = lo
+    n.hi = hi
+    n.first = first
+    n.count = count
+    b.nodes[node] = n
+
+
+@wp.func
+def write_node_box(b: BuildData, node: int, box: wp.mat33, first: int, count: int):
+    write_node(b, node, box[0], box[1], first, count)
+
+
+@wp.func
+def sort_small(b: BuildData, start: int, count: int, axis: int):
+    """Sort a small range by centroid on `axis`: an insertion sort of (key, position) pairs
+    held locally, then one pass through Swap's arrays (free here: the range is this
+    worker's) to move the items and their boxes."""
+    keys = SmallFloats()
+    order = SmallInts()
+    for i in range(count):
+        key = b.tri_lo[start + i][axis] + b.tri_hi[start + i][axis]
+        j = i
+        while j > 0:
+            if keys[j - 1] <= key:
+                break
+            keys[j] = keys[j - 1]
+            order[j] = order[j - 1]
+            j -= 1
+        keys[j] = key
+        order[j] = start + i
+    for i in range(count):
+        src = order[i]
+        b.swap_id[start + i] = b.perm[src]
+        b.swap_lo[start + i] = b.tri_lo[src]
+        b.swap_hi[start + i] = b.tri_hi[src]
+    for i in range(start, start + count):
+        b.perm[i] = b.swap_id[i]
+        b.tri_lo[i] = b.swap_lo[i]
+        b.tri_hi[i] = b.swap_hi[i]
+
+
+@wp.func
+def small_split(b: BuildData, start: int, count: int, area: float, may_leaf: bool) -> int:
+    """Exact SAH over the count - 1 planes of a sorted small range: the size of the left
+    part, or 0 where a leaf is allowed and cheaper (traversal and intersection cost 1)."""
+    right_area = SmallFloats()
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    for k in range(count - 1, 0, -1):  # right_area[k]: items k .. count - 1
+        lo = min3(lo, b.tri_lo[start + k])
+        hi = max3(hi, b.tri_hi[start + k])
+        right_area[k] = half_area(lo, hi)
+    best = wp.where(may_leaf, area * float(count), INF)
+    best_k = int(0)
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    for k in range(1, count):
+        lo = min3(lo, b.tri_lo[start + k - 1])
+        hi = max3(hi, b.tri_hi[start + k - 1])
+        cost = area + half_area(lo, hi) * float(k) + right_area[k] * float(count - k)
+        if cost < best:
+            best = cost
+            best_k = k
+    return best_k
+
+
+@wp.func
+def range_box(b: BuildData, start: int, count: int) -> wp.mat33:
+    """Rows: the box of a range's triangles and its centroids' extent."""
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    clo = wp.vec3(INF)
+    chi = wp.vec3(-INF)
+    for i in range(start, start + count):
+        lo = min3(lo, b.tri_lo[i])
+        hi = max3(hi, b.tri_hi[i])
+        c = b.tri_lo[i] + b.tri_hi[i]  # twice the centroid: only the longest axis matters
+        clo = min3(clo, c)
+        chi = max3(chi, c)
+    return wp.matrix_from_rows(lo, hi, chi - clo)
+
+
+@wp.func
+def centroid_axis(extent: wp.vec3) -> int:
+    """The longest axis of a centroid box's extent, or -1 where the centroids coincide."""
+    axis = longest_axis(wp.vec3(0.0), extent)
+    return wp.where(extent[axis] > 0.0, axis, -1)
+
+
+@wp.func
+def small_subtree(b: BuildData, node: int, depth: int):
+    """Finish the subtree of a node written as a leaf. SAH: a range of at most SMALL_TASK
+    triangles is built here, in the worker that made it, where the pool's phases would cost
+    more than the work: each node is sorted on its longest centroid axis (unless its parent
+    already sorted it so) and cut at the exact SAH minimum over all count - 1 planes, and
+    becomes a leaf wherever that is cheaper (leaf_size is then a maximum, as in Embree).
+    Median: the node stays a leaf."""
+    if b.method != METHOD_SAH:
+        return
+    n = b.nodes[node]
+    nodes = SmallInts()  # the stack: node, depth, split axis, axis the range is sorted by
+    depths = SmallInts()
+    axes = SmallInts()
+    sorted_by = SmallInts()
+    nodes[0] = node
+    depths[0] = depth
+    axes[0] = centroid_axis(range_box(b, n.first, n.count)[2])
+    sorted_by[0] = -1
+    sp = int(1)
+    deepest = depth
+    while sp > 0:
+        sp -= 1
+        n = b.nodes[nodes[sp]]
+        d = depths[sp]
+        axis = axes[sp]
+        deepest = wp.max(deepest, d)
+        if n.count < 2 or d >= b.max_depth - 1:
+            continue
+        k = n.count / 2  # coincident centroids: halve, as the pool's tasks do
+        if axis >= 0:
+            if sorted_by[sp] != axis:
+                sort_small(b, n.first, n.count, axis)
+            k = small_split(b, n.first, n.count, half_area(n.lo, n.hi),
+                            n.count <= b.leaf_size)
+        elif n.count <= b.leaf_size:
+            k = 0
+        if k == 0:
+            continue
+        left = shared_add(b.counters, NODE_COUNT, 2)
+        write_node(b, nodes[sp], n.lo, n.hi, left, 0)
+        lbox = range_box(b, n.first, k)
+        rbox = range_box(b, n.first + k, n.count - k)
+        write_node_box(b, left, lbox, n.first, k)
+        write_node_box(b, left + 1, rbox, n.first + k, n.count - k)
+        nodes[sp] = left
+        axes[sp] = centroid_axis(lbox[2])
+        nodes[sp + 1] = left + 1
+        axes[sp + 1] = centroid_axis(rbox[2])
+        for c in range(2):
+            depths[sp + c] = d + 1
+            sorted_by[sp + c] = axis
+        sp += 2
+    shared_max(b.counters, MAX_DEPTH, deepest)
 
 
 # ---------------------------------------------------------------- PPS
@@ -589,13 +747,9 @@ def is_leaf(b: BuildData, count: int, depth: int) -> bool:
 
 
 @wp.func
-def write_node(b: BuildData, node: int, lo: wp.vec3, hi: wp.vec3, first: int, count: int):
-    n = BvhNode()
-    n.lo = lo
-    n.hi = hi
-    n.first = first
-    n.count = count
-    b.nodes[node] = n
+def in_worker(b: BuildData, count: int, depth: int) -> bool:
+    """Nodes that are not pool tasks: leaves, and small SAH ranges (see small_subtree)."""
+    return is_leaf(b, count, depth) or (b.method == METHOD_SAH and count <= SMALL_TASK)
 
 
 @wp.func
@@ -611,19 +765,23 @@ def split_node(b: BuildData, pool: Pool, t: BuildTask, slot: int) -> int:
     n_right = t.count - t.pivot
     write_node(b, left, t.llo, t.lhi, t.start, t.pivot)
     write_node(b, left + 1, t.rlo, t.rhi, t.start + t.pivot, n_right)
-    left_leaf = is_leaf(b, t.pivot, depth)
-    right_leaf = is_leaf(b, n_right, depth)
-    if left_leaf or right_leaf:
+    left_here = in_worker(b, t.pivot, depth)
+    right_here = in_worker(b, n_right, depth)
+    if left_here or right_here:
         shared_max(b.counters, MAX_DEPTH, depth)
-    if left_leaf and right_leaf:
+    if left_here:
+        small_subtree(b, left, depth)
+    if right_here:
+        small_subtree(b, left + 1, depth)
+    if left_here and right_here:
         pool_release(pool, slot)
         return -1
-    if left_leaf:
+    if left_here:
         b.tasks[slot] = new_task(b, left + 1, t.start + t.pivot, n_right, depth, t.rlo, t.rhi,
                                  t.rclo, t.rchi)
         return slot
     lt = new_task(b, left, t.start, t.pivot, depth, t.llo, t.lhi, t.lclo, t.lchi)
-    if right_leaf:
+    if right_here:
         b.tasks[slot] = lt
         return slot
     rt = new_task(b, left + 1, t.start + t.pivot, n_right, depth, t.rlo, t.rhi, t.rclo, t.rchi)
@@ -655,14 +813,15 @@ def advance(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask) -> i
         phase = task.phase
         since = cycles()
         task = complete_step(b, task, s)
+        add_cycles(b, worker, phase, since)
         if task.phase == PHASE_DONE:
+            since = cycles()
             next_slot = split_node(b, pool, task, s)
+            add_cycles(b, worker, PHASE_DONE, since)
             if next_slot < 0:
-                add_cycles(b, worker, phase, since)
                 return s
             s = next_slot
             task = b.tasks[s]
-        add_cycles(b, worker, phase, since)
         if task.chunks >= pool.min_chunks:
             b.tasks[s] = task
             pool_hand_over(pool, s, task.chunks)
@@ -714,8 +873,9 @@ def start_build(b: BuildData, pool: Pool, root_lo: wp.vec3, root_hi: wp.vec3,
                 root_clo: wp.vec3, root_chi: wp.vec3, count: int):
     """Store the root task (Algorithm 1: 'in serial, insert the first task')."""
     b.counters[NODE_COUNT] = 1
-    if is_leaf(b, count, 0):
+    if in_worker(b, count, 0):
         write_node(b, 0, root_lo, root_hi, 0, count)
+        small_subtree(b, 0, 0)
         return
     slot = pool_alloc(pool)
     t = new_task(b, 0, 0, count, 0, root_lo, root_hi, root_clo, root_chi)

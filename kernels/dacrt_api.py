@@ -28,10 +28,16 @@ def margin_for(vertices: np.ndarray, origins: np.ndarray) -> float:
     return MARGIN_REL * max(big, 1e-30)
 
 
-def inverse_directions(directions: np.ndarray) -> np.ndarray:
-    """1/d per component in float32 (inf where d == 0: the slab tests check d first)."""
-    with np.errstate(divide="ignore"):
-        return np.ascontiguousarray(np.float32(1.0) / directions, dtype=np.float32)
+def ray_records(origins: np.ndarray, directions: np.ndarray, tmin: np.ndarray,
+                tmax: np.ndarray) -> np.ndarray:
+    """RayRecord rows: origin, tmin, 1/d (+-inf where d == 0), tmax."""
+    rec = np.empty((len(origins), 8), np.float32)
+    rec[:, :3] = origins
+    rec[:, 3] = tmin
+    with np.errstate(divide="ignore", over="ignore"):
+        rec[:, 4:7] = np.float32(1.0) / directions
+    rec[:, 7] = tmax
+    return rec.view(np.dtype(dk.RayRecord.numpy_dtype())).reshape(len(origins))
 
 
 def dacrt_trace(
@@ -134,11 +140,8 @@ def rays_and_triangles(mem: DeviceArrays, vertices, indices, origins, directions
     and box (the vertex and index uploads are freed once those are made)."""
     r, m = len(origins), len(indices)
     d = dk.DacrtData()
-    d.origins = mem.new(r, wp.vec3, data=origins)
+    d.rays = mem.new(r, dk.RayRecord, data=ray_records(origins, directions, tmin, tmax))
     d.directions = mem.new(r, wp.vec3, data=directions)
-    d.inv_dir = mem.new(r, wp.vec3, data=inverse_directions(directions))
-    d.tmin = mem.new(r, float, data=tmin)
-    d.tmax = mem.new(r, float, data=tmax)
     v_wp = mem.new(len(vertices), wp.vec3, data=vertices)
     f_wp = mem.new(m, wp.vec3i, data=indices)
     d.tri_verts = mem.new(max(3 * m, 1), wp.vec3)
@@ -212,7 +215,7 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
     out = [mem.new(max(r, 1), dt) for dt in (float, int, float, float)]
     if r:
         wp.launch(dk.write_hits, dim=r,
-                  inputs=[d.origins, d.directions, d.tmin, d.tmax, d.tri_verts, d.best],
+                  inputs=[d.rays, d.directions, d.tri_verts, d.best],
                   outputs=out, device=device)
     t, tri, u, v = (a.numpy()[:r] for a in out)
     cycles = d.phase_cycles.numpy().reshape(workers, dk.PHASES).sum(axis=0).astype(np.float64)

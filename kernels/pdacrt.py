@@ -131,8 +131,8 @@ def filter_rays(lv: Level, ids: wp.array(dtype=int), node_of: wp.array(dtype=int
     i = wp.tid()
     k = node_of[i]
     ray = ids[i]
-    r = dk.slab_ray(d, ray)
-    w = dk.widened_range(d, ray)
+    r = d.rays[ray]
+    w = dk.widened_range(r)
     span = dk.ray_span(r, lv.lo[k], lv.hi[k], w[0], w[1])
     code = NONE
     if span[0] < INF:
@@ -262,9 +262,10 @@ def intersect_segments(d: dk.DacrtData, ray_ids: wp.array(dtype=int),
     j = wp.tid()
     ray = ray_ids[j]
     s = ray_seg[j]
-    r = make_ray(d.origins[ray], d.directions[ray])
-    tmin = d.tmin[ray]
-    tmax = d.tmax[ray]
+    rec = d.rays[ray]
+    r = make_ray(rec.origin, d.directions[ray])
+    tmin = rec.tmin
+    tmax = rec.tmax
     key = wp.uint64(dk.KEY_NONE)
     first = seg_tri_start[s]
     for q in range(first, first + seg_tri_count[s]):
@@ -453,7 +454,7 @@ def pdacrt_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin
     out = [mem.new(max(r, 1), dt) for dt in (float, int, float, float)]
     if r:
         wp.launch(dk.write_hits, dim=r,
-                  inputs=[d.origins, d.directions, d.tmin, d.tmax, d.tri_verts, d.best],
+                  inputs=[d.rays, d.directions, d.tri_verts, d.best],
                   outputs=out, device=device)
     t, tri, u, v = (a.numpy()[:r] for a in out)
     info.update({

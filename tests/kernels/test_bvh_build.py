@@ -72,6 +72,30 @@ def test_depth_cap_makes_big_leaves():
     check_bvh(bvh, 1, max_depth=3)
 
 
+def test_sah_splits_below_the_leaf_size_where_that_is_cheaper():
+    """leaf_size is a maximum for SAH: two far-apart small triangles get a leaf each, while
+    copies of one triangle (nothing to gain from splitting) share one leaf."""
+    tri = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], np.float32)
+    v = np.vstack([tri, tri + 100]).astype(np.float32)
+    bvh = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), leaf_size=8)
+    check_bvh(bvh, 8)
+    assert bvh.stats["leaves"] == 2
+    copies = kernels.build_bvh(tri, np.zeros((8, 3), np.int32) + [0, 1, 2], leaf_size=8)
+    assert copies.stats["leaves"] == 1
+    median = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), method="median")
+    assert median.stats["leaves"] == 1  # the spatial median splits only above leaf_size
+
+
+@pytest.mark.parametrize("max_depth", [1, 2, 3, 5])
+def test_depth_cap_inside_small_subtrees(max_depth):
+    """Ranges small enough to be built in one worker keep the depth cap too."""
+    rng = np.random.default_rng(max_depth)
+    v, f = random_soup(rng, 40)
+    bvh = kernels.build_bvh(v, f, leaf_size=1, max_depth=max_depth)
+    assert bvh.stats["depth"] <= max_depth - 1
+    check_bvh(bvh, 1, max_depth=max_depth)
+
+
 def test_empty_mesh_builds():
     bvh = kernels.build_bvh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
     assert bvh.stats["nodes"] == 1 and bvh.stats["triangles"] == 0
