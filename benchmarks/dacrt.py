@@ -19,7 +19,8 @@ and hits of `trace`.
 
 Tuning: "paper" runs the papers' GPU constants (C_SORT = 80, 32 rays / 16 triangles,
 alpha = beta = 256); "cpu" the constants calibrated on this CPU (C_SORT = 4, 16 rays / 16
-triangles; alpha = 32, beta = 128), with one pool worker (see docs/benchmarks.md for why).
+triangles; alpha = 32, beta = 128); the pool runs one worker per core, as BVH build and
+trace use every core.
 
 Floors (CPU): RDH no slower than median on any scene at 1024^2; for 1024^2 primary rays the
 faster DACRT variant within 3x of BVH build + trace.
@@ -50,7 +51,7 @@ AO_SPP = 7  # 2012 paper: 7 AO rays per primary ray (the 2013 paper's 8 is close
 ALL_SCENES = ("bunny", "dragon", "buddha", "blade", "sponza", "sibenik", "conference")
 TUNINGS = {
     "paper": {"pool": {}, "breadth_first": {}},
-    "cpu": {"pool": {"c_sort": 4.0, "min_rays": 16, "workers": 1},
+    "cpu": {"pool": {"c_sort": 4.0, "min_rays": 16},
             "breadth_first": {"alpha": 32, "beta": 128}},
 }
 
@@ -286,16 +287,25 @@ Notes (what the numbers mean and what was tried):
   short sweeps on Sponza and the bunny at 512² and 1024² (e.g. Sponza 512² RDH: 1.31 s with
   C_SORT = 4 against 3.6 s with 80; breadth-first 1.6 s with 32/128 against 4.1 s with
   256/256), in a loaded machine.
-- **Workers.** The pool runs one worker per core by default; on this shared 2-core machine a
-  second worker brought no speed-up (process CPU time equal to wall time, others' jobs on
-  the other core), so the "cpu" rows use one worker, while BVH build and trace use two
-  threads.
+- **Workers.** The pool runs one worker per core, like BVH build and trace. On a quiet
+  machine the second worker makes the pool 1.5x (bunny 1024², RDH: 0.84 s -> 0.52 s) to
+  2.1x (Sponza: 3.6 s -> 1.7 s) faster. (The first session's rows used one worker: the
+  machine was shared then and a second worker showed no gain.) With two workers the
+  constants barely matter: C_SORT 2/4/8 x min_rays 8/16/32 x min_tris 8/16 on the bunny at
+  1024² span 0.49-0.56 s, C_SORT = 4, 16 rays, 16 triangles the fastest.
+- **Ray records.** The box and plane tests read a 32-byte record per ray (origin, tmin, 1/d,
+  tmax) instead of five arrays, and PPS1 counts the straddling rays heading to -axis with one
+  atomic per chunk; neither moved the bunny's PPS1 time (178 ms of 452 ms) measurably, so
+  the gathers are not what costs there.
 - **RDH.** Two sampling steps: sqrt(#tris) triangles give each candidate's two child boxes,
   then sqrt(#rays) rays count the hits on those boxes; cost = pairs + C_SORT x (items of both
   children). The spatial median is a 33rd candidate that a sampled candidate must beat by
-  40%, and tasks with fewer than 16384 rays take the median directly: on the object scenes
+  40%, and tasks with fewer than 65536 rays take the median directly: on the object scenes
   RDH's gain is smaller than its sampling cost, which made it ~10% slower than the median
-  before these two rules (bunny 1024²: 0.86 s against 0.80 s; now equal).
+  before these two rules (bunny 1024²: 0.86 s against 0.80 s; now equal). The threshold was
+  16384 until the two-worker runs, where bunny 1024² RDH ran 2-5% behind the median; with
+  65536 (four runs each, medians): bunny 0.539 s against the median's 0.541, Sponza 1.86 s
+  (16384: 1.82, median 2.54), Buddha 0.556 against 0.556 - ties within the +-5% noise.
 - **Early termination.** A ray whose closest hit so far lies before its entry into a node's
   box is clipped there (in PPS1 and in intersection tasks); the seven-child order lets
   straddling rays meet near triangles before far ones. Breadth-first has no such cut

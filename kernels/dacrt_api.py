@@ -63,7 +63,7 @@ def dacrt_trace(
     c_inters: float = 1.0,
     min_rays: int = 32,
     min_tris: int = 16,
-    rdh_min_rays: int = 16384,
+    rdh_min_rays: int = 65536,
 ) -> Hits:
     """Closest hit per ray in [tmin, tmax] by divide-and-conquer ray tracing: the same
     `Hits` as `kernels.trace` on a BVH.

@@ -18,7 +18,7 @@ from .reference import axis_aligned_cube_rays, brute_force, random_rays, random_
 from .test_trace import assert_same_hits
 
 VARIANTS = [("pool", "rdh"), ("pool", "median"), ("breadth_first", "rdh")]
-# small tests have few rays: let RDH sample every task with 16 rays or more (default 16384)
+# small tests have few rays: let RDH sample every task with 16 rays or more (default 65536)
 SMALL = {"rdh_min_rays": 16}
 
 
