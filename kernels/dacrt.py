@@ -87,7 +87,8 @@ C_MAX_DEPTH = wp.constant(2)
 C_OVERFLOW = wp.constant(3)  # an intersection task with more than 2^31 pairs
 C_RAYS_SORTED = wp.constant(4)  # rays entering PPS1, summed over subdivision tasks
 C_KPAIRS = wp.constant(5)  # ray-triangle pairs of intersection tasks, in thousands
-COUNTERS = 6
+C_TRIS_SORTED = wp.constant(6)  # triangles entering PPS1, summed over subdivision tasks
+COUNTERS = 7
 
 TABLE = wp.constant(tb.ROW)  # row length of the flat dependency table, and its fields
 T_COUNT = wp.constant(tb.COUNT)
@@ -782,6 +783,7 @@ def enter(d: DacrtData, t: DacrtTask, phase: int) -> DacrtTask:
 @wp.func
 def enter_pps1(d: DacrtData, t: DacrtTask) -> DacrtTask:
     shared_add(d.counters, C_RAYS_SORTED, t.ray_count)
+    shared_add(d.counters, C_TRIS_SORTED, t.tri_count)
     s = Segment3()
     s.count = 0
     s = add_segment(s, 0, t.ray_start, t.ray_count, ROLE_RAYS)

@@ -163,6 +163,8 @@ def test_pool_workers_and_splits_agree_and_report_phases():
                                               "AABB", "Intersect"}
             assert (stats["phase_ms"]["SplitPlane"] > 0) == (split == "rdh")
             assert stats["tasks"] > 7 and stats["intersection_tasks"] > 1
+            # the root task alone sorts every ray and every triangle once
+            assert stats["rays_sorted"] >= len(o) and stats["tris_sorted"] >= len(f)
     for h in runs[1:]:  # the closest hit with the (t, triangle) tie rule is deterministic
         assert np.array_equal(h.triangle, runs[0].triangle)
         assert np.array_equal(h.t, runs[0].t)
