@@ -10,7 +10,7 @@ import warp as wp
 
 from . import dacrt as dk
 from . import dacrt_table
-from .api import DEFAULT_MIN_CHUNKS, Hits
+from .api import DEFAULT_MIN_CHUNKS, Hits, to_device
 from .pool import check_pool, default_workers, launch_workers, make_pool
 from .validate import as_rays, as_triangle_mesh, degenerate_triangles, per_ray
 
@@ -119,8 +119,8 @@ class DeviceArrays:
         self.peak = 0
 
     def new(self, shape, dtype, fill=None, data=None) -> wp.array:
-        if data is not None:
-            a = wp.array(data, dtype=dtype, device=self.device)
+        if data is not None:  # on CPU a view of the caller's (contiguous) array, no copy
+            a = to_device(np.ascontiguousarray(data), dtype, self.device)
         elif fill is not None:
             a = wp.full(shape, fill, dtype=dtype, device=self.device)
         else:
