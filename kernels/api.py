@@ -217,12 +217,13 @@ def _empty_root(device) -> wp.array:
 def sah_cost(nodes: np.ndarray) -> float:
     """SAH cost with traversal and intersection cost 1: sum over nodes of A(node)/A(root)
     times 1 for inner nodes and times the triangle count for leaves."""
-    e = np.maximum(nodes["hi"].astype(np.float64) - nodes["lo"], 0.0)
-    area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
+    raw = np.ascontiguousarray(nodes).view(np.float32).reshape(len(nodes), 8)  # 32-byte rows
+    count = raw.view(np.int32)[:, 7]
+    e = np.maximum(raw[:, 4:7] - raw[:, 0:3], np.float32(0.0))
+    area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]  # float32: a statistic
     if area[0] <= 0:
-        return float(nodes["count"][0]) if len(nodes) == 1 else float(len(nodes))
-    weight = np.where(nodes["count"] > 0, nodes["count"], 1)
-    return float(np.sum(area * weight) / area[0])
+        return float(count[0]) if len(nodes) == 1 else float(len(nodes))
+    return float(np.dot(area.astype(np.float64), np.maximum(count, 1)) / float(area[0]))
 
 
 def _threads(device, threads: int | None) -> int:

@@ -36,6 +36,16 @@ def test_structure_on_shared_scene(method, shared_scene):
     assert (stats["phase_ms"]["SplitPlane"] > 0) == (method == "sah")
 
 
+def test_sah_cost_statistic_matches_a_float64_sum(shared_scene):
+    scene = shared_scene("bunny")
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    nodes = bvh.nodes()
+    e = np.maximum(nodes["hi"].astype(np.float64) - nodes["lo"], 0.0)
+    area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
+    expected = np.sum(area * np.where(nodes["count"] > 0, nodes["count"], 1)) / area[0]
+    assert bvh.stats["sah_cost"] == pytest.approx(expected, rel=1e-6)
+
+
 def test_sah_beats_median_on_a_real_scene(shared_scene):
     scene = shared_scene("sponza")
     sah = kernels.build_bvh(scene.vertices, scene.indices, method="sah")
