@@ -226,8 +226,8 @@ def fmt(s: float | None) -> str:
 
 def table(rows: list[dict], args) -> str:
     lines = [
-        f"Run: `{args.command_line}` on {os.cpu_count()} cores, CPU only. Small images: the "
-        "runs take 10-300 ms, so expect +-20% between runs.",
+        f"Run: `{args.command_line}` on {os.cpu_count()} cores, CPU only, nothing else "
+        f"running; each point is the median of {args.repeat} timed runs.",
         "",
         f"Time (s) to reach RMSE {RMSE_GOAL} (interpolated, log-log); floor: target_error "
         "<= 0.5 x wp.Mesh (on as many host threads as ours; wp.Mesh 1t: one launch, as "
