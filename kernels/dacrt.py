@@ -62,9 +62,10 @@ PH_PPS2 = wp.constant(3)
 PH_SWAP2 = wp.constant(4)
 PH_AABB = wp.constant(5)
 PH_INTERSECT = wp.constant(6)
-PH_DONE = wp.constant(7)
-PHASE_NAMES = ("SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2", "AABB", "Intersect")
-PHASES = wp.constant(7)
+PH_SORT = wp.constant(7)  # PPS1 to AABB of a small task in one worker (sort_small_task)
+PH_DONE = wp.constant(8)
+PHASE_NAMES = ("SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2", "AABB", "Intersect", "Sort")
+PHASES = wp.constant(8)
 
 # element classes (ray_cls / tri_cls)
 CLS_LEFT = wp.constant(0)
@@ -190,6 +191,7 @@ class DacrtData:
     c_sort: float
     min_rays: int
     min_tris: int
+    small_items: int  # tasks with at most this many rays + triangles sort in one worker
 
 
 # ---------------------------------------------------------------- keys and atomics
@@ -702,6 +704,8 @@ def step_chunks(d: DacrtData, t: DacrtTask) -> int:
         return ceil_div(t.ray_count * t.tri_count, CHUNK)
     if t.phase == PH_SPLIT_PLANE:
         return ceil_div(sample_counts(t)[t.step], CHUNK)
+    if t.phase == PH_SORT:
+        return 1
     total = int(0)
     top = segment_levels(t)
     for k in range(t.seg.count):
@@ -750,6 +754,8 @@ def run_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
         intersect_chunk(d, t, chunk)
     elif t.phase == PH_SPLIT_PLANE:
         split_plane_chunk(d, t, slot, chunk)
+    elif t.phase == PH_SORT:
+        sort_small_task(d, t, slot)
     else:
         # chunks of the segments one after another
         c = chunk
@@ -784,6 +790,8 @@ def enter(d: DacrtData, t: DacrtTask, phase: int) -> DacrtTask:
 def enter_pps1(d: DacrtData, t: DacrtTask) -> DacrtTask:
     shared_add(d.counters, C_RAYS_SORTED, t.ray_count)
     shared_add(d.counters, C_TRIS_SORTED, t.tri_count)
+    if t.ray_count + t.tri_count <= d.small_items:
+        return enter(d, t, PH_SORT)
     s = Segment3()
     s.count = 0
     s = add_segment(s, 0, t.ray_start, t.ray_count, ROLE_RAYS)
@@ -845,6 +853,8 @@ def complete_step(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
         return t
     if t.phase == PH_SPLIT_PLANE and t.step == 1:
         return enter_pps1(d, choose_rdh_split(d, t, slot))
+    if t.phase == PH_SORT:
+        return sort_result(d, t, slot)
     if t.phase == PH_PPS1 or t.phase == PH_PPS2:
         top = segment_levels(t)
         if t.step == top - 1:
@@ -888,6 +898,93 @@ def enter_pps2(d: DacrtData, t: DacrtTask) -> DacrtTask:
 
 
 @wp.func
+def retry(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    """Nothing separated: try the midplanes of the other two axes, then intersect here."""
+    t.tries += 1
+    if t.tries >= 3:
+        return make_leaf(d, t)
+    t.axis = (t.axis + 1) % 3
+    t.split = 0.5 * (t.lo[t.axis] + t.hi[t.axis])
+    return enter_pps1(d, t)
+
+
+@wp.func
+def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
+    """PPS1 to AABB of a task of at most small_items rays and triangles, in the worker that
+    runs it: classify, count per class, and place each class at its offset through Swap's
+    arrays (a counting sort: rays [left | straddling | right | clipped], triangles [left |
+    straddling | right], the layout the two PPS/Swap rounds make), with the triangle boxes
+    on the way. Counts and boxes go to the slot's RDH sample area (free now: RDH samples
+    only tasks of at least rdh_min_rays rays), where sort_result takes and clears them."""
+    ints = slot * CAND_INTS
+    boxes = slot * CAND_BOXES
+    n_ray = wp.vec4i(0)
+    neg = int(0)
+    for i in range(t.ray_start, t.ray_start + t.ray_count):
+        ray = d.ray_ids[i]
+        r = d.rays[ray]
+        c = classify_ray(d, t, ray, r)
+        d.ray_cls[ray] = wp.int8(c)
+        n_ray[c] = n_ray[c] + 1
+        if c == CLS_STRADDLE and r.inv_dir[t.axis] < 0.0:
+            neg += 1
+    at = wp.vec4i(0, n_ray[0], n_ray[0] + n_ray[1], n_ray[0] + n_ray[1] + n_ray[2])
+    for i in range(t.ray_start, t.ray_start + t.ray_count):
+        ray = d.ray_ids[i]
+        c = int(d.ray_cls[ray])
+        d.ray_swap_id[t.ray_start + at[c]] = ray
+        at[c] = at[c] + 1
+    for i in range(t.ray_start, t.ray_start + t.ray_count):
+        d.ray_ids[i] = d.ray_swap_id[i]
+    n_tri = wp.vec3i(0)
+    for i in range(t.tri_start, t.tri_start + t.tri_count):
+        tri = d.tri_ids[i]
+        c = classify_tri(d, t, tri)
+        d.tri_cls[tri] = wp.int8(c)
+        n_tri[c] = n_tri[c] + 1
+    at3 = wp.vec3i(0, n_tri[0], n_tri[0] + n_tri[1])
+    lo = wp.matrix_from_rows(wp.vec3(INF), wp.vec3(INF), wp.vec3(INF))  # a box per class
+    hi = wp.matrix_from_rows(wp.vec3(-INF), wp.vec3(-INF), wp.vec3(-INF))
+    for i in range(t.tri_start, t.tri_start + t.tri_count):
+        tri = d.tri_ids[i]
+        c = int(d.tri_cls[tri])
+        d.tri_swap_id[t.tri_start + at3[c]] = tri
+        at3[c] = at3[c] + 1
+        lo[c] = wp.min(lo[c], d.tri_lo[tri])
+        hi[c] = wp.max(hi[c], d.tri_hi[tri])
+    for i in range(t.tri_start, t.tri_start + t.tri_count):
+        d.tri_ids[i] = d.tri_swap_id[i]
+    for k in range(4):
+        d.cand[ints + k] = n_ray[k]
+    for k in range(3):
+        d.cand[ints + 4 + k] = n_tri[k]
+        d.cand_lo[boxes + k] = lo[k]
+        d.cand_hi[boxes + k] = hi[k]
+    d.neg[slot] = neg
+
+
+@wp.func
+def sort_result(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
+    """Take sort_small_task's counts and boxes (and clear the area for RDH)."""
+    ints = slot * CAND_INTS
+    boxes = slot * CAND_BOXES
+    for k in range(4):
+        t.rays[k] = d.cand[ints + k]
+        d.cand[ints + k] = 0
+    for k in range(3):
+        t.tris[k] = d.cand[ints + 4 + k]
+        d.cand[ints + 4 + k] = 0
+        t.box_lo[k] = d.cand_lo[boxes + k]
+        t.box_hi[k] = d.cand_hi[boxes + k]
+        d.cand_lo[boxes + k] = wp.vec3(INF)
+        d.cand_hi[boxes + k] = wp.vec3(-INF)
+    if t.rays[1] == t.ray_count and t.tris[1] == t.tri_count:
+        return retry(d, t)
+    t.phase = PH_DONE
+    return t
+
+
+@wp.func
 def enter_aabb(d: DacrtData, t: DacrtTask) -> DacrtTask:
     """Counts of the four ray and three triangle intervals; then the boxes of the three
     triangle intervals, unless the split made no progress (then intersect here)."""
@@ -904,13 +1001,7 @@ def enter_aabb(d: DacrtData, t: DacrtTask) -> DacrtTask:
             t.tris[0] = p
             t.tris[1] = n - p
     if t.rays[1] == t.ray_count and t.tris[1] == t.tri_count:
-        # nothing separated: try the midplanes of the other two axes, then intersect here
-        t.tries += 1
-        if t.tries >= 3:
-            return make_leaf(d, t)
-        t.axis = (t.axis + 1) % 3
-        t.split = 0.5 * (t.lo[t.axis] + t.hi[t.axis])
-        return enter_pps1(d, t)
+        return retry(d, t)
     s = Segment3()
     s.count = 0
     s = add_segment(s, 1, t.tri_start, t.tris[0], ROLE_BOX)

@@ -64,6 +64,7 @@ def dacrt_trace(
     min_rays: int = 32,
     min_tris: int = 16,
     rdh_min_rays: int = 65536,
+    small_items: int = 4096,
 ) -> Hits:
     """Closest hit per ray in [tmin, tmax] by divide-and-conquer ray tracing: the same
     `Hits` as `kernels.trace` on a BVH.
@@ -72,7 +73,9 @@ def dacrt_trace(
         termination rule #tris #rays c_inters < (#tris + #rays) c_sort, or fewer than
         min_rays rays or min_tris triangles (sec. 5.2, 6.2). RDH samples tasks with at least
         rdh_min_rays rays and takes the spatial median in smaller ones, where sqrt(#rays)
-        samples estimate little and cost more than they save.
+        samples estimate little and cost more than they save. A task of at most small_items
+        rays + triangles runs PPS1 to AABB as one counting sort in one worker (the PPS
+        rounds' steps and scans cost more than the work there).
     variant "breadth_first": the 2013 paper's level-wise DACRT; alpha, beta: its
         terminal-node thresholds; buffer_entries: the terminal buffer's flush threshold.
     Defaults are the papers' (GPU) constants. A dict passed as `stats` receives timings
@@ -107,7 +110,7 @@ def dacrt_trace(
     return _pool_trace(vertices, indices, ids, origins, directions, tmin_a, tmax_a, split,
                        device, info, workers, int(min_chunks), int(pool_capacity),
                        int(max_depth), float(c_sort), float(c_inters), int(min_rays),
-                       int(min_tris), int(rdh_min_rays))
+                       int(min_tris), int(rdh_min_rays), int(small_items))
 
 
 class DeviceArrays:
@@ -156,7 +159,7 @@ def rays_and_triangles(mem: DeviceArrays, vertices, indices, origins, directions
 
 def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, device,
                 info, workers, min_chunks, capacity, max_depth, c_sort, c_inters, min_rays,
-                min_tris, rdh_min_rays) -> Hits:
+                min_tris, rdh_min_rays, small_items) -> Hits:
     wp.load_module(dk.dacrt_worker.module, device=device)  # compile time is not trace time
     t_start = time.perf_counter()
     mem = DeviceArrays(device)
@@ -184,6 +187,7 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
     d.phase_cycles = mem.new(workers * dk.PHASES, wp.int64, fill=0)
     d.split_method = SPLITS[split]
     d.rdh_min_rays = rdh_min_rays
+    d.small_items = small_items
     d.margin = margin_for(vertices, origins)
     d.max_depth = max_depth
     d.c_inters = c_inters  # sec. 6.2: C_INTERS = 1, C_SORT = 80

@@ -34,6 +34,27 @@ def assert_equal_hits(ours, ref):
     assert np.allclose(ours.v[same], ref.v[same], atol=1e-6)
 
 
+@pytest.mark.parametrize("split", ["median", "rdh"])
+def test_counting_sort_of_small_tasks_equals_the_pps_rounds(split):
+    """small_items=0: every task sorts with PPS/Swap; huge: every task with the one-worker
+    counting sort. Both give the BVH's hits; with the median, the same task tree too (RDH
+    samples items by position, and the two sorts order items within a class differently)."""
+    rng = np.random.default_rng(11)
+    v, f = random_soup(rng, 2000)
+    o, d = random_rays(rng, 3000, -0.5, 1.5)
+    ref = bvh_hits(v, f, o, d)
+    stats = []
+    for small in (0, 1 << 30):
+        info: dict = {}
+        hits = dacrt_trace(v, f, o, d, split=split, small_items=small, stats=info, **SMALL)
+        assert_equal_hits(hits, ref)
+        assert (info["phase_ms"]["Sort"] > 0) == (small > 0)
+        assert (info["phase_ms"]["PPS1"] > 0) == (small == 0)
+        stats.append(info)
+    for key in ("tasks", "intersection_tasks", "rays_sorted", "tris_sorted", "pairs"):
+        assert stats[0][key] == stats[1][key] or split == "rdh", key
+
+
 def camera_rays(scene, width: int = 64, height: int = 48):
     """The scene's own camera at a small resolution (same 4:3 aspect)."""
     return dataclasses.replace(scene.camera, width=width, height=height).rays()
@@ -160,7 +181,7 @@ def test_pool_workers_and_splits_agree_and_report_phases():
             runs.append(dacrt_trace(v, f, o, d, split=split, workers=workers, stats=stats,
                                     **SMALL))
             assert set(stats["phase_ms"]) == {"SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2",
-                                              "AABB", "Intersect"}
+                                              "AABB", "Intersect", "Sort"}
             assert (stats["phase_ms"]["SplitPlane"] > 0) == (split == "rdh")
             assert stats["tasks"] > 7 and stats["intersection_tasks"] > 1
             # the root task alone sorts every ray and every triangle once
