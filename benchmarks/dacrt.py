@@ -297,6 +297,13 @@ Notes (what the numbers mean and what was tried):
   tmax) instead of five arrays, and PPS1 counts the straddling rays heading to -axis with one
   atomic per chunk; neither moved the bunny's PPS1 time (178 ms of 452 ms) measurably, so
   the gathers are not what costs there.
+- **Small tasks.** A task of at most 4096 rays + triangles (`small_items`) sorts in one
+  worker: classification, a counting sort into the seven children's interval layout and the
+  triangle boxes in one phase ("Sort") instead of PPS1, Swap1, PPS2, Swap2 and AABB with
+  their scans and steps. Bunny 1024² (RDH, two workers, medians): 0.50 s -> 0.39 s;
+  Sponza 1.72 s either way (its time is in the big tasks' PPS1 and in intersection). With
+  16384 the bunny gained a little more and Sponza lost: fewer tasks to share between the
+  workers while the dependency groups hold the others back.
 - **RDH.** Two sampling steps: sqrt(#tris) triangles give each candidate's two child boxes,
   then sqrt(#rays) rays count the hits on those boxes; cost = pairs + C_SORT x (items of both
   children). The spatial median is a 33rd candidate that a sampled candidate must beat by
