@@ -297,13 +297,15 @@ Notes (what the numbers mean and what was tried):
   tmax) instead of five arrays, and PPS1 counts the straddling rays heading to -axis with one
   atomic per chunk; neither moved the bunny's PPS1 time (178 ms of 452 ms) measurably, so
   the gathers are not what costs there.
-- **Small tasks.** A task of at most 4096 rays + triangles (`small_items`) sorts in one
-  worker: classification, a counting sort into the seven children's interval layout and the
-  triangle boxes in one phase ("Sort") instead of PPS1, Swap1, PPS2, Swap2 and AABB with
-  their scans and steps. Bunny 1024² (RDH, two workers, medians): 0.50 s -> 0.39 s;
-  Sponza 1.72 s either way (its time is in the big tasks' PPS1 and in intersection). With
-  16384 the bunny gained a little more and Sponza lost: fewer tasks to share between the
-  workers while the dependency groups hold the others back.
+- **Small tasks.** A task of at most `small_items` rays + triangles (32768 on CPU) sorts in
+  one worker: classification, a counting sort into the seven children's interval layout and
+  the triangle boxes in one phase ("Sort") instead of PPS1, Swap1, PPS2, Swap2 and AABB with
+  their scans and steps. Bunny 1024² (RDH, two workers, medians): 0.50 s -> 0.39 s with
+  4096; then 4096 / 16384 / 32768 / 65536 (medians of three after a warm-up): bunny 0.384 /
+  0.370 / 0.359 / 0.354 s, dragon 0.495 / 0.456 / 0.451 / 0.446, conference 0.936 / 0.915
+  / 0.894 / 0.882, Sponza 1.64-1.69 throughout (its time is in the big tasks' PPS1 and in
+  intersection). 32768 keeps big tasks on both workers; `small_items=0` gives the paper's
+  phases in every task.
 - **RDH.** Two sampling steps: sqrt(#tris) triangles give each candidate's two child boxes,
   then sqrt(#rays) rays count the hits on those boxes; cost = pairs + C_SORT x (items of both
   children). The spatial median is a 33rd candidate that a sampled candidate must beat by

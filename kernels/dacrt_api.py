@@ -18,6 +18,7 @@ Variant = Literal["pool", "breadth_first"]
 Split = Literal["rdh", "median"]
 SPLITS: dict[str, int] = {"median": int(dk.SPLIT_MEDIAN), "rdh": int(dk.SPLIT_RDH)}
 VARIANTS = ("pool", "breadth_first")
+SMALL_ITEMS_CPU = 32768  # measured: 4096 -> 32768 saved 3-7% on bunny, dragon, conference
 MARGIN_REL = 2.0**-16  # box and plane widening, relative to the largest coordinate
 
 
@@ -64,7 +65,7 @@ def dacrt_trace(
     min_rays: int = 32,
     min_tris: int = 16,
     rdh_min_rays: int = 65536,
-    small_items: int = 4096,
+    small_items: int | None = None,
 ) -> Hits:
     """Closest hit per ray in [tmin, tmax] by divide-and-conquer ray tracing: the same
     `Hits` as `kernels.trace` on a BVH.
@@ -75,7 +76,9 @@ def dacrt_trace(
         rdh_min_rays rays and takes the spatial median in smaller ones, where sqrt(#rays)
         samples estimate little and cost more than they save. A task of at most small_items
         rays + triangles runs PPS1 to AABB as one counting sort in one worker (the PPS
-        rounds' steps and scans cost more than the work there).
+        rounds' steps and scans cost more than the work there); default SMALL_ITEMS_CPU on
+        CPU and 0 (the paper's phases in every task) on CUDA, where one thread per task
+        would leave the device idle.
     variant "breadth_first": the 2013 paper's level-wise DACRT; alpha, beta: its
         terminal-node thresholds; buffer_entries: the terminal buffer's flush threshold.
     Defaults are the papers' (GPU) constants. A dict passed as `stats` receives timings
@@ -110,7 +113,9 @@ def dacrt_trace(
     return _pool_trace(vertices, indices, ids, origins, directions, tmin_a, tmax_a, split,
                        device, info, workers, int(min_chunks), int(pool_capacity),
                        int(max_depth), float(c_sort), float(c_inters), int(min_rays),
-                       int(min_tris), int(rdh_min_rays), int(small_items))
+                       int(min_tris), int(rdh_min_rays),
+                       int((SMALL_ITEMS_CPU if device.is_cpu else 0) if small_items is None
+                           else small_items))
 
 
 class DeviceArrays:

@@ -18,8 +18,10 @@ from .reference import axis_aligned_cube_rays, brute_force, random_rays, random_
 from .test_trace import assert_same_hits
 
 VARIANTS = [("pool", "rdh"), ("pool", "median"), ("breadth_first", "rdh")]
-# small tests have few rays: let RDH sample every task with 16 rays or more (default 65536)
-SMALL = {"rdh_min_rays": 16}
+# small tests have few rays: let RDH sample every task with 16 rays or more (default 65536),
+# and let tasks of over 64 rays + triangles run the paper's PPS/Swap phases (default 32768),
+# so that both sorting paths run in every test
+SMALL = {"rdh_min_rays": 16, "small_items": 64}
 
 
 def bvh_hits(v, f, o, d, tmin=0.0, tmax=np.inf):
@@ -46,7 +48,8 @@ def test_counting_sort_of_small_tasks_equals_the_pps_rounds(split):
     stats = []
     for small in (0, 1 << 30):
         info: dict = {}
-        hits = dacrt_trace(v, f, o, d, split=split, small_items=small, stats=info, **SMALL)
+        hits = dacrt_trace(v, f, o, d, split=split, stats=info,
+                           **{**SMALL, "small_items": small})
         assert_equal_hits(hits, ref)
         assert (info["phase_ms"]["Sort"] > 0) == (small > 0)
         assert (info["phase_ms"]["PPS1"] > 0) == (small == 0)
