@@ -90,17 +90,24 @@ def build(task: Task, settings: Settings, mesh: SceneMesh) -> Outcome:
     return outcome
 
 
-JOB_POLL_S = 0.25
-
-
-def render_job(task: Task, settings: Settings, mesh: SceneMesh, camera: dict) -> Outcome:
-    """Like `render`, as a service job: real progress, and Esc cancels it on the service."""
+def prepare(task: Task, settings: Settings, mesh: SceneMesh) -> tuple[Client, Outcome, str]:
+    """What both renders do first: the scene on the service and, for the BVH engine, its
+    BVH. Returns the client, the outcome so far and the scene's id."""
     client = Client(settings.server_url)
     outcome = Outcome()
     scene_id = ensure_scene(task, client, mesh, outcome)
     if settings.engine == "bvh":
         task.set_step(f"building the BVH ({settings.method}, leaf size {settings.leaf_size})")
         outcome.build = client.build_bvh(scene_id, settings.method, settings.leaf_size)
+    return client, outcome, scene_id
+
+
+JOB_POLL_S = 0.25
+
+
+def render_job(task: Task, settings: Settings, mesh: SceneMesh, camera: dict) -> Outcome:
+    """Like `render`, as a service job: real progress, and Esc cancels it on the service."""
+    client, outcome, scene_id = prepare(task, settings, mesh)
     payload = {
         "scene_id": scene_id,
         "camera": camera,
@@ -134,12 +141,7 @@ def render_job(task: Task, settings: Settings, mesh: SceneMesh, camera: dict) ->
 
 def render(task: Task, settings: Settings, mesh: SceneMesh, ray_body: bytes) -> Outcome:
     """Scene, BVH (for the BVH engine), then one AO value per camera ray."""
-    client = Client(settings.server_url)
-    outcome = Outcome()
-    scene_id = ensure_scene(task, client, mesh, outcome)
-    if settings.engine == "bvh":
-        task.set_step(f"building the BVH ({settings.method}, leaf size {settings.leaf_size})")
-        outcome.build = client.build_bvh(scene_id, settings.method, settings.leaf_size)
+    client, outcome, scene_id = prepare(task, settings, mesh)
     task.set_step(f"rendering AO ({len(ray_body) // 24:,} rays, {settings.spp} spp)")
     start = time.perf_counter()
     outcome.ao, _ = client.ambient_occlusion(
