@@ -272,15 +272,19 @@ def widened_range(r: RayRecord) -> wp.vec2:
 
 
 @wp.func
-def axis_range(r: RayRecord, span: wp.vec2, axis: int) -> wp.vec2:
-    """(min, max) coordinate on `axis` of the ray's points within the span (1/(1/d) is
-    within an ulp of d: far inside the classification margin)."""
-    if wp.isinf(r.inv_dir[axis]):
-        return wp.vec2(r.origin[axis], r.origin[axis])
-    direction = 1.0 / r.inv_dir[axis]
-    a = r.origin[axis] + span[0] * direction
-    b = r.origin[axis] + span[1] * direction
-    return wp.vec2(wp.min(a, b), wp.max(a, b))
+def ray_side(r: RayRecord, span: wp.vec2, axis: int, split: float, m: float) -> int:
+    """Side of the plane (widened by m) that the ray's points within the span lie on,
+    compared in t: the plane's crossings (split -+ m - o) / d against the span's ends, so no
+    division (the rounding of the products is a few ulps of t: far inside the margin)."""
+    inv = r.inv_dir[axis]
+    o = r.origin[axis]
+    if wp.isinf(inv):
+        return side_of(wp.vec2(o, o), split, m)
+    below = (split - m - o) * inv  # t where the ray crosses split - m
+    above = (split + m - o) * inv
+    if inv > 0.0:
+        return CLS_STRADDLE + int(span[0] > above) - int(span[1] < below)
+    return CLS_STRADDLE + int(span[1] < above) - int(span[0] > below)
 
 
 @wp.func
@@ -300,7 +304,7 @@ def classify_ray(d: DacrtData, t: DacrtTask, ray: int, r: RayRecord) -> int:
     span = ray_span(r, t.lo, t.hi, w[0], w[1])
     if span[0] == INF or key_t(d.best[ray]) < span[0]:
         return CLS_CLIPPED
-    return side_of(axis_range(r, span, t.axis), t.split, d.margin)
+    return ray_side(r, span, t.axis, t.split, d.margin)
 
 
 @wp.func
@@ -721,31 +725,32 @@ def step_chunks(d: DacrtData, t: DacrtTask) -> int:
 @wp.func
 def intersect_chunk(d: DacrtData, t: DacrtTask, chunk: int):
     """CHUNK ray-triangle pairs, ray-major; one atomic min per ray of the chunk (sec. 5.2)."""
-    first = chunk * CHUNK
-    last = wp.min(first + CHUNK, t.ray_count * t.tri_count)
-    p = first
+    p = chunk * CHUNK
+    last = wp.min(p + CHUNK, t.ray_count * t.tri_count)
+    i = p / t.tri_count
+    first_tri = t.tri_start + p - i * t.tri_count
     while p < last:
-        i = p / t.tri_count
+        n = wp.min(last - p, t.tri_start + t.tri_count - first_tri)  # pairs of ray i here
         ray = d.ray_ids[t.ray_start + i]
         rec = d.rays[ray]
-        r = make_ray(rec.origin, d.directions[ray])
-        tmin = rec.tmin
-        tmax = rec.tmax
-        key = KEY_NONE
-        end = wp.min(last, (i + 1) * t.tri_count)
         w = widened_range(rec)
         span = ray_span(rec, t.lo, t.hi, w[0], w[1])
+        end = first_tri + n
         if span[0] == INF or key_t(d.best[ray]) < span[0]:
-            end = p  # clipped by this task's box, or already hit nearer: no pair to test
-        for q in range(p, end):
-            tri = d.tri_ids[t.tri_start + q - i * t.tri_count]
+            end = first_tri  # clipped by this task's box, or already hit nearer: no pair
+        r = make_ray(rec.origin, d.directions[ray])
+        key = KEY_NONE
+        for j in range(first_tri, end):
+            tri = d.tri_ids[j]
             h = intersect_triangle(r, d.tri_verts[3 * tri], d.tri_verts[3 * tri + 1],
-                                   d.tri_verts[3 * tri + 2], tmin, tmax)
+                                   d.tri_verts[3 * tri + 2], rec.tmin, rec.tmax)
             if h[0] < INF:
                 key = wp.min(key, hit_key(h[0], tri))
         if key != KEY_NONE:
             shared_min_u64(d.best, ray, key)
-        p = wp.min(last, (i + 1) * t.tri_count)
+        p += n
+        i += 1
+        first_tri = t.tri_start
 
 
 @wp.func

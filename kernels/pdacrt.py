@@ -136,7 +136,7 @@ def filter_rays(lv: Level, ids: wp.array(dtype=int), node_of: wp.array(dtype=int
     span = dk.ray_span(r, lv.lo[k], lv.hi[k], w[0], w[1])
     code = NONE
     if span[0] < INF:
-        code = code_of(dk.side_of(dk.axis_range(r, span, lv.axis[k]), lv.split[k], d.margin))
+        code = code_of(dk.ray_side(r, span, lv.axis[k], lv.split[k], d.margin))
     keys[i] = wp.int32(k * 4 + code)
     values[i] = ray
 
