@@ -309,12 +309,22 @@ Notes (what the numbers mean and what was tried):
 - **RDH.** Two sampling steps: sqrt(#tris) triangles give each candidate's two child boxes,
   then sqrt(#rays) rays count the hits on those boxes; cost = pairs + C_SORT x (items of both
   children). The spatial median is a 33rd candidate that a sampled candidate must beat by
-  40%, and tasks with fewer than 65536 rays take the median directly: on the object scenes
-  RDH's gain is smaller than its sampling cost, which made it ~10% slower than the median
-  before these two rules (bunny 1024²: 0.86 s against 0.80 s; now equal). The threshold was
-  16384 until the two-worker runs, where bunny 1024² RDH ran 2-5% behind the median; with
-  65536 (four runs each, medians): bunny 0.539 s against the median's 0.541, Sponza 1.86 s
-  (16384: 1.82, median 2.54), Buddha 0.556 against 0.556 - ties within the +-5% noise.
+  40%, and tasks with fewer than `rdh_min_rays` rays take the median directly. A sampled
+  triangle lies in the left child of a suffix of each axis's planes and in the right child
+  of a prefix, and the children's boxes grow (left) or shrink (right) along the axis, so a
+  ray meets the left children of a suffix and the right children of a prefix: sampling
+  stores each triangle and ray once per axis and side (found by binary search: about 24 box
+  tests per sampled ray instead of 66, 6 atomics instead of up to 400 per triangle) and
+  sums the suffixes and prefixes when the step ends. The task trees are the same as with
+  the plane-by-plane loop (checked on bunny, Sponza and Conference at 256², every task
+  sampled: same tasks, rays and triangles sorted, pairs) and SplitPlane 2.0-2.7x faster.
+  That made sampling smaller tasks pay: `rdh_min_rays` 65536 -> 4096. RDH / median, 1024²,
+  medians of four interleaved runs, 65536 then 4096: bunny 1.06 / 1.00, dragon 1.01 / 1.00,
+  buddha 1.01 / 1.00, blade 1.03 / 0.97, sponza 0.71 / 0.68, sibenik 0.83 / 0.83,
+  conference 0.87 / 0.84; with 4096 RDH sorts 4-5% fewer rays than the median on the object
+  scenes, but the time saved there is about what sampling costs (at 1024, SplitPlane took
+  16 ms of the bunny's 305 ms). Rows within +-5% of 1.00 are ties: the 65536 bunny row
+  (1.06) had nearly the median's tree.
 - **Early termination.** A ray whose closest hit so far lies before its entry into a node's
   box is clipped there (in PPS1 and in intersection tasks); the seven-child order lets
   straddling rays meet near triangles before far ones. Breadth-first has no such cut

@@ -47,7 +47,7 @@ wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 CANDIDATES = wp.constant(32)  # RDH candidate planes over the three axes (sec. 5.2)
 PLANES = wp.constant(33)  # ... and the spatial median as one more, so RDH can choose it
 MEDIAN_TRUST = wp.constant(0.6)  # RDH keeps the median unless a candidate is 40% cheaper
-CAND_INTS = 33 * 5  # per pool slot and plane: tris L, S, R; rays hitting either child
+CAND_INTS = 33 * 4  # per pool slot and plane: tris, then rays, of the left and right child
 CAND_BOXES = 33 * 2  # per pool slot and plane: the sampled children's boxes
 KEY_NONE = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 T_WIDEN = wp.constant(1.0e-5)  # relative widening of [tmin, tmax] for classification
@@ -573,32 +573,52 @@ def median_plane(lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
 
 
 @wp.func
-def candidate(t: DacrtTask, c: int) -> wp.vec2:
-    """(axis, position) of RDH candidate c: 32 planes over the three axes in proportion to
-    the node's extent, uniformly spaced on each (sec. 5.2); c = CANDIDATES: the median."""
-    if c == CANDIDATES:
-        return median_plane(t.lo, t.hi)
+def axis_planes(t: DacrtTask) -> wp.vec3i:
+    """RDH candidates on each axis: 32 in proportion to the node's extent (sec. 5.2)."""
     e = wp.max(t.hi - t.lo, wp.vec3(0.0))
     total = e[0] + e[1] + e[2]
-    n0 = int(0)
-    n1 = int(0)
+    n = wp.vec3i(0, 0, 0)
     if total > 0.0:
-        n0 = int(float(CANDIDATES) * e[0] / total)
-        n1 = int(float(CANDIDATES) * e[1] / total)
-    n2 = CANDIDATES - n0 - n1
+        n[0] = int(float(CANDIDATES) * e[0] / total)
+        n[1] = int(float(CANDIDATES) * e[1] / total)
+    n[2] = CANDIDATES - n[0] - n[1]
+    return n
+
+
+@wp.func
+def plane_pos(t: DacrtTask, axis: int, i: int, n: int) -> float:
+    """The i-th of n planes uniformly spaced on the axis (non-decreasing in i)."""
+    e = wp.max(t.hi[axis] - t.lo[axis], 0.0)
+    return t.lo[axis] + e * (float(i) + 0.5) / float(n)
+
+
+@wp.func
+def candidate(t: DacrtTask, c: int) -> wp.vec2:
+    """(axis, position) of RDH candidate c (axis by axis); c = CANDIDATES: the median."""
+    if c == CANDIDATES:
+        return median_plane(t.lo, t.hi)
+    n = axis_planes(t)
     axis = int(0)
     i = c
-    n = n0
-    if c >= n0 + n1:
-        axis = 2
-        i = c - n0 - n1
-        n = n2
-    elif c >= n0:
-        axis = 1
-        i = c - n0
-        n = n1
-    pos = t.lo[axis] + e[axis] * (float(i) + 0.5) / float(n)
-    return wp.vec2(float(axis), pos)
+    while i >= n[axis]:
+        i -= n[axis]
+        axis += 1
+    return wp.vec2(float(axis), plane_pos(t, axis, i, n[axis]))
+
+
+@wp.func
+def planes_below(t: DacrtTask, axis: int, n: int, x: float, inclusive: int) -> int:
+    """How many of the axis's n planes lie below x (at or below it if inclusive)."""
+    lo = int(0)
+    hi = n
+    while lo < hi:
+        mid = (lo + hi) / 2
+        p = plane_pos(t, axis, mid, n)
+        if p < x or (inclusive != 0 and p == x):
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo
 
 
 @wp.func
@@ -622,50 +642,141 @@ def half_box(t: DacrtTask, lo: wp.vec3, hi: wp.vec3, axis: int, pos: float,
 
 
 @wp.func
+def hits_child(d: DacrtData, t: DacrtTask, r: RayRecord, w: wp.vec2, k: int, axis: int,
+               pos: float, right: int) -> bool:
+    """Does the ray meet the (widened) child box of sampled triangles in cand box k? An
+    empty box is met by no ray. Monotone: a ray that meets a box meets every box around it."""
+    box = half_box(t, d.cand_lo[k], d.cand_hi[k], axis, pos, right)
+    if box[0][0] > box[1][0] or box[0][1] > box[1][1] or box[0][2] > box[1][2]:
+        return False
+    grown = widen(box[0], box[1], d.margin)
+    return ray_span(r, grown[0], grown[1], w[0], w[1])[0] < INF
+
+
+@wp.func
+def add_tri_sample(d: DacrtData, ints: int, boxes: int, c: int, right: int, lo: wp.vec3,
+                   hi: wp.vec3):
+    shared_add(d.cand, ints + 4 * c + right, 1)
+    shared_min_vec3(d.cand_lo, boxes + 2 * c + right, lo)
+    shared_max_vec3(d.cand_hi, boxes + 2 * c + right, hi)
+
+
+@wp.func
+def sample_tri(d: DacrtData, t: DacrtTask, ints: int, boxes: int, lo: wp.vec3, hi: wp.vec3):
+    """A sampled triangle counts in the left child of the planes at or above its box's low
+    end (a suffix of each axis's planes) and in the right child of those at or below its
+    high end (a prefix): stored once, at the suffix's first and the prefix's last plane,
+    and summed up by rdh_children."""
+    n = axis_planes(t)
+    first = int(0)
+    for a in range(3):
+        below = planes_below(t, a, n[a], lo[a], 0)
+        if below < n[a]:
+            add_tri_sample(d, ints, boxes, first + below, 0, lo, hi)
+        upto = planes_below(t, a, n[a], hi[a], 1)
+        if upto > 0:
+            add_tri_sample(d, ints, boxes, first + upto - 1, 1, lo, hi)
+        first += n[a]
+    p = median_plane(t.lo, t.hi)
+    side = side_of(wp.vec2(lo[int(p[0])], hi[int(p[0])]), p[1], 0.0)
+    if side != CLS_RIGHT:
+        add_tri_sample(d, ints, boxes, CANDIDATES, 0, lo, hi)
+    if side != CLS_LEFT:
+        add_tri_sample(d, ints, boxes, CANDIDATES, 1, lo, hi)
+
+
+@wp.func
+def sample_ray(d: DacrtData, t: DacrtTask, ints: int, boxes: int, r: RayRecord):
+    """A sampled ray meets the left children of a suffix of each axis's planes (their boxes
+    grow with the plane) and the right children of a prefix: two binary searches per axis,
+    stored as for triangles."""
+    w = widened_range(r)
+    if ray_span(r, t.lo, t.hi, w[0], w[1])[0] == INF:
+        return
+    n = axis_planes(t)
+    first = int(0)
+    for a in range(3):
+        for right in range(2):
+            lo = int(0)  # first plane where the ray meets the left child / misses the right
+            hi = n[a]
+            while lo < hi:
+                mid = (lo + hi) / 2
+                c = first + mid
+                if hits_child(d, t, r, w, boxes + 2 * c + right, a,
+                              plane_pos(t, a, mid, n[a]), right) == (right == 0):
+                    hi = mid
+                else:
+                    lo = mid + 1
+            if right == 0 and lo < n[a]:
+                shared_add(d.cand, ints + 4 * (first + lo) + 2, 1)
+            if right == 1 and lo > 0:
+                shared_add(d.cand, ints + 4 * (first + lo - 1) + 3, 1)
+        first += n[a]
+    p = median_plane(t.lo, t.hi)
+    for right in range(2):
+        if hits_child(d, t, r, w, boxes + 2 * CANDIDATES + right, int(p[0]), p[1], right):
+            shared_add(d.cand, ints + 4 * CANDIDATES + 2 + right, 1)
+
+
+@wp.func
 def split_plane_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
-    """RDH sampling (sec. 5.2). Step 0: sampled triangles left / straddling / right of every
-    candidate, and the boxes of each candidate's two children. Step 1: sampled rays that hit
-    each child box: the ray distribution estimates how often a child is visited."""
+    """RDH sampling (sec. 5.2). Step 0: sampled triangles in the left and right child of
+    every candidate, and the children's boxes. Step 1: sampled rays that meet each child's
+    box: the ray distribution estimates how often a child is visited."""
     ns = sample_counts(t)
-    base = slot * CAND_INTS
+    ints = slot * CAND_INTS
     boxes = slot * CAND_BOXES
     if t.step == 0:
         for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[0])):
             tri = d.tri_ids[t.tri_start + s * (t.tri_count / ns[0])]
-            lo = d.tri_lo[tri]
-            hi = d.tri_hi[tri]
-            for c in range(PLANES):
-                p = candidate(t, c)
-                a = int(p[0])
-                side = side_of(wp.vec2(lo[a], hi[a]), p[1], 0.0)
-                shared_add(d.cand, base + 5 * c + side, 1)
-                if side != CLS_RIGHT:
-                    shared_min_vec3(d.cand_lo, boxes + 2 * c, lo)
-                    shared_max_vec3(d.cand_hi, boxes + 2 * c, hi)
-                if side != CLS_LEFT:
-                    shared_min_vec3(d.cand_lo, boxes + 2 * c + 1, lo)
-                    shared_max_vec3(d.cand_hi, boxes + 2 * c + 1, hi)
-        return
-    for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[1])):
-        ray = d.ray_ids[t.ray_start + s * (t.ray_count / ns[1])]
-        r = d.rays[ray]
-        w = widened_range(r)
-        if ray_span(r, t.lo, t.hi, w[0], w[1])[0] < INF:
-            for c in range(PLANES):
-                p = candidate(t, c)
-                for side in range(2):
-                    k = boxes + 2 * c + side
-                    box = half_box(t, d.cand_lo[k], d.cand_hi[k], int(p[0]), p[1], side)
-                    grown = widen(box[0], box[1], d.margin)
-                    if ray_span(r, grown[0], grown[1], w[0], w[1])[0] < INF:
-                        shared_add(d.cand, base + 5 * c + 3 + side, 1)
+            sample_tri(d, t, ints, boxes, d.tri_lo[tri], d.tri_hi[tri])
+    else:
+        for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[1])):
+            ray = d.ray_ids[t.ray_start + s * (t.ray_count / ns[1])]
+            sample_ray(d, t, ints, boxes, d.rays[ray])
+
+
+@wp.func
+def rdh_children(d: DacrtData, t: DacrtTask, slot: int, field: int):
+    """Turn what sample_tri (field 0) or sample_ray (field 2) stored at the ends of each
+    axis's suffixes and prefixes into per-plane counts (and, for triangles, boxes)."""
+    n = axis_planes(t)
+    ints = slot * CAND_INTS
+    boxes = slot * CAND_BOXES
+    first = int(0)
+    for a in range(3):
+        count = int(0)
+        lo = wp.vec3(INF)
+        hi = wp.vec3(-INF)
+        for c in range(first, first + n[a]):  # left children: sums over the suffixes
+            count += d.cand[ints + 4 * c + field]
+            d.cand[ints + 4 * c + field] = count
+            if field == 0:
+                lo = wp.min(lo, d.cand_lo[boxes + 2 * c])
+                hi = wp.max(hi, d.cand_hi[boxes + 2 * c])
+                d.cand_lo[boxes + 2 * c] = lo
+                d.cand_hi[boxes + 2 * c] = hi
+        count = int(0)
+        lo = wp.vec3(INF)
+        hi = wp.vec3(-INF)
+        for j in range(n[a]):  # right children: the prefixes, from the axis's last plane
+            c = first + n[a] - 1 - j
+            count += d.cand[ints + 4 * c + field + 1]
+            d.cand[ints + 4 * c + field + 1] = count
+            if field == 0:
+                lo = wp.min(lo, d.cand_lo[boxes + 2 * c + 1])
+                hi = wp.max(hi, d.cand_hi[boxes + 2 * c + 1])
+                d.cand_lo[boxes + 2 * c + 1] = lo
+                d.cand_hi[boxes + 2 * c + 1] = hi
+        first += n[a]
 
 
 @wp.func
 def choose_rdh_split(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
     """The cheapest candidate by the ray distribution heuristic (Bittner & Havran 2009):
-    triangles of each child times the rays that hit its box, estimated from the samples.
-    Clears the samples for the slot's next task."""
+    triangles of each child times the rays that meet its box, estimated from the samples.
+    Clears the samples for the slot's next use."""
+    rdh_children(d, t, slot, 2)
     base = slot * CAND_INTS
     boxes = slot * CAND_BOXES
     ns = sample_counts(t)
@@ -673,11 +784,11 @@ def choose_rdh_split(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
     ray_scale = float(t.ray_count) / float(ns[1])
     best = float(INF)
     for c in range(PLANES):
-        k = base + 5 * c
-        tl = tri_scale * float(d.cand[k] + d.cand[k + 1])
-        tr = tri_scale * float(d.cand[k + 1] + d.cand[k + 2])
-        rl = ray_scale * float(d.cand[k + 3])
-        rr = ray_scale * float(d.cand[k + 4])
+        k = base + 4 * c
+        tl = tri_scale * float(d.cand[k])
+        tr = tri_scale * float(d.cand[k + 1])
+        rl = ray_scale * float(d.cand[k + 2])
+        rr = ray_scale * float(d.cand[k + 3])
         # sec. 5.2's costs: the children's pairs, plus sorting what they hold (straddling
         # triangles and rays counted on both sides)
         cost = d.c_inters * (tl * rl + tr * rr) + d.c_sort * (tl + tr + rl + rr)
@@ -858,6 +969,8 @@ def complete_step(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
         return t
     if t.phase == PH_SPLIT_PLANE and t.step == 1:
         return enter_pps1(d, choose_rdh_split(d, t, slot))
+    if t.phase == PH_SPLIT_PLANE:
+        rdh_children(d, t, slot, 0)  # the rays' step needs the children's boxes
     if t.phase == PH_SORT:
         return sort_result(d, t, slot)
     if t.phase == PH_PPS1 or t.phase == PH_PPS2:
@@ -919,8 +1032,8 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
     runs it: classify, count per class, and place each class at its offset through Swap's
     arrays (a counting sort: rays [left | straddling | right | clipped], triangles [left |
     straddling | right], the layout the two PPS/Swap rounds make), with the triangle boxes
-    on the way. Counts and boxes go to the slot's RDH sample area (free now: RDH samples
-    only tasks of at least rdh_min_rays rays), where sort_result takes and clears them."""
+    on the way. Counts and boxes go to the slot's RDH sample area (free: the task's own
+    sampling, if any, is over and cleared it), where sort_result takes and clears them."""
     ints = slot * CAND_INTS
     boxes = slot * CAND_BOXES
     n_ray = wp.vec4i(0)

@@ -64,7 +64,7 @@ def dacrt_trace(
     c_inters: float = 1.0,
     min_rays: int = 32,
     min_tris: int = 16,
-    rdh_min_rays: int = 65536,
+    rdh_min_rays: int = 4096,
     small_items: int | None = None,
 ) -> Hits:
     """Closest hit per ray in [tmin, tmax] by divide-and-conquer ray tracing: the same
@@ -74,7 +74,7 @@ def dacrt_trace(
         termination rule #tris #rays c_inters < (#tris + #rays) c_sort, or fewer than
         min_rays rays or min_tris triangles (sec. 5.2, 6.2). RDH samples tasks with at least
         rdh_min_rays rays and takes the spatial median in smaller ones, where sqrt(#rays)
-        samples estimate little and cost more than they save. A task of at most small_items
+        samples estimate little and cost about what they save. A task of at most small_items
         rays + triangles runs PPS1 to AABB as one counting sort in one worker (the PPS
         rounds' steps and scans cost more than the work there); default SMALL_ITEMS_CPU on
         CPU and 0 (the paper's phases in every task) on CUDA, where one thread per task

@@ -18,7 +18,7 @@ from .reference import axis_aligned_cube_rays, brute_force, random_rays, random_
 from .test_trace import assert_same_hits
 
 VARIANTS = [("pool", "rdh"), ("pool", "median"), ("breadth_first", "rdh")]
-# small tests have few rays: let RDH sample every task with 16 rays or more (default 65536),
+# small tests have few rays: let RDH sample every task with 16 rays or more (default 4096),
 # and let tasks of over 64 rays + triangles run the paper's PPS/Swap phases (default 32768),
 # so that both sorting paths run in every test
 SMALL = {"rdh_min_rays": 16, "small_items": 64}
