@@ -865,33 +865,36 @@ def intersect_chunk(d: DacrtData, t: DacrtTask, chunk: int):
 
 
 @wp.func
-def run_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
-    if t.phase == PH_INTERSECT:
-        intersect_chunk(d, t, chunk)
-    elif t.phase == PH_SPLIT_PLANE:
-        split_plane_chunk(d, t, slot, chunk)
-    elif t.phase == PH_SORT:
-        sort_small_task(d, t, slot)
-    else:
-        # chunks of the segments one after another
-        c = chunk
-        top = segment_levels(t)
-        for k in range(t.seg.count):
-            n = int(0)
-            if t.phase == PH_PPS1 or t.phase == PH_PPS2:
-                n = pps_chunks(t.seg.size[k], level_count(t.seg.size[k]), top, t.step)
-            elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
-                n = swap_chunks(t, k)
-            else:
-                n = aabb_chunks(t, k)
-            if c >= 0 and c < n:
+def run_chunks(d: DacrtData, t: DacrtTask, slot: int, first: int, count: int):
+    """Chunks first.. of the task's step. One call per batch, as the call copies the
+    structs (this function is too big for the compiler to inline)."""
+    for chunk in range(first, first + count):
+        if t.phase == PH_INTERSECT:
+            intersect_chunk(d, t, chunk)
+        elif t.phase == PH_SPLIT_PLANE:
+            split_plane_chunk(d, t, slot, chunk)
+        elif t.phase == PH_SORT:
+            sort_small_task(d, t, slot)
+        else:
+            # chunks of the segments one after another
+            c = chunk
+            top = segment_levels(t)
+            for k in range(t.seg.count):
+                n = int(0)
                 if t.phase == PH_PPS1 or t.phase == PH_PPS2:
-                    pps_chunk(d, t, slot, k, c)
+                    n = pps_chunks(t.seg.size[k], level_count(t.seg.size[k]), top, t.step)
                 elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
-                    swap_chunk(d, t, k, c)
+                    n = swap_chunks(t, k)
                 else:
-                    aabb_chunk(d, t, k, c)
-            c -= n
+                    n = aabb_chunks(t, k)
+                if c >= 0 and c < n:
+                    if t.phase == PH_PPS1 or t.phase == PH_PPS2:
+                        pps_chunk(d, t, slot, k, c)
+                    elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
+                        swap_chunk(d, t, k, c)
+                    else:
+                        aabb_chunk(d, t, k, c)
+                c -= n
 
 
 @wp.func
@@ -1290,8 +1293,7 @@ def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask) -> i
             pool_hand_over(pool, s, task.chunks)
             return s
         since = cycles()
-        for c in range(task.chunks):
-            run_chunk(d, task, s, c)
+        run_chunks(d, task, s, 0, task.chunks)
         add_cycles(d, worker, task.phase, since)
 
 
@@ -1311,8 +1313,7 @@ def dacrt_worker(d: DacrtData, pool: Pool, first_worker: int):
         last_slot = slot
         t = d.tasks[slot]
         since = cycles()
-        for c in range(got[1], got[1] + got[2]):
-            run_chunk(d, t, slot, c)
+        run_chunks(d, t, slot, got[1], got[2])
         add_cycles(d, worker, t.phase, since)
         if pool_finish(pool, slot, got[2]):
             last_slot = advance(d, pool, worker, slot, d.tasks[slot])
