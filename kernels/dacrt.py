@@ -1045,15 +1045,14 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
         ray = d.ray_ids[i]
         r = d.rays[ray]
         c = classify_ray(d, t, ray, r)
-        d.ray_cls[ray] = wp.int8(c)
+        d.ray_mark[i] = wp.int8(c)  # by position: read in order below
         n_ray[c] = n_ray[c] + 1
         if c == CLS_STRADDLE and r.inv_dir[t.axis] < 0.0:
             neg += 1
     at = wp.vec4i(0, n_ray[0], n_ray[0] + n_ray[1], n_ray[0] + n_ray[1] + n_ray[2])
     for i in range(t.ray_start, t.ray_start + t.ray_count):
-        ray = d.ray_ids[i]
-        c = int(d.ray_cls[ray])
-        d.ray_swap_id[t.ray_start + at[c]] = ray
+        c = int(d.ray_mark[i])
+        d.ray_swap_id[t.ray_start + at[c]] = d.ray_ids[i]
         at[c] = at[c] + 1
     for i in range(t.ray_start, t.ray_start + t.ray_count):
         d.ray_ids[i] = d.ray_swap_id[i]
@@ -1061,14 +1060,14 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
     for i in range(t.tri_start, t.tri_start + t.tri_count):
         tri = d.tri_ids[i]
         c = classify_tri(d, t, tri)
-        d.tri_cls[tri] = wp.int8(c)
+        d.tri_mark[i] = wp.int8(c)
         n_tri[c] = n_tri[c] + 1
     at3 = wp.vec3i(0, n_tri[0], n_tri[0] + n_tri[1])
     lo = wp.matrix_from_rows(wp.vec3(INF), wp.vec3(INF), wp.vec3(INF))  # a box per class
     hi = wp.matrix_from_rows(wp.vec3(-INF), wp.vec3(-INF), wp.vec3(-INF))
     for i in range(t.tri_start, t.tri_start + t.tri_count):
         tri = d.tri_ids[i]
-        c = int(d.tri_cls[tri])
+        c = int(d.tri_mark[i])
         d.tri_swap_id[t.tri_start + at3[c]] = tri
         at3[c] = at3[c] + 1
         lo[c] = wp.min(lo[c], d.tri_lo[tri])
