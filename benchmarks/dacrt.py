@@ -10,7 +10,7 @@ paper's Tables 1-3 (ms per frame of breadth-first DACRT for primary, shadow (one
 specular and AO rays (7 per primary hit here, 8 in the paper), and peak memory), each row
 beside BVH build (binned SAH) + trace of the same rays. Every DACRT result is checked against
 the BVH's (hit/miss mismatches are counted). Times are the median of --repeat runs after
-one warm-up (compilation excluded).
+one warm-up (compilation excluded), the methods run in turn (interleaved).
 
 Peak memory: DACRT counts the bytes of every device array it holds at its peak (inputs,
 index arrays, pool or level lists, the terminal buffer, outputs); the BVH's figure counts the
@@ -44,6 +44,7 @@ sys.path.insert(0, str(REPO))
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
 import kernels  # noqa: E402
+from backend.peers import timeit_each  # noqa: E402
 from backend.scenes import shared_scene  # noqa: E402
 from kernels.dacrt_api import dacrt_trace  # noqa: E402
 
@@ -148,26 +149,29 @@ def measure(scene, size: int, kind: str, methods: list[str], tuning: str, repeat
     o, d, tmin, tmax = scene_rays(scene, size, kind, ref_primary, rng)
     row = {"scene": scene.name, "tris": scene.triangles, "size": size, "kind": kind,
            "rays": len(o), "tuning": tuning}
+    last: dict = {}  # each method's latest result
+    stats = {m: {} for m in methods}
 
     def bvh_run():
         bvh = kernels.build_bvh(scene.vertices, scene.indices)
-        return bvh, kernels.trace(bvh, o, d, tmin, tmax)
+        last["bvh"] = bvh, kernels.trace(bvh, o, d, tmin, tmax)
 
-    row["bvh_s"], (bvh, ref) = timed(bvh_run, repeat)
+    def dacrt_run(method: str):
+        variant, split = ("breadth_first", "rdh") if method == "bf" else ("pool", method)
+        last[method] = dacrt_trace(scene.vertices, scene.indices, o, d, tmin, tmax,
+                                   variant=variant, split=split, stats=stats[method],
+                                   **TUNINGS[tuning][variant])
+
+    # interleaved, so that a burst of load on the machine hits every method alike
+    times = timeit_each([bvh_run] + [lambda m=m: dacrt_run(m) for m in methods], repeat)
+    bvh, ref = last["bvh"]
+    row["bvh_s"] = times[0]
     row["bvh_build_ms"] = bvh.stats["build_ms"]
     row["bvh_peak_mb"] = bvh_peak_bytes(bvh, len(o)) / 2**20
-    for method in methods:
-        variant, split = ("breadth_first", "rdh") if method == "bf" else ("pool", method)
-        stats: dict = {}
-        kw = TUNINGS[tuning][variant]
-
-        def run(variant=variant, split=split, kw=kw, stats=stats):
-            return dacrt_trace(scene.vertices, scene.indices, o, d, tmin, tmax,
-                               variant=variant, split=split, stats=stats, **kw)
-
-        row[f"{method}_s"], h = timed(run, repeat)
-        row[f"{method}_mismatch"] = mismatches(h, ref)
-        row[f"{method}_peak_mb"] = stats["peak_bytes"] / 2**20
+    for method, t in zip(methods, times[1:], strict=True):
+        row[f"{method}_s"] = t
+        row[f"{method}_mismatch"] = mismatches(last[method], ref)
+        row[f"{method}_peak_mb"] = stats[method]["peak_bytes"] / 2**20
     print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}),
           flush=True)
     return row
