@@ -834,10 +834,11 @@ def step_chunks(d: DacrtData, t: DacrtTask) -> int:
 
 
 @wp.func
-def intersect_chunk(d: DacrtData, t: DacrtTask, chunk: int):
-    """CHUNK ray-triangle pairs, ray-major; one atomic min per ray of the chunk (sec. 5.2)."""
-    p = chunk * CHUNK
-    last = wp.min(p + CHUNK, t.ray_count * t.tri_count)
+def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
+    """Chunks of CHUNK ray-triangle pairs, ray-major; one atomic min per ray (sec. 5.2).
+    Consecutive chunks taken together set each ray up once."""
+    p = first * CHUNK
+    last = wp.min((first + count) * CHUNK, t.ray_count * t.tri_count)
     i = p / t.tri_count
     first_tri = t.tri_start + p - i * t.tri_count
     while p < last:
@@ -868,10 +869,11 @@ def intersect_chunk(d: DacrtData, t: DacrtTask, chunk: int):
 def run_chunks(d: DacrtData, t: DacrtTask, slot: int, first: int, count: int):
     """Chunks first.. of the task's step. One call per batch, as the call copies the
     structs (this function is too big for the compiler to inline)."""
+    if t.phase == PH_INTERSECT:
+        intersect_chunks(d, t, first, count)
+        return
     for chunk in range(first, first + count):
-        if t.phase == PH_INTERSECT:
-            intersect_chunk(d, t, chunk)
-        elif t.phase == PH_SPLIT_PLANE:
+        if t.phase == PH_SPLIT_PLANE:
             split_plane_chunk(d, t, slot, chunk)
         elif t.phase == PH_SORT:
             sort_small_task(d, t, slot)
