@@ -18,7 +18,7 @@ Variant = Literal["pool", "breadth_first"]
 Split = Literal["rdh", "median"]
 SPLITS: dict[str, int] = {"median": int(dk.SPLIT_MEDIAN), "rdh": int(dk.SPLIT_RDH)}
 VARIANTS = ("pool", "breadth_first")
-SMALL_ITEMS_CPU = 32768  # measured: 4096 -> 32768 saved 3-7% on bunny, dragon, conference
+SMALL_ITEMS_CPU = 32768  # least small_items on CPU (measured: 4096 -> 32768 saved 3-7%)
 MARGIN_REL = 2.0**-16  # box and plane widening, relative to the largest coordinate
 
 
@@ -76,9 +76,11 @@ def dacrt_trace(
         rdh_min_rays rays and takes the spatial median in smaller ones, where sqrt(#rays)
         samples estimate little and cost about what they save. A task of at most small_items
         rays + triangles runs PPS1 to AABB as one counting sort in one worker (the PPS
-        rounds' steps and scans cost more than the work there); default SMALL_ITEMS_CPU on
-        CPU and 0 (the paper's phases in every task) on CUDA, where one thread per task
-        would leave the device idle.
+        rounds' steps and scans cost more than the work, as long as other tasks keep the
+        other workers busy); default on CPU: a worker's share of all rays and triangles
+        (at least SMALL_ITEMS_CPU), so only the tasks above it (the root, with two workers)
+        run the paper's phases in parallel; on CUDA 0 (the paper's phases in every task),
+        where one thread per task would leave the device idle.
     variant "breadth_first": the 2013 paper's level-wise DACRT; alpha, beta: its
         terminal-node thresholds; buffer_entries: the terminal buffer's flush threshold.
     Defaults are the papers' (GPU) constants. A dict passed as `stats` receives timings
@@ -114,8 +116,7 @@ def dacrt_trace(
                        device, info, workers, int(min_chunks), int(pool_capacity),
                        int(max_depth), float(c_sort), float(c_inters), int(min_rays),
                        int(min_tris), int(rdh_min_rays),
-                       int((SMALL_ITEMS_CPU if device.is_cpu else 0) if small_items is None
-                           else small_items))
+                       None if small_items is None else int(small_items))
 
 
 class DeviceArrays:
@@ -192,6 +193,8 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
     d.phase_cycles = mem.new(workers * dk.PHASES, wp.int64, fill=0)
     d.split_method = SPLITS[split]
     d.rdh_min_rays = rdh_min_rays
+    if small_items is None:
+        small_items = max(SMALL_ITEMS_CPU, (r + n) // workers) if device.is_cpu else 0
     d.small_items = small_items
     d.margin = margin_for(vertices, origins)
     d.max_depth = max_depth
@@ -246,6 +249,7 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
         "pairs": 1000 * int(counters[dk.C_KPAIRS]),
         "pool_slots_used": int(state[2]),
         "workers": workers,
+        "small_items": small_items,
         "degenerate": int(m - n),
     })
     return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
