@@ -50,6 +50,7 @@ MEDIAN_TRUST = wp.constant(0.6)  # RDH keeps the median unless a candidate is 40
 CAND_INTS = 33 * 4  # per pool slot and plane: tris, then rays, of the left and right child
 CAND_BOXES = 33 * 2  # per pool slot and plane: the sampled children's boxes
 KEY_NONE = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
+PREFETCH = wp.constant(16)  # items ahead that the sort's classification loops prefetch
 T_WIDEN = wp.constant(1.0e-5)  # relative widening of [tmin, tmax] for classification
 
 SPLIT_MEDIAN = wp.constant(0)
@@ -234,6 +235,33 @@ def key_t(key: wp.uint64) -> float: ...
 """
 )
 def shared_min_u64(a: wp.array(dtype=wp.uint64), i: int, v: wp.uint64): ...
+
+
+@wp.func_native(
+    """
+#if !defined(__CUDA_ARCH__)
+__builtin_prefetch(&rays.data[i]);
+__builtin_prefetch(&best.data[i]);
+#endif
+"""
+)
+def prefetch_ray(rays: wp.array(dtype=RayRecord), best: wp.array(dtype=wp.uint64), i: int):
+    """Ask the CPU's caches for what classify_ray reads of ray i, a few rays ahead of the
+    loop (the gather by ray id misses the caches in big tasks); nothing on CUDA."""
+    ...
+
+
+@wp.func_native(
+    """
+#if !defined(__CUDA_ARCH__)
+__builtin_prefetch(&lo.data[i]);
+__builtin_prefetch(&hi.data[i]);
+#endif
+"""
+)
+def prefetch_tri(lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3), i: int):
+    """prefetch_ray for a triangle's box."""
+    ...
 
 
 # ---------------------------------------------------------------- small helpers
@@ -1043,7 +1071,10 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
     boxes = slot * CAND_BOXES
     n_ray = wp.vec4i(0)
     neg = int(0)
-    for i in range(t.ray_start, t.ray_start + t.ray_count):
+    end = t.ray_start + t.ray_count
+    for i in range(t.ray_start, end):
+        if i + PREFETCH < end:
+            prefetch_ray(d.rays, d.best, d.ray_ids[i + PREFETCH])
         ray = d.ray_ids[i]
         r = d.rays[ray]
         c = classify_ray(d, t, ray, r)
@@ -1059,7 +1090,10 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
     for i in range(t.ray_start, t.ray_start + t.ray_count):
         d.ray_ids[i] = d.ray_swap_id[i]
     n_tri = wp.vec3i(0)
-    for i in range(t.tri_start, t.tri_start + t.tri_count):
+    end = t.tri_start + t.tri_count
+    for i in range(t.tri_start, end):
+        if i + PREFETCH < end:
+            prefetch_tri(d.tri_lo, d.tri_hi, d.tri_ids[i + PREFETCH])
         tri = d.tri_ids[i]
         c = classify_tri(d, t, tri)
         d.tri_mark[i] = wp.int8(c)
