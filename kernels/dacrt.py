@@ -670,15 +670,14 @@ def half_box(t: DacrtTask, lo: wp.vec3, hi: wp.vec3, axis: int, pos: float,
 
 
 @wp.func
-def hits_child(d: DacrtData, t: DacrtTask, r: RayRecord, w: wp.vec2, k: int, axis: int,
-               pos: float, right: int) -> bool:
-    """Does the ray meet the (widened) child box of sampled triangles in cand box k? An
-    empty box is met by no ray. Monotone: a ray that meets a box meets every box around it."""
-    box = half_box(t, d.cand_lo[k], d.cand_hi[k], axis, pos, right)
-    if box[0][0] > box[1][0] or box[0][1] > box[1][1] or box[0][2] > box[1][2]:
+def hits_child(d: DacrtData, r: RayRecord, w: wp.vec2, k: int) -> bool:
+    """Does the ray meet child box k (rdh_boxes)? An empty box is met by no ray.
+    Monotone: a ray that meets a box meets every box around it."""
+    lo = d.cand_lo[k]
+    hi = d.cand_hi[k]
+    if lo[0] > hi[0] or lo[1] > hi[1] or lo[2] > hi[2]:
         return False
-    grown = widen(box[0], box[1], d.margin)
-    return ray_span(r, grown[0], grown[1], w[0], w[1])[0] < INF
+    return ray_span(r, lo, hi, w[0], w[1])[0] < INF
 
 
 @wp.func
@@ -730,8 +729,7 @@ def sample_ray(d: DacrtData, t: DacrtTask, ints: int, boxes: int, r: RayRecord):
             while lo < hi:
                 mid = (lo + hi) / 2
                 c = first + mid
-                if hits_child(d, t, r, w, boxes + 2 * c + right, a,
-                              plane_pos(t, a, mid, n[a]), right) == (right == 0):
+                if hits_child(d, r, w, boxes + 2 * c + right) == (right == 0):
                     hi = mid
                 else:
                     lo = mid + 1
@@ -740,9 +738,8 @@ def sample_ray(d: DacrtData, t: DacrtTask, ints: int, boxes: int, r: RayRecord):
             if right == 1 and lo > 0:
                 shared_add(d.cand, ints + 4 * (first + lo - 1) + 3, 1)
         first += n[a]
-    p = median_plane(t.lo, t.hi)
     for right in range(2):
-        if hits_child(d, t, r, w, boxes + 2 * CANDIDATES + right, int(p[0]), p[1], right):
+        if hits_child(d, r, w, boxes + 2 * CANDIDATES + right):
             shared_add(d.cand, ints + 4 * CANDIDATES + 2 + right, 1)
 
 
@@ -797,6 +794,16 @@ def rdh_children(d: DacrtData, t: DacrtTask, slot: int, field: int):
                 d.cand_lo[boxes + 2 * c + 1] = lo
                 d.cand_hi[boxes + 2 * c + 1] = hi
         first += n[a]
+    if field == 0:
+        for c in range(PLANES):  # the children's boxes: cut to the node and plane, widened
+            p = candidate(t, c)
+            for right in range(2):
+                k = boxes + 2 * c + right
+                box = half_box(t, d.cand_lo[k], d.cand_hi[k], int(p[0]), p[1], right)
+                if box[0][0] <= box[1][0] and box[0][1] <= box[1][1] and box[0][2] <= box[1][2]:
+                    box = widen(box[0], box[1], d.margin)
+                d.cand_lo[k] = box[0]
+                d.cand_hi[k] = box[1]
 
 
 @wp.func
