@@ -301,15 +301,33 @@ Notes (what the numbers mean and what was tried):
   tmax) instead of five arrays, and PPS1 counts the straddling rays heading to -axis with one
   atomic per chunk; neither moved the bunny's PPS1 time (178 ms of 452 ms) measurably, so
   the gathers are not what costs there.
-- **Small tasks.** A task of at most `small_items` rays + triangles (32768 on CPU) sorts in
-  one worker: classification, a counting sort into the seven children's interval layout and
-  the triangle boxes in one phase ("Sort") instead of PPS1, Swap1, PPS2, Swap2 and AABB with
-  their scans and steps. Bunny 1024² (RDH, two workers, medians): 0.50 s -> 0.39 s with
-  4096; then 4096 / 16384 / 32768 / 65536 (medians of three after a warm-up): bunny 0.384 /
-  0.370 / 0.359 / 0.354 s, dragon 0.495 / 0.456 / 0.451 / 0.446, conference 0.936 / 0.915
-  / 0.894 / 0.882, Sponza 1.64-1.69 throughout (its time is in the big tasks' PPS1 and in
-  intersection). 32768 keeps big tasks on both workers; `small_items=0` gives the paper's
-  phases in every task.
+- **Small tasks.** A task of at most `small_items` rays + triangles sorts in one worker:
+  classification, a counting sort into the seven children's interval layout and the
+  triangle boxes in one phase ("Sort") instead of PPS1, Swap1, PPS2, Swap2 and AABB with
+  their scans and steps. With a fixed 32768 (session 2): bunny 1024² 0.50 s -> 0.36 s. The
+  counting sort stays cheaper than the PPS rounds for much bigger tasks, as long as other
+  tasks keep the other worker busy: Sponza 1024² (three interleaved runs) 1.31 s with
+  32768, 1.22 s with 262144, 1.18 s with 524288, 1.22 s with everything in one worker
+  (the root then runs on one core); conference 0.77 / 0.72 / 0.72 / 0.72 s, bunny 0.33 /
+  0.31 / 0.31 / 0.32 s. So on CPU the default is a worker's share of all rays and triangles
+  (at least 32768): with two workers only the root runs the paper's phases, in parallel.
+  `small_items=0` gives the paper's phases in every task (the tests run both paths).
+- **Calls that copy.** `run_chunks` is the one function of the worker that the compiler
+  does not inline (checked with `nm` on the kernel's object file), and Warp passes structs
+  by value: each call copied DacrtData (27 arrays) and the task. Called once per batch of
+  chunks instead of once per chunk: Swap1 and Swap2 on Sponza 1024² 80 -> 55 ms each,
+  intersection 420 -> 380 ms.
+- **Intersection.** A batch of consecutive chunks sets each ray up once (box clip, hit so
+  far, Woop frame) instead of once per 32-pair chunk: bunny 1024² intersection 93 -> 82 ms.
+  Tried without gain: the Woop frame precomputed per ray (the compiler already drops what
+  the test does not read); an early exit after two of the three edge functions (Sponza's
+  intersection time doubled: a branch that no predictor guesses).
+- **Plane test.** A ray's side of the plane is decided in t (the plane's crossings
+  (split -+ margin - o) / d against the span's ends) instead of by coordinates at the span's
+  ends, which needed a division by 1/d: Sponza PPS1 540 -> 508 ms.
+- **Prefetch.** The sort's classification loops prefetch the records of the rays (and the
+  boxes of the triangles) 16 items ahead (`__builtin_prefetch`, CPU only): the ids make
+  the reads a gather that misses the caches in big tasks. Sponza's Sort phase -6 to -12%.
 - **RDH.** Two sampling steps: sqrt(#tris) triangles give each candidate's two child boxes,
   then sqrt(#rays) rays count the hits on those boxes; cost = pairs + C_SORT x (items of both
   children). The spatial median is a 33rd candidate that a sampled candidate must beat by
@@ -333,14 +351,14 @@ Notes (what the numbers mean and what was tried):
   box is clipped there (in PPS1 and in intersection tasks); the seven-child order lets
   straddling rays meet near triangles before far ones. Breadth-first has no such cut
   (2013 paper, sec. 3.3).
-- **Where the time goes** (Sponza 1024², RDH, cpu constants): rays are sorted about 53 times
-  each (53 M ray classifications) and intersection tasks hold 100 M ray-triangle pairs;
-  PPS1 ~40%, intersection ~30%, the other phases the rest. Indoor cameras (Sponza, Sibenik,
-  Conference) are the hard case: every ray straddles the first planes. PPS1 sorts the
-  triangles too (`stats["tris_sorted"]`): bunny 1024² RDH, one worker: 10.3 M rays and
-  3.8 M triangles in 316 ms, 22 ns per item; at 256², 0.6 M rays and 2.7 M triangles at
-  15 ns per item. The cost per item is the phase's machinery (marking, the 32-ary scan's
-  levels and steps), not memory latency (it is lower, not higher, at the small size).
+- **Where the time goes** (Sponza 1024², RDH, cpu constants, two workers, 1.1 s): rays are
+  sorted about 52 times each (54.5 M ray classifications, 2.6 M triangle ones) and
+  intersection tasks hold 90 M ray-triangle pairs: Sort ~50%, intersection ~30%, the root's
+  PPS1 ~11%, SplitPlane 3%. Indoor cameras (Sponza, Sibenik, Conference) are the hard
+  case: every ray straddles the first planes. Per item the sort costs about 20 ns on one
+  core and a pair test about 8 ns (scalar code: Warp's CPU back end runs one ray per
+  loop iteration); a BVH ray visits a few dozen boxes and a handful of triangles, so on a
+  CPU DACRT stays 2-3x behind BVH build + trace.
 - **Memory.** The pool variant holds per-slot arrays for 4096 slots (~11 MB) plus about 60 B
   per ray and 100 B per triangle; breadth-first holds the level lists (ray ids duplicated
   where rays straddle) and the terminal buffer (40 B per entry, at most 2 x (rays + tris)

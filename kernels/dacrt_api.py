@@ -11,13 +11,15 @@ import warp as wp
 from . import dacrt as dk
 from . import dacrt_table
 from .api import DEFAULT_MIN_CHUNKS, Hits, to_device
-from .pool import check_pool, default_workers, launch_workers, make_pool
+from .pool import PoolOverflow, check_pool, default_workers, launch_workers, make_pool
 from .validate import as_rays, as_triangle_mesh, degenerate_triangles, per_ray
 
 Variant = Literal["pool", "breadth_first"]
 Split = Literal["rdh", "median"]
 SPLITS: dict[str, int] = {"median": int(dk.SPLIT_MEDIAN), "rdh": int(dk.SPLIT_RDH)}
 VARIANTS = ("pool", "breadth_first")
+POOL_SLOTS = 1 << 12  # pool_capacity=None: the first try (~2.5 kB per slot) ...
+POOL_SLOTS_MAX = 1 << 18  # ... grown 4x after an overflow, up to this
 SMALL_ITEMS_CPU = 32768  # least small_items on CPU (measured: 4096 -> 32768 saved 3-7%)
 MARGIN_REL = 2.0**-16  # box and plane widening, relative to the largest coordinate
 
@@ -55,7 +57,7 @@ def dacrt_trace(
     stats: dict | None = None,
     workers: int | None = None,
     min_chunks: int = DEFAULT_MIN_CHUNKS,
-    pool_capacity: int = 1 << 12,
+    pool_capacity: int | None = None,
     max_depth: int = 48,
     alpha: int = 256,
     beta: int = 256,
@@ -83,6 +85,9 @@ def dacrt_trace(
         where one thread per task would leave the device idle.
     variant "breadth_first": the 2013 paper's level-wise DACRT; alpha, beta: its
         terminal-node thresholds; buffer_entries: the terminal buffer's flush threshold.
+    pool_capacity: task-pool slots; None starts with POOL_SLOTS and, if the tasks alive at
+        once outgrow them (many incoherent rays), runs again with 4x as many (stats
+        "pool_retries"); an explicit capacity raises PoolError instead.
     Defaults are the papers' (GPU) constants. A dict passed as `stats` receives timings
     (ms), the bytes of device memory held at the peak, and task or level counts."""
     if variant not in VARIANTS:
@@ -112,11 +117,23 @@ def dacrt_trace(
         return pdacrt_trace(vertices, indices, ids, origins, directions, tmin_a, tmax_a,
                             margin_for(vertices, origins), device, info, int(alpha),
                             int(beta), int(max_depth), max(int(buffer_entries), 1))
-    return _pool_trace(vertices, indices, ids, origins, directions, tmin_a, tmax_a, split,
-                       device, info, workers, int(min_chunks), int(pool_capacity),
-                       int(max_depth), float(c_sort), float(c_inters), int(min_rays),
-                       int(min_tris), int(rdh_min_rays),
-                       None if small_items is None else int(small_items))
+    capacity = POOL_SLOTS if pool_capacity is None else int(pool_capacity)
+    retries = 0
+    while True:
+        try:
+            hits = _pool_trace(vertices, indices, ids, origins, directions, tmin_a, tmax_a,
+                               split, device, info, workers, int(min_chunks), capacity,
+                               int(max_depth), float(c_sort), float(c_inters),
+                               int(min_rays), int(min_tris), int(rdh_min_rays),
+                               None if small_items is None else int(small_items))
+        except PoolOverflow:
+            if pool_capacity is not None or capacity >= POOL_SLOTS_MAX:
+                raise
+            capacity *= 4  # the run stopped at the overflow: start again, bigger
+            retries += 1
+            continue
+        info.update(pool_capacity=capacity, pool_retries=retries)
+        return hits
 
 
 class DeviceArrays:

@@ -52,6 +52,10 @@ class PoolError(RuntimeError):
     """The pool overflowed its capacity or stopped making progress."""
 
 
+class PoolOverflow(PoolError):
+    """Every slot of the pool was in use (the workers stopped at once)."""
+
+
 @wp.func_native(
     """
 #if defined(__CUDA_ARCH__)
@@ -317,7 +321,7 @@ def check_pool(pool: Pool) -> np.ndarray:
     """Raise PoolError if the pool overflowed or stalled; return its state otherwise."""
     state = pool.state.numpy()
     if state[ERROR] == ERR_OVERFLOW:
-        raise PoolError(
+        raise PoolOverflow(
             f"task pool overflow: all {pool.capacity} slots were in use; "
             "pass a larger pool_capacity"
         )

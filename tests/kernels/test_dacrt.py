@@ -19,7 +19,8 @@ from .test_trace import assert_same_hits
 
 VARIANTS = [("pool", "rdh"), ("pool", "median"), ("breadth_first", "rdh")]
 # small tests have few rays: let RDH sample every task with 16 rays or more (default 4096),
-# and let tasks of over 64 rays + triangles run the paper's PPS/Swap phases (default 32768),
+# and let tasks of over 64 rays + triangles run the paper's PPS/Swap phases (default on
+# CPU: a worker's share of all of them),
 # so that both sorting paths run in every test
 SMALL = {"rdh_min_rays": 16, "small_items": 64}
 
@@ -200,6 +201,21 @@ def test_pool_overflow_raises_pool_error():
     o, d = random_rays(rng, 3000, -0.5, 1.5)
     with pytest.raises(kernels.PoolError, match="overflow"):
         dacrt_trace(v, f, o, d, pool_capacity=3, workers=1)
+
+
+def test_default_pool_grows_after_an_overflow(monkeypatch):
+    """With pool_capacity=None an overflow is not the caller's problem: the trace runs
+    again with a bigger pool and gives the BVH's hits."""
+    import kernels.dacrt_api as api
+
+    monkeypatch.setattr(api, "POOL_SLOTS", 3)
+    rng = np.random.default_rng(3)
+    v, f = random_soup(rng, 3000)
+    o, d = random_rays(rng, 3000, -0.5, 1.5)
+    stats: dict = {}
+    hits = dacrt_trace(v, f, o, d, workers=1, stats=stats, **SMALL)
+    assert stats["pool_retries"] >= 1 and stats["pool_capacity"] == 3 * 4 ** stats["pool_retries"]
+    assert_equal_hits(hits, bvh_hits(v, f, o, d))
 
 
 @settings(max_examples=20, deadline=None)
