@@ -1393,10 +1393,28 @@ def prepare_triangles(
 
 
 @wp.kernel
+def prepare_rays(
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),
+    tmax: wp.array(dtype=float),
+    rays: wp.array(dtype=RayRecord),
+):
+    i = wp.tid()
+    d = directions[i]
+    r = RayRecord()
+    r.origin = origins[i]
+    r.tmin = tmin[i]
+    r.inv_dir = wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2])  # +-inf where d == 0
+    r.tmax = tmax[i]
+    rays[i] = r
+
+
+@wp.kernel
 def write_hits(
+    tri_verts: wp.array(dtype=wp.vec3),
     rays: wp.array(dtype=RayRecord),
     directions: wp.array(dtype=wp.vec3),
-    tri_verts: wp.array(dtype=wp.vec3),
     best: wp.array(dtype=wp.uint64),
     out_t: wp.array(dtype=float),
     out_triangle: wp.array(dtype=int),

@@ -10,7 +10,7 @@ import warp as wp
 
 from . import dacrt as dk
 from . import dacrt_table
-from .api import DEFAULT_MIN_CHUNKS, Hits, to_device
+from .api import DEFAULT_MIN_CHUNKS, Hits, _threads, launch_split, to_device
 from .pool import PoolOverflow, check_pool, default_workers, launch_workers, make_pool
 from .validate import as_rays, as_triangle_mesh, degenerate_triangles, per_ray
 
@@ -27,20 +27,9 @@ MARGIN_REL = 2.0**-16  # box and plane widening, relative to the largest coordin
 def margin_for(vertices: np.ndarray, origins: np.ndarray) -> float:
     """Widening that covers the watertight test's rounding: a few float32 ulps of the
     largest coordinate in play, with a generous factor."""
-    big = max(float(np.abs(vertices).max(initial=0.0)), float(np.abs(origins).max(initial=0.0)))
+    big = max(max(abs(float(x.max(initial=0.0))), abs(float(x.min(initial=0.0))))
+              for x in (vertices, origins))
     return MARGIN_REL * max(big, 1e-30)
-
-
-def ray_records(origins: np.ndarray, directions: np.ndarray, tmin: np.ndarray,
-                tmax: np.ndarray) -> np.ndarray:
-    """RayRecord rows: origin, tmin, 1/d (+-inf where d == 0), tmax."""
-    rec = np.empty((len(origins), 8), np.float32)
-    rec[:, :3] = origins
-    rec[:, 3] = tmin
-    with np.errstate(divide="ignore", over="ignore"):
-        rec[:, 4:7] = np.float32(1.0) / directions
-    rec[:, 7] = tmax
-    return rec.view(np.dtype(dk.RayRecord.numpy_dtype())).reshape(len(origins))
 
 
 def dacrt_trace(
@@ -166,8 +155,13 @@ def rays_and_triangles(mem: DeviceArrays, vertices, indices, origins, directions
     and box (the vertex and index uploads are freed once those are made)."""
     r, m = len(origins), len(indices)
     d = dk.DacrtData()
-    d.rays = mem.new(r, dk.RayRecord, data=ray_records(origins, directions, tmin, tmax))
-    d.directions = mem.new(r, wp.vec3, data=directions)
+    d.directions = mem.new(max(r, 1), wp.vec3, data=directions if r else None)
+    d.rays = mem.new(max(r, 1), dk.RayRecord)
+    per_ray = [mem.new(r, dt, data=x) for x, dt in ((origins, wp.vec3), (tmin, float),
+                                                   (tmax, float))]
+    launch_split(dk.prepare_rays, r, [], [per_ray[0], d.directions, *per_ray[1:]], [],
+                 [d.rays], mem.device, _threads(mem.device, None))
+    mem.free(*per_ray)
     v_wp = mem.new(len(vertices), wp.vec3, data=vertices)
     f_wp = mem.new(m, wp.vec3i, data=indices)
     d.tri_verts = mem.new(max(3 * m, 1), wp.vec3)
@@ -178,6 +172,15 @@ def rays_and_triangles(mem: DeviceArrays, vertices, indices, origins, directions
                   inputs=[v_wp, f_wp, d.tri_verts, d.tri_lo, d.tri_hi], device=mem.device)
     mem.free(v_wp, f_wp)
     return d
+
+
+def write_hits(mem: DeviceArrays, d: dk.DacrtData, r: int) -> Hits:
+    """Unpack every ray's closest-hit key (both variants), split over the host threads."""
+    out = [mem.new(max(r, 1), dt) for dt in (float, int, float, float)]
+    launch_split(dk.write_hits, r, [d.tri_verts], [d.rays, d.directions, d.best], [], out,
+                 mem.device, _threads(mem.device, None))
+    t, tri, u, v = (a.numpy()[:r] for a in out)
+    return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
 
 
 def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, device,
@@ -241,12 +244,7 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
     trace_ms = (time.perf_counter() - t0) * 1e3
 
     t0 = time.perf_counter()
-    out = [mem.new(max(r, 1), dt) for dt in (float, int, float, float)]
-    if r:
-        wp.launch(dk.write_hits, dim=r,
-                  inputs=[d.rays, d.directions, d.tri_verts, d.best],
-                  outputs=out, device=device)
-    t, tri, u, v = (a.numpy()[:r] for a in out)
+    hits = write_hits(mem, d, r)
     cycles = d.phase_cycles.numpy().reshape(workers, dk.PHASES).sum(axis=0).astype(np.float64)
     share = cycles / cycles.sum() if cycles.sum() > 0 else np.zeros_like(cycles)
     info.update({
@@ -269,4 +267,4 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
         "small_items": small_items,
         "degenerate": int(m - n),
     })
-    return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
+    return hits

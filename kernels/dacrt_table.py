@@ -17,6 +17,8 @@ interval j is empty. Plain numpy, shared by the kernel (`flat_table`) and its ex
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 NEAR, STRADDLE, FAR = 0, 1, 2
@@ -81,8 +83,10 @@ def entry(mask: int) -> dict:
             "order": order}
 
 
+@functools.cache
 def flat_table() -> np.ndarray:
-    """All 64 entries as one int32 array of MASKS * ROW values (layout above)."""
+    """All 64 entries as one int32 array of MASKS * ROW values (layout above); made once
+    (read-only)."""
     table = np.full((MASKS, ROW), -1, dtype=np.int32)
     for mask in range(MASKS):
         e = entry(mask)
@@ -100,4 +104,6 @@ def flat_table() -> np.ndarray:
                 raise AssertionError(f"task {t} of mask {mask} activates > {MAX_SUCC} tasks")
             for k, y in enumerate(e["succ"][t]):
                 row[SUCC + t * MAX_SUCC + k] = y
-    return table.reshape(-1)
+    flat = table.reshape(-1)
+    flat.flags.writeable = False
+    return flat

@@ -26,7 +26,7 @@ from warp.utils import array_scan, radix_sort_pairs, runlength_encode
 
 from . import dacrt as dk
 from .api import Hits
-from .dacrt_api import DeviceArrays, rays_and_triangles
+from .dacrt_api import DeviceArrays, rays_and_triangles, write_hits
 from .geometry import INF, intersect_triangle, make_ray
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -451,12 +451,7 @@ def pdacrt_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin
         phase_s["intersect"] += time.perf_counter() - t6
     wp.synchronize_device(device)
     trace_ms = (time.perf_counter() - t_start) * 1e3
-    out = [mem.new(max(r, 1), dt) for dt in (float, int, float, float)]
-    if r:
-        wp.launch(dk.write_hits, dim=r,
-                  inputs=[d.rays, d.directions, d.tri_verts, d.best],
-                  outputs=out, device=device)
-    t, tri, u, v = (a.numpy()[:r] for a in out)
+    hits = write_hits(mem, d, r)
     info.update({
         "variant": "breadth_first",
         "total_ms": (time.perf_counter() - t_start) * 1e3,
@@ -467,7 +462,7 @@ def pdacrt_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin
         "peak_nodes": peak_nodes,
         "degenerate": int(m - n),
     })
-    return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
+    return hits
 
 
 def _node_of(mem, starts: wp.array, nodes: int, count: int, device) -> wp.array:
