@@ -10,7 +10,9 @@ paper's Tables 1-3 (ms per frame of breadth-first DACRT for primary, shadow (one
 specular and AO rays (7 per primary hit here, 8 in the paper), and peak memory), each row
 beside BVH build (binned SAH) + trace of the same rays. Every DACRT result is checked against
 the BVH's (hit/miss mismatches are counted). Times are the median of --repeat runs after
-one warm-up (compilation excluded), the methods run in turn (interleaved).
+one warm-up (compilation excluded), the methods run in turn (interleaved), each timed
+call after `backend.peers.warm_memory` (see there: on this VM a call after a pause
+finds its memory cold and a call after a big free warm).
 
 Peak memory: DACRT counts the bytes of every device array it holds at its peak (inputs,
 index arrays, pool or level lists, the terminal buffer, outputs); the BVH's figure counts the
@@ -44,7 +46,7 @@ sys.path.insert(0, str(REPO))
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
 import kernels  # noqa: E402
-from backend.peers import timeit_each  # noqa: E402
+from backend.peers import timeit_each, warm_memory  # noqa: E402
 from backend.scenes import shared_scene  # noqa: E402
 from kernels.dacrt_api import dacrt_trace  # noqa: E402
 
@@ -162,8 +164,11 @@ def measure(scene, size: int, kind: str, methods: list[str], tuning: str, repeat
                                    variant=variant, split=split, stats=stats[method],
                                    **TUNINGS[tuning][variant])
 
-    # interleaved, so that a burst of load on the machine hits every method alike
-    times = timeit_each([bvh_run] + [lambda m=m: dacrt_run(m) for m in methods], repeat)
+    # interleaved, so that a burst of load on the machine hits every method alike, and each
+    # call in the same memory state (warm_memory: the VM's cold pages cost BVH build + trace
+    # of 1M rays ~45 ms, DACRT nothing measurable)
+    times = timeit_each([bvh_run] + [lambda m=m: dacrt_run(m) for m in methods], repeat,
+                        before=warm_memory)
     bvh, ref = last["bvh"]
     row["bvh_s"] = times[0]
     row["bvh_build_ms"] = bvh.stats["build_ms"]
