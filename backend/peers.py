@@ -109,21 +109,11 @@ def timeit(fn: Callable[[], object], repeat: int = 5, warmup: int = 1) -> float:
     return timeit_each([fn], repeat, warmup)[0]
 
 
-def warm_memory(nbytes: int = 1 << 30) -> None:
-    """Touch and free `nbytes`. On this project's VMs the kernel hands freed memory back to
-    the host after a moment, and the first touch of such pages costs several times a
-    normal page fault: a call that follows a big free runs warm, one that follows a pause
-    cold (BVH build + trace of 1M rays: 0.10 s against 0.145 s). Calling this before each
-    timed call puts every method in the same (warm) state."""
-    a = np.ones(nbytes // 8)
-    del a
-
-
 def timeit_each(fns: list[Callable[[], object]], repeat: int = 5,
                 warmup: int = 1, before: Callable[[], object] | None = None) -> list[float]:
     """Median wall seconds of each function, called in turn `repeat` times after `warmup`
     rounds: interleaved, so a burst of load on a shared machine hits all of them alike.
-    `before` (untimed) runs before every timed call, e.g. `warm_memory`."""
+    `before` (untimed) runs before every timed call."""
     for _ in range(warmup):
         for fn in fns:
             fn()
