@@ -803,10 +803,9 @@ def add_cycles(b: BuildData, worker: int, phase: int, since: wp.int64):
 
 
 @wp.func
-def advance(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask) -> int:
+def advance(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask):
     """Run steps inline while they have fewer than K chunks (sec. 3.4), finishing tasks and
-    continuing with a child; publish the first step that is big enough for the pool.
-    Returns the slot last worked on (where this worker looks for work next)."""
+    continuing with a child; publish the first step that is big enough for the pool."""
     s = slot
     task = t
     while True:
@@ -819,13 +818,13 @@ def advance(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask) -> i
             next_slot = split_node(b, pool, task, s)
             add_cycles(b, worker, PHASE_DONE, since)
             if next_slot < 0:
-                return s
+                return
             s = next_slot
             task = b.tasks[s]
         if task.chunks >= pool.min_chunks:
             b.tasks[s] = task
             pool_hand_over(pool, s, task.chunks)
-            return s
+            return
         since = cycles()
         for c in range(task.chunks):
             run_chunk(b, task, s, c)
@@ -853,19 +852,17 @@ def run_chunks(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask, f
 def build_worker(b: BuildData, pool: Pool, first_worker: int):
     """The persistent worker of Algorithm 1."""
     worker = first_worker + wp.tid()
-    last_slot = worker
     idle_since = wp.int64(-1)
     while pool_running(pool):
-        got = pool_acquire(pool, last_slot)
+        got = pool_acquire(pool)
         slot = got[0]
         if slot < 0:
             idle_since = pool_idle(pool, idle_since)
             continue
         idle_since = wp.int64(-1)
-        last_slot = slot
         run_chunks(b, pool, worker, slot, b.tasks[slot], got[1], got[2])
         if pool_finish(pool, slot, got[2]):
-            last_slot = advance(b, pool, worker, slot, b.tasks[slot])
+            advance(b, pool, worker, slot, b.tasks[slot])
 
 
 @wp.kernel

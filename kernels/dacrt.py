@@ -1311,10 +1311,10 @@ def add_cycles(d: DacrtData, worker: int, phase: int, since: wp.int64):
 
 
 @wp.func
-def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask) -> int:
+def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask):
     """Run steps inline while they have fewer than K chunks (2012 paper, sec. 3.4), finishing
     tasks and continuing with a child or an activated dependant; publish the first step big
-    enough for the pool. Returns the slot last worked on."""
+    enough for the pool."""
     s = slot
     task = t
     while True:
@@ -1325,7 +1325,7 @@ def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask) -> i
             next_slot = finish_task(d, pool, task, s)
             add_cycles(d, worker, phase, since)
             if next_slot < 0:
-                return s
+                return
             s = next_slot
             task = d.tasks[s]
         else:
@@ -1333,7 +1333,7 @@ def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask) -> i
         if task.chunks >= pool.min_chunks:
             d.tasks[s] = task
             pool_hand_over(pool, s, task.chunks)
-            return s
+            return
         since = cycles()
         run_chunks(d, task, s, 0, task.chunks)
         add_cycles(d, worker, task.phase, since)
@@ -1343,22 +1343,20 @@ def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask) -> i
 def dacrt_worker(d: DacrtData, pool: Pool, first_worker: int):
     """The persistent worker of Algorithm 1 (2012 paper, sec. 3.3)."""
     worker = first_worker + wp.tid()
-    last_slot = worker
     idle_since = wp.int64(-1)
     while pool_running(pool):
-        got = pool_acquire(pool, last_slot)
+        got = pool_acquire(pool)
         slot = got[0]
         if slot < 0:
             idle_since = pool_idle(pool, idle_since)
             continue
         idle_since = wp.int64(-1)
-        last_slot = slot
         t = d.tasks[slot]
         since = cycles()
         run_chunks(d, t, slot, got[1], got[2])
         add_cycles(d, worker, t.phase, since)
         if pool_finish(pool, slot, got[2]):
-            last_slot = advance(d, pool, worker, slot, d.tasks[slot])
+            advance(d, pool, worker, slot, d.tasks[slot])
 
 
 @wp.kernel

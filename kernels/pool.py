@@ -32,15 +32,17 @@ LIVE = wp.constant(0)  # tasks stored and not finished; workers stop at zero
 ERROR = wp.constant(1)  # 0, or one of the ERR_* codes below
 HIGH_WATER = wp.constant(2)  # one past the highest slot ever used: bounds the search
 PUBLISHED = wp.constant(3)  # later steps handed to the pool instead of run inline (sec. 3.4)
+STAMPS = wp.constant(4)  # publications so far (stamps them; 2^31 per pool is plenty)
 ERR_OVERFLOW = wp.constant(1)
 ERR_STUCK = wp.constant(2)
-STATE_SIZE = 4
+STATE_SIZE = 5
 
 
 @wp.struct
 class Pool:
     header: wp.array(dtype=wp.int32)
     unfinished: wp.array(dtype=wp.int32)
+    stamp: wp.array(dtype=wp.int32)  # per slot: the publication count when its step came
     state: wp.array(dtype=wp.int32)
     capacity: int
     workers: int  # W in eq. 3.1
@@ -195,22 +197,28 @@ def cpu_relax(): ...
 
 
 @wp.func
-def pool_acquire(pool: Pool, start_slot: int) -> wp.vec3i:
-    """Take work chunks from an active task (sec. 3.4, 'Retrieving work'), searching from
-    `start_slot` downwards: workers start at different offsets to spread the atomics, and a
-    worker starts where it worked last, so that it finishes a task and then a child before it
-    turns to other tasks (depth first: the pool stays small).
+def pool_acquire(pool: Pool) -> wp.vec3i:
+    """Take work chunks from an active task (sec. 3.4, 'Retrieving work'): the one whose
+    step was published last, so that workers go depth first and the pool stays small. (A
+    search from the worker's last slot, as first written here, is not depth first once
+    slots are reused: DACRT on 1.8 M incoherent rays kept ~4000 tasks alive instead of
+    ~200, and ran 20% slower.) The scan reads every used header: cheap for a few CPU
+    workers; thousands of GPU workers might rather search from spread offsets (not run).
 
     The chunks are taken with a compare-and-swap of the header value just read rather than
     the paper's blind decrement: a decrement based on a stale read could land on a slot that
     has since been reused for a dependent task and corrupt its dependency count.
     Returns (slot, first chunk, chunk count), or slot -1 when no active task was found."""
     used = pool_load(pool.state, HIGH_WATER)
-    if used == 0:
-        return wp.vec3i(-1, 0, 0)
-    start = start_slot % used
-    for j in range(used):  # downwards: the most recently stored tasks sit in high slots
-        slot = (start - j + used) % used
+    while True:
+        slot = int(-1)
+        newest = int(-1)
+        for k in range(used):
+            if pool_load(pool.header, k) > 0 and pool_load(pool.stamp, k) > newest:
+                newest = pool_load(pool.stamp, k)
+                slot = k
+        if slot < 0:
+            return wp.vec3i(-1, 0, 0)
         h = pool_load(pool.header, slot)
         while h > 0:
             # eq. 3.1: N_w = max(ceil(S / W), K)
@@ -220,7 +228,6 @@ def pool_acquire(pool: Pool, start_slot: int) -> wp.vec3i:
             if seen == h:
                 return wp.vec3i(slot, h - take, take)
             h = seen
-    return wp.vec3i(-1, 0, 0)
 
 
 @wp.func
@@ -233,6 +240,7 @@ def pool_finish(pool: Pool, slot: int, count: int) -> bool:
 def pool_publish(pool: Pool, slot: int, chunks: int):
     """Make the step of a locked task available: its data must be written before this."""
     shared_exch(pool.unfinished, slot, chunks)
+    shared_exch(pool.stamp, slot, shared_add(pool.state, STAMPS, 1))
     memory_fence()
     shared_exch(pool.header, slot, chunks)
 
@@ -309,6 +317,7 @@ def make_pool(capacity: int, workers: int, min_chunks: int, device,
     pool = Pool()
     pool.header = wp.full(capacity, int(EMPTY), dtype=wp.int32, device=device)
     pool.unfinished = wp.zeros(capacity, dtype=wp.int32, device=device)
+    pool.stamp = wp.zeros(capacity, dtype=wp.int32, device=device)
     pool.state = wp.zeros(STATE_SIZE, dtype=wp.int32, device=device)
     pool.capacity = capacity
     pool.workers = workers

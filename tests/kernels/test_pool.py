@@ -30,10 +30,9 @@ from .reference import random_soup
 def toy_worker(pool: Pool, chunks_b: int, order: wp.array(dtype=int), log: wp.array(dtype=int)):
     """Slot 0: task A; slot 1: task B, dependent on A. Each processed chunk appends
     (slot, chunk) to the log; the last finisher of A activates B, of B releases it."""
-    last = wp.tid()
     idle_since = wp.int64(-1)
     while pool_running(pool):
-        got = pool_acquire(pool, last)
+        got = pool_acquire(pool)
         if got[0] < 0:
             idle_since = pool_idle(pool, idle_since)
             continue
