@@ -214,9 +214,11 @@ def pool_acquire(pool: Pool) -> wp.vec3i:
         slot = int(-1)
         newest = int(-1)
         for k in range(used):
-            if pool_load(pool.header, k) > 0 and pool_load(pool.stamp, k) > newest:
-                newest = pool_load(pool.stamp, k)
-                slot = k
+            if pool_load(pool.header, k) > 0:
+                stamp = pool_load(pool.stamp, k)
+                if stamp > newest:
+                    newest = stamp
+                    slot = k
         if slot < 0:
             return wp.vec3i(-1, 0, 0)
         h = pool_load(pool.header, slot)
