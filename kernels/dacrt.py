@@ -900,10 +900,10 @@ def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
         first_tri = t.tri_start
 
 
-@wp.func
+@wp.func(inline=False)  # inlined into both callers, the worker's PPS and Swap ran ~2x slower
 def run_chunks(d: DacrtData, t: DacrtTask, slot: int, first: int, count: int):
     """Chunks first.. of the task's step. One call per batch, as the call copies the
-    structs (this function is too big for the compiler to inline)."""
+    structs."""
     if t.phase == PH_INTERSECT:
         intersect_chunks(d, t, first, count)
         return

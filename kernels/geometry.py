@@ -135,7 +135,7 @@ def edge_function(ax: float, ay: float, bx: float, by: float) -> float:
     return e
 
 
-@wp.func
+@wp.func(inline=True)  # the hot loop of every tracer; clang's heuristic sometimes declines
 def intersect_triangle(
     r: Ray, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, tmin: float, tmax: float
 ) -> wp.vec3:
