@@ -10,10 +10,10 @@ paper's Tables 1-3 (ms per frame of breadth-first DACRT for primary, shadow (one
 specular and AO rays (7 per primary hit here, 8 in the paper), and peak memory), each row
 beside BVH build (binned SAH) + trace of the same rays. Every DACRT result is checked against
 the BVH's (hit/miss mismatches are counted). Times are the median of --repeat runs after
-one warm-up (compilation excluded); BVH and the pool variant run in turn (interleaved),
-breadth-first on its own. For 1024² primary rays the BVH is also timed right after a big
-free (`bvh_warm_s`): on this VM that makes it up to 30% faster (see the notes), and the
-floor is judged against the faster of the two.
+one warm-up (compilation excluded); the pool variant's splits run in turn (interleaved), the
+BVH and breadth-first each on their own. For 1024² primary rays the BVH is also timed right
+after a big free (`bvh_warm_s`): on this VM that makes it up to 30% faster (see the notes),
+and the floor is judged against the faster of the two.
 
 Peak memory: DACRT counts the bytes of every device array it holds at its peak (inputs,
 index arrays, pool or level lists, the terminal buffer, outputs); the BVH's figure counts the
@@ -172,10 +172,11 @@ def measure(scene, size: int, kind: str, methods: list[str], tuning: str, repeat
                                    variant=variant, split=split, stats=stats[method],
                                    **TUNINGS[tuning][variant])
 
-    # interleaved, so that a burst of load on the machine hits every method alike; the
-    # breadth-first variant apart: the BVH runs up to 30% faster after its big frees
+    # The splits interleaved, so that a burst of load hits both alike; the BVH and
+    # breadth-first apart: what they leave behind changes the next call's time (notes)
     pool = [m for m in methods if m != "bf"]
-    times = timeit_each([bvh_run] + [lambda m=m: dacrt_run(m) for m in pool], repeat)
+    times = timeit_each([bvh_run], repeat)
+    times += timeit_each([lambda m=m: dacrt_run(m) for m in pool], repeat)
     if "bf" in methods:
         times += timeit_each([lambda: dacrt_run("bf")], repeat)
     if size >= 1024 and kind == "primary":
@@ -249,7 +250,7 @@ def floors(rows: list[dict]) -> str:
         ratio = best / bvh
         out.append(f"- {r['scene']} 1024² primary, {r['tuning']} constants: fastest DACRT / "
                    f"(BVH build + trace) = {ratio:.2f} against the faster BVH time "
-                   f"({best / r['bvh_s']:.2f} against the interleaved one) "
+                   f"({best / r['bvh_s']:.2f} against the other one) "
                    f"({'PASS' if ratio <= 3 else 'FAIL'} at 3x)")
     if not out:
         out.append("- floors need 1024² rows: not measured in this run")
@@ -331,8 +332,8 @@ Notes (what the numbers mean and what was tried):
   0.31 / 0.31 / 0.32 s. So on CPU the default is a worker's share of all rays and triangles
   (at least 32768): with two workers only the root runs the paper's phases, in parallel.
   `small_items=0` gives the paper's phases in every task (the tests run both paths).
-- **Calls that copy.** `run_chunks` is the one function of the worker that the compiler
-  does not inline (checked with `nm` on the kernel's object file), and Warp passes structs
+- **Calls that copy.** `run_chunks` is the one function of the worker that is not
+  inlined (checked with `nm` on the kernel's object file), and Warp passes structs
   by value: each call copied DacrtData (27 arrays) and the task. Called once per batch of
   chunks instead of once per chunk: Swap1 and Swap2 on Sponza 1024² 80 -> 55 ms each,
   intersection 420 -> 380 ms.
@@ -375,25 +376,44 @@ Notes (what the numbers mean and what was tried):
   box is clipped there (in PPS1 and in intersection tasks); the seven-child order lets
   straddling rays meet near triangles before far ones. Breadth-first has no such cut
   (2013 paper, sec. 3.3).
-- **Where the time goes** (Sponza 1024², RDH, cpu constants, two workers, 1.1 s): rays are
+- **Compiled code.** Reading the kernel's machine code (`objdump` on the cached object) and
+  timing the classification loop alone (22 ns per ray even with the rays in order, ~90
+  instructions per ray box test) showed two costs no profile of the phases could: on CPU
+  `wp.isinf` compiles to a call into the C library (four per ray, every register spilled
+  around each), and `wp.min` / `wp.max` on floats to NaN-safe sequences of five
+  instructions. The box test now uses an absolute-value compare and selects
+  (`wp.where`, as the BVH traversal and `geometry.min3` already did): Sponza 1024²
+  1.06 -> 0.82 s, buddha 0.30 -> 0.26 s, the other scenes 10-20%. Inlining is pinned where
+  it matters: `intersect_triangle` always (a one-line change in the pool made clang keep
+  it out of line, passing the ray struct by value: intersection 2.2x slower, buddha 0.30 ->
+  0.41 s, unseen by the tests), `run_chunks` never (forced inline, the worker grows and PPS
+  and Swap run ~2x slower). Tried without gain: one 64-byte line per ray holding its
+  record, direction and closest-hit key (one cache line per gathered ray instead of three):
+  Sort unchanged, the root's PPS1 35% slower (twice the bytes in order); the sort is
+  bound by instructions, not by cache misses.
+- **Where the time goes** (Sponza 1024², RDH, cpu constants, two workers, 0.82 s): rays are
   sorted about 52 times each (54.5 M ray classifications, 2.6 M triangle ones) and
-  intersection tasks hold 90 M ray-triangle pairs: Sort ~50%, intersection ~30%, the root's
-  PPS1 ~11%, SplitPlane 3%. Indoor cameras (Sponza, Sibenik, Conference) are the hard
-  case: every ray straddles the first planes. Per item the sort costs about 20 ns on one
-  core and a pair test about 8 ns (scalar code: Warp's CPU back end runs one ray per
-  loop iteration); a BVH ray visits a few dozen boxes and a handful of triangles, so on a
-  CPU DACRT stays 2-3x behind BVH build + trace.
+  intersection tasks hold 90 M ray-triangle pairs: Sort ~45%, intersection ~34%, the
+  root's PPS1 ~12%, SplitPlane 2%. Indoor cameras (Sponza, Sibenik, Conference) are the
+  hard case: every ray straddles the first planes. Per item the sort costs about 13 ns on
+  one core and a pair test about 6 ns (scalar code: Warp's CPU back end runs one ray per
+  loop iteration; Woop's test indexes the vertices by the ray's axis permutation, which
+  goes through the stack); a BVH ray visits a few dozen boxes and a handful of
+  triangles, so on a CPU DACRT stays about 2x behind BVH build + trace.
 - **Memory state.** On this VM the time of BVH build + trace depends on what ran before
   it: right after a big free (a breadth-first run, or touching and freeing 0.5-1 GiB) it is
   up to 30% faster than after a pause or after its own previous call (buddha 1024²:
   0.10 s against 0.14 s), while DACRT gains nothing (and touching 1 GiB before it slowed it
   by 5-10%). Likely causes: the kernel returns idle memory to the host (DAMON `pageout`,
   free page reporting) and the huge pages a big free leaves behind (numpy asks for
-  transparent huge pages; BVH traversal is TLB-bound). Session 2's figures, and this
-  session's first runs, interleaved the BVH right after the breadth-first variant, or
-  after DACRT without it; neither is neutral. Now the BVH and the pool variant run
-  interleaved, breadth-first on its own, and for 1024² primary rays the BVH is timed once
-  more right after a 0.5 GiB free: the floor takes the faster BVH time (conservative).
+  transparent huge pages; BVH traversal is TLB-bound). It works the other way too: at 512²
+  the DACRT call right after a BVH call took 20% longer than one after another DACRT call
+  (bunny primary, either split: 138 against 113 ms; no such effect at 1024²). Rows up to
+  session 4's first run interleaved [BVH, median, RDH], so the median paid it and the 512²
+  RDH / median ratios of the object scenes (0.84-0.95 then) were flattered. Now the two
+  splits run interleaved with each other, the BVH and breadth-first each on their own, and
+  for 1024² primary rays the BVH is timed once more right after a 0.5 GiB free: the floor
+  takes the faster BVH time (conservative).
 - **Memory.** The pool variant holds per-slot arrays for 4096 slots (~11 MB) plus about 60 B
   per ray and 100 B per triangle; breadth-first holds the level lists (ray ids duplicated
   where rays straddle) and the terminal buffer (40 B per entry, at most 2 x (rays + tris)
