@@ -191,10 +191,10 @@ def build_bvh(
     return bvh
 
 
-def count_degenerate(vertices: np.ndarray, indices: np.ndarray, device=None,
-                     threads: int | None = None) -> int:
-    """Zero-area triangles of a validated mesh, as `build_bvh` counts them (the float64
-    cross product of the float32 edges is exactly zero), on every core."""
+def degenerate_mask(vertices: np.ndarray, indices: np.ndarray, device=None,
+                    threads: int | None = None) -> np.ndarray:
+    """Zero-area triangles of a validated mesh, as `build_bvh` skips them (the float64 cross
+    product of the float32 edges is exactly zero): a bool mask, computed on every core."""
     device = _device(device)
     m = len(indices)
     flags = np.empty(m, np.int8)
@@ -202,7 +202,13 @@ def count_degenerate(vertices: np.ndarray, indices: np.ndarray, device=None,
     launch_split(bb.degenerate_flags, m, [to_device(vertices, wp.vec3, device)],
                  [to_device(np.ascontiguousarray(indices, np.int32), wp.vec3i, device)], [],
                  [out], device, _threads(device, threads))
-    return int(np.count_nonzero(flags if device.is_cpu else out.numpy()))
+    return (flags if device.is_cpu else out.numpy()).view(bool)
+
+
+def count_degenerate(vertices: np.ndarray, indices: np.ndarray, device=None,
+                     threads: int | None = None) -> int:
+    """How many triangles `degenerate_mask` flags."""
+    return int(np.count_nonzero(degenerate_mask(vertices, indices, device, threads)))
 
 
 def _empty_root(device) -> wp.array:

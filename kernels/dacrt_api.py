@@ -10,9 +10,9 @@ import warp as wp
 
 from . import dacrt as dk
 from . import dacrt_table
-from .api import DEFAULT_MIN_CHUNKS, Hits, _threads, launch_split, to_device
+from .api import DEFAULT_MIN_CHUNKS, Hits, _threads, degenerate_mask, launch_split, to_device
 from .pool import PoolOverflow, check_pool, default_workers, launch_workers, make_pool
-from .validate import as_rays, as_triangle_mesh, degenerate_triangles, per_ray
+from .validate import as_rays, as_triangle_mesh, per_ray
 
 Variant = Literal["pool", "breadth_first"]
 Split = Literal["rdh", "median"]
@@ -30,6 +30,17 @@ def margin_for(vertices: np.ndarray, origins: np.ndarray) -> float:
     big = max(max(abs(float(x.max(initial=0.0))), abs(float(x.min(initial=0.0))))
               for x in (vertices, origins))
     return MARGIN_REL * max(big, 1e-30)
+
+
+def scene_box(vertices: np.ndarray, indices: np.ndarray, ids: np.ndarray,
+              margin: float) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi) of the vertices that the triangles `ids` use, widened by the margin (a
+    column-wise reduction over one copy: numpy's min(axis=0) of an (N, 3) array ran 10x
+    slower, 18 ms of a 260 ms call on the buddha)."""
+    used = np.zeros(len(vertices), bool)
+    used[indices[ids]] = True
+    columns = np.ascontiguousarray(vertices[used].T)
+    return columns.min(axis=1) - margin, columns.max(axis=1) + margin
 
 
 def dacrt_trace(
@@ -98,7 +109,7 @@ def dacrt_trace(
         raise ValueError("tmax must be >= tmin for every ray")
     wp.init()
     device = wp.get_device(device)
-    ids = np.flatnonzero(~degenerate_triangles(vertices, indices)).astype(np.int32)
+    ids = np.flatnonzero(~degenerate_mask(vertices, indices, "cpu")).astype(np.int32)
     info = stats if stats is not None else {}
     if variant == "breadth_first":
         from .pdacrt import pdacrt_trace  # here: pdacrt imports this module
@@ -229,9 +240,7 @@ def _pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, 
 
     t0 = time.perf_counter()
     if r and n:
-        corners = vertices[indices[ids]].reshape(-1, 3)
-        box_lo = corners.min(axis=0) - d.margin
-        box_hi = corners.max(axis=0) + d.margin
+        box_lo, box_hi = scene_box(vertices, indices, ids, d.margin)
         wp.launch(dk.start_trace, dim=1,
                   inputs=[d, pool, wp.vec3(*box_lo), wp.vec3(*box_hi), r, n], device=device)
         launch_workers(dk.dacrt_worker, workers, [d, pool], device)

@@ -26,7 +26,7 @@ from warp.utils import array_scan, radix_sort_pairs, runlength_encode
 
 from . import dacrt as dk
 from .api import Hits
-from .dacrt_api import DeviceArrays, rays_and_triangles, write_hits
+from .dacrt_api import DeviceArrays, rays_and_triangles, scene_box, write_hits
 from .geometry import INF, intersect_triangle, make_ray
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -360,10 +360,10 @@ def pdacrt_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin
     peak_nodes = 0
     phase_s = dict.fromkeys(("filter", "sort", "reduce", "children", "gather", "intersect"), 0.0)
     if r and n:
-        corners = vertices[indices[ids]].reshape(-1, 3)
+        box_lo, box_hi = scene_box(vertices, indices, ids, margin)
         lv = _new_level(mem, 1, device)
-        lv.lo.assign(wp.array([corners.min(axis=0) - margin], dtype=wp.vec3, device=device))
-        lv.hi.assign(wp.array([corners.max(axis=0) + margin], dtype=wp.vec3, device=device))
+        lv.lo.assign(wp.array([box_lo], dtype=wp.vec3, device=device))
+        lv.hi.assign(wp.array([box_hi], dtype=wp.vec3, device=device))
         for a, v in ((lv.tri_start, 0), (lv.tri_count, n), (lv.ray_start, 0),
                      (lv.ray_count, r)):
             a.fill_(v)

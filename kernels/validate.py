@@ -46,13 +46,6 @@ def as_triangle_mesh(vertices, indices) -> tuple[np.ndarray, np.ndarray]:
     return vertices, np.ascontiguousarray(idx, dtype=np.int32)
 
 
-def degenerate_triangles(vertices: np.ndarray, indices: np.ndarray) -> np.ndarray:
-    """Mask of zero-area triangles (exact float64 cross product of float32 edges)."""
-    v = vertices.astype(np.float64)
-    a, b, c = v[indices[:, 0]], v[indices[:, 1]], v[indices[:, 2]]
-    return ~np.any(np.cross(b - a, c - a) != 0.0, axis=1)
-
-
 def as_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     """Validated float32 (R,3) origins and non-zero directions."""
     origins = _float_array(origins, "origins", 3)

@@ -109,7 +109,7 @@ def test_png_is_gray_rows_top_first() -> None:
 
 def test_degenerate_count_agrees_with_the_engine() -> None:
     """The upload's count must equal the BVH's `degenerate` statistic."""
-    from kernels.validate import degenerate_triangles
+    from tests.kernels.reference import degenerate_triangles
 
     rng = np.random.default_rng(0)
     vertices = rng.integers(-3, 3, (50, 3)).astype(np.float32)  # many collinear triples

@@ -36,6 +36,13 @@ def brute_force(vertices, indices, origins, directions, tmin=0.0, tmax=np.inf):
     return best_t, best_tri
 
 
+def degenerate_triangles(vertices, indices) -> np.ndarray:
+    """Mask of zero-area triangles: the float64 cross product of the float32 edges is zero."""
+    v = vertices.astype(np.float64)
+    a, b, c = v[indices[:, 0]], v[indices[:, 1]], v[indices[:, 2]]
+    return ~np.any(np.cross(b - a, c - a) != 0.0, axis=1)
+
+
 def check_bvh(bvh, leaf_size: int, max_depth: int = 64) -> None:
     """Exact structure: every non-degenerate triangle in exactly one leaf, leaf sizes kept
     (except at the depth cap), every box tight around its triangles and its children."""
