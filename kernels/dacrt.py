@@ -51,6 +51,8 @@ CAND_INTS = 33 * 4  # per pool slot and plane: tris, then rays, of the left and 
 CAND_BOXES = 33 * 2  # per pool slot and plane: the sampled children's boxes
 KEY_NONE = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 PREFETCH = wp.constant(16)  # items ahead that the sort's classification loops prefetch
+HASH_M1 = wp.constant(wp.uint32(0x7FEB352D))  # hash32's multipliers
+HASH_M2 = wp.constant(wp.uint32(0x846CA68B))
 T_WIDEN = wp.constant(1.0e-5)  # relative widening of [tmin, tmax] for classification
 
 SPLIT_MEDIAN = wp.constant(0)
@@ -752,6 +754,32 @@ def sample_ray(d: DacrtData, t: DacrtTask, ints: int, boxes: int, r: RayRecord):
 
 
 @wp.func
+def hash32(x: int) -> int:
+    """A well-mixed 31-bit hash of x (Wellons' lowbias32)."""
+    h = wp.uint32(x)
+    h = (h ^ (h >> wp.uint32(16))) * HASH_M1
+    h = (h ^ (h >> wp.uint32(15))) * HASH_M2
+    return int((h ^ (h >> wp.uint32(16))) >> wp.uint32(1))
+
+
+@wp.func
+def sample_position(t: DacrtTask, step: int, s: int) -> int:
+    """Index-array position of SplitPlane's sample s at step 0 (triangles) or 1 (rays): one
+    sample in each of n equal strata, at a hashed place in it. (A fixed stride aliases with
+    the image's rows: at 1024² every one of the root's 1024 ray samples was a pixel of the
+    first column.)"""
+    n = sample_counts(t)[step]
+    start = t.tri_start
+    count = t.tri_count
+    if step != 0:
+        start = t.ray_start
+        count = t.ray_count
+    stride = count / n
+    seed = hash32(hash32(t.ray_start) ^ t.tri_start) ^ (step << 30)  # the task's own offsets
+    return start + s * stride + hash32(seed ^ s) % stride
+
+
+@wp.func
 def split_plane_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
     """RDH sampling (sec. 5.2). Step 0: sampled triangles in the left and right child of
     every candidate, and the children's boxes. Step 1: sampled rays that meet each child's
@@ -761,11 +789,11 @@ def split_plane_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
     boxes = slot * CAND_BOXES
     if t.step == 0:
         for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[0])):
-            tri = d.tri_ids[t.tri_start + s * (t.tri_count / ns[0])]
+            tri = d.tri_ids[sample_position(t, 0, s)]
             sample_tri(d, t, ints, boxes, d.tri_lo[tri], d.tri_hi[tri])
     else:
         for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[1])):
-            ray = d.ray_ids[t.ray_start + s * (t.ray_count / ns[1])]
+            ray = d.ray_ids[sample_position(t, 1, s)]
             sample_ray(d, t, ints, boxes, d.rays[ray])
 
 

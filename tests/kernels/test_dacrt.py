@@ -263,7 +263,7 @@ def _rdh_both_ways(d: dk.DacrtData, t: dk.DacrtTask):
     ints = dk.CAND_INTS
     boxes = dk.CAND_BOXES
     for s in range(ns[0]):
-        tri = d.tri_ids[t.tri_start + s * (t.tri_count / ns[0])]
+        tri = d.tri_ids[dk.sample_position(t, 0, s)]
         lo = d.tri_lo[tri]
         hi = d.tri_hi[tri]
         for c in range(dk.PLANES):
@@ -286,7 +286,7 @@ def _rdh_both_ways(d: dk.DacrtData, t: dk.DacrtTask):
             d.cand_lo[k] = box[0]
             d.cand_hi[k] = box[1]
     for s in range(ns[1]):
-        ray = d.ray_ids[t.ray_start + s * (t.ray_count / ns[1])]
+        ray = d.ray_ids[dk.sample_position(t, 1, s)]
         r = d.rays[ray]
         w = dk.widened_range(r)
         if dk.ray_span(r, t.lo, t.hi, w[0], w[1])[0] < dk.INF:
@@ -332,3 +332,29 @@ def test_rdh_samples_equal_the_plane_by_plane_count(seed, snap):
     for a in (data.cand_lo, data.cand_hi):
         boxes = a.numpy().reshape(2, dk.PLANES, 2, 3)
         assert np.array_equal(boxes[0], boxes[1])
+
+
+@wp.kernel
+def _sample_positions(t: dk.DacrtTask, step: int, out: wp.array(dtype=int)):
+    s = wp.tid()
+    out[s] = dk.sample_position(t, step, s)
+
+
+@pytest.mark.parametrize("width", [512, 1024])
+def test_rdh_ray_samples_do_not_alias_with_image_rows(width):
+    """The root of a width² image holds its rays in row order and samples sqrt(width²) =
+    width of them: with a fixed stride of width rays every sample was a pixel of column 0.
+    One sample per stratum, at a hashed place: the samples spread over the columns and stay
+    one per stratum."""
+    task = dk.DacrtTask()
+    task.ray_start, task.ray_count = 0, width * width
+    task.tri_start, task.tri_count = 0, 100_000
+    for step, count in ((1, width * width), (0, 100_000)):
+        n = int(np.sqrt(count))
+        out = wp.empty(n, dtype=int)
+        wp.launch(_sample_positions, dim=n, inputs=[task, step, out], device="cpu")
+        pos = out.numpy()
+        stride = count // n
+        assert np.array_equal(pos // stride, np.arange(n))  # one in each stratum, in range
+        if step == 1:
+            assert len(np.unique(pos % width)) > width // 2  # columns: ~63% of them by chance
