@@ -111,22 +111,31 @@ def timeit(fn: Callable[[], object], repeat: int = 5, warmup: int = 1) -> float:
 
 def timeit_each(fns: list[Callable[[], object]], repeat: int = 5,
                 warmup: int = 1, before: Callable[[], object] | None = None) -> list[float]:
-    """Median wall seconds of each function, called in turn `repeat` times after `warmup`
-    rounds: interleaved, so a burst of load on a shared machine hits all of them alike.
-    `before` (untimed) runs before every timed call."""
+    """Median wall seconds of each function of `samples_each`."""
+    return [float(np.median(t)) for t in samples_each(fns, repeat, warmup, before)]
+
+
+def samples_each(fns: list[Callable[[], object]], repeat: int = 5, warmup: int = 1,
+                 before: Callable[[], object] | None = None) -> list[list[float]]:
+    """Wall seconds of each function, called in turn `repeat` times after `warmup` rounds:
+    interleaved, so that a burst of load on a shared machine hits all of them alike, and in
+    reverse order every other round, so that none always runs after the same one (on the
+    VM of docs/benchmarks.md a call's time depends on what ran before it). `before`
+    (untimed) runs before every timed call."""
     for _ in range(warmup):
         for fn in fns:
             fn()
     times: list[list[float]] = [[] for _ in fns]
-    for _ in range(repeat):
-        for fn, out in zip(fns, times, strict=True):
+    for k in range(repeat):
+        order = range(len(fns)) if k % 2 == 0 else reversed(range(len(fns)))
+        for i in order:
             if before is not None:
                 before()
             start = time.perf_counter()
-            fn()
+            fns[i]()
             wp.synchronize_device("cpu")
-            out.append(time.perf_counter() - start)
-    return [float(np.median(t)) for t in times]
+            times[i].append(time.perf_counter() - start)
+    return times
 
 
 def random_rays(bounds: np.ndarray, count: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -37,6 +37,7 @@ import statistics
 import sys
 import time
 from dataclasses import replace
+from math import comb
 from pathlib import Path
 
 import numpy as np
@@ -47,7 +48,7 @@ sys.path.insert(0, str(REPO))
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
 import kernels  # noqa: E402
-from backend.peers import timeit_each  # noqa: E402
+from backend.peers import samples_each, timeit_each  # noqa: E402
 from backend.scenes import shared_scene  # noqa: E402
 from kernels.dacrt_api import dacrt_trace  # noqa: E402
 
@@ -176,7 +177,12 @@ def measure(scene, size: int, kind: str, methods: list[str], tuning: str, repeat
     # breadth-first apart: what they leave behind changes the next call's time (notes)
     pool = [m for m in methods if m != "bf"]
     times = timeit_each([bvh_run], repeat)
-    times += timeit_each([lambda m=m: dacrt_run(m) for m in pool], repeat)
+    samples = samples_each([lambda m=m: dacrt_run(m) for m in pool], repeat)
+    times += [float(np.median(x)) for x in samples]
+    if {"median", "rdh"} <= set(pool):  # paired: the two splits of one round, side by side
+        row["rdh_median_ratios"] = [r / m for r, m in zip(samples[pool.index("rdh")],
+                                                            samples[pool.index("median")],
+                                                            strict=True)]
     if "bf" in methods:
         times += timeit_each([lambda: dacrt_run("bf")], repeat)
     if size >= 1024 and kind == "primary":
@@ -232,17 +238,43 @@ def table_2013(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def median_interval(x: list[float], level: float = 0.9) -> tuple[float, float, float]:
+    """(low, high, coverage): the distribution-free interval [x(k), x(n+1-k)] of the sorted
+    values that holds their population median with probability `coverage` >= level (the
+    sign test's order statistics); [min, max] if even that falls short (n < 5)."""
+    n = len(x)
+    xs = sorted(x)
+    k = 1
+    while k < n // 2 and 1 - 2 * sum(comb(n, j) for j in range(k + 1)) / 2**n >= level:
+        k += 1
+    return xs[k - 1], xs[n - k], 1 - 2 * sum(comb(n, j) for j in range(k)) / 2**n
+
+
+def rdh_verdict(r: dict) -> str:
+    """'faster', 'tie' or 'slower': RDH against the median by the paired time ratios of
+    one row (a tie when their median's interval holds 1)."""
+    lo, hi, _ = median_interval(r["rdh_median_ratios"])
+    return "slower" if lo > 1.0 else "faster" if hi < 1.0 else "tie"
+
+
 def floors(rows: list[dict]) -> str:
     out = []
-    big = [r for r in rows if r["size"] >= 1024 and "median_s" in r]
+    big = [r for r in rows if r["size"] >= 1024 and "rdh_median_ratios" in r]
     if big:
         for tuning in sorted({r["tuning"] for r in big}):
             rows_t = [r for r in big if r["tuning"] == tuning]
-            slower = [f"{r['scene']} {r['kind']} ({r['rdh_s'] / r['median_s']:.2f}x)"
-                      for r in rows_t if r["rdh_s"] > r["median_s"]]
-            out.append(f"- RDH no slower than median at 1024², {tuning} constants: "
-                       f"{'PASS' if not slower else 'FAIL'} ({len(rows_t) - len(slower)} of "
-                       f"{len(rows_t)} rows{'; slower: ' + ', '.join(slower) if slower else ''})")
+            parts = []
+            for r in rows_t:
+                x = r["rdh_median_ratios"]
+                lo, hi, cover = median_interval(x)
+                parts.append(f"{r['scene']} {statistics.median(x):.3f} [{lo:.3f}, {hi:.3f}] "
+                             f"{rdh_verdict(r)}")
+            slower = [r for r in rows_t if rdh_verdict(r) == "slower"]
+            out.append(f"- RDH no slower than median at 1024², {tuning} constants (median of "
+                       f"the {len(x)} paired RDH / median time ratios, {100 * cover:.0f}% "
+                       f"interval): {'PASS' if not slower else 'FAIL'} "
+                       f"({len(rows_t) - len(slower)} of {len(rows_t)} rows not slower): "
+                       + "; ".join(parts))
     prim = [r for r in rows if r["size"] >= 1024 and r["kind"] == "primary"]
     for r in prim:
         best = min(r.get(k, np.inf) for k in ("rdh_s", "median_s", "bf_s"))
