@@ -918,19 +918,19 @@ def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
         rec = d.rays[ray]
         w = widened_range(rec)
         span = ray_span(rec, t.lo, t.hi, w[0], w[1])
-        end = first_tri + n
-        if span[0] == INF or key_t(d.best[ray]) < span[0]:
-            end = first_tri  # clipped by this task's box, or already hit nearer: no pair
-        r = make_ray(rec.origin, d.directions[ray])
-        key = KEY_NONE
-        for j in range(first_tri, end):
-            tri = d.tri_ids[j]
-            h = intersect_triangle(r, d.tri_verts[3 * tri], d.tri_verts[3 * tri + 1],
-                                   d.tri_verts[3 * tri + 2], rec.tmin, rec.tmax)
-            if h[0] < INF:
-                key = wp.min(key, hit_key(h[0], tri))
-        if key != KEY_NONE:
-            shared_min_u64(d.best, ray, key)
+        # Most rays of an intersection task are clipped by its box or already hit nearer
+        # (bunny 1024²: 79% of them): those skip the ray set-up too, not only the pairs.
+        if span[0] < INF and not key_t(d.best[ray]) < span[0]:
+            r = make_ray(rec.origin, d.directions[ray])
+            key = KEY_NONE
+            for j in range(first_tri, first_tri + n):
+                tri = d.tri_ids[j]
+                h = intersect_triangle(r, d.tri_verts[3 * tri], d.tri_verts[3 * tri + 1],
+                                       d.tri_verts[3 * tri + 2], rec.tmin, rec.tmax)
+                if h[0] < INF:
+                    key = wp.min(key, hit_key(h[0], tri))
+            if key != KEY_NONE:
+                shared_min_u64(d.best, ray, key)
         p += n
         i += 1
         first_tri = t.tri_start
