@@ -92,7 +92,9 @@ C_OVERFLOW = wp.constant(3)  # an intersection task with more than 2^31 pairs
 C_RAYS_SORTED = wp.constant(4)  # rays entering PPS1, summed over subdivision tasks
 C_KPAIRS = wp.constant(5)  # ray-triangle pairs of intersection tasks, in thousands
 C_TRIS_SORTED = wp.constant(6)  # triangles entering PPS1, summed over subdivision tasks
-COUNTERS = 7
+C_VISITS = wp.constant(7)  # rays met by intersection tasks (per batch of chunks)
+C_SKIPPED = wp.constant(8)  # ... of them clipped by the task's box or already hit nearer
+COUNTERS = 9
 
 TABLE = wp.constant(tb.ROW)  # row length of the flat dependency table, and its fields
 T_COUNT = wp.constant(tb.COUNT)
@@ -912,6 +914,8 @@ def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
     last = wp.min((first + count) * CHUNK, t.ray_count * t.tri_count)
     i = p / t.tri_count
     first_tri = t.tri_start + p - i * t.tri_count
+    visits = int(0)
+    skipped = int(0)
     while p < last:
         n = wp.min(last - p, t.tri_start + t.tri_count - first_tri)  # pairs of ray i here
         ray = d.ray_ids[t.ray_start + i]
@@ -931,9 +935,14 @@ def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
                     key = wp.min(key, hit_key(h[0], tri))
             if key != KEY_NONE:
                 shared_min_u64(d.best, ray, key)
+        else:
+            skipped += 1
+        visits += 1
         p += n
         i += 1
         first_tri = t.tri_start
+    shared_add(d.counters, C_VISITS, visits)
+    shared_add(d.counters, C_SKIPPED, skipped)
 
 
 @wp.func(inline=False)  # inlined into both callers, the worker's PPS and Swap ran ~2x slower

@@ -192,6 +192,10 @@ def test_pool_workers_and_splits_agree_and_report_phases():
             assert stats["tasks"] > 7 and stats["intersection_tasks"] > 1
             # the root task alone sorts every ray and every triangle once
             assert stats["rays_sorted"] >= len(o) and stats["tris_sorted"] >= len(f)
+            # a ray with a hit was tested in at least one intersection task
+            tested = stats["intersection_rays"] - stats["intersection_rays_skipped"]
+            assert tested >= np.count_nonzero(runs[-1].triangle >= 0) > 0
+            assert stats["intersection_rays_skipped"] > 0
     for h in runs[1:]:  # the closest hit with the (t, triangle) tie rule is deterministic
         assert np.array_equal(h.triangle, runs[0].triangle)
         assert np.array_equal(h.t, runs[0].t)
