@@ -10,10 +10,11 @@ paper's Tables 1-3 (ms per frame of breadth-first DACRT for primary, shadow (one
 specular and AO rays (7 per primary hit here, 8 in the paper), and peak memory), each row
 beside BVH build (binned SAH) + trace of the same rays. Every DACRT result is checked against
 the BVH's (hit/miss mismatches are counted). Times are the median of --repeat runs after
-one warm-up (compilation excluded); the pool variant's splits run in turn (interleaved), the
-BVH and breadth-first each on their own. For 1024² primary rays the BVH is also timed right
-after a big free (`bvh_warm_s`): on this VM that makes it up to 30% faster (see the notes),
-and the floor is judged against the faster of the two.
+one warm-up (compilation excluded); the pool variant's splits run in turn (interleaved, in
+alternating order), the BVH and breadth-first each on their own. RDH against the median is
+judged by the paired ratios of the rounds (see the floors). For 1024² primary rays the BVH
+is also timed right after a big free (`bvh_warm_s`): on this VM that makes it up to 30%
+faster (see the notes), and the floor is judged against the faster of the two.
 
 Peak memory: DACRT counts the bytes of every device array it holds at its peak (inputs,
 index arrays, pool or level lists, the terminal buffer, outputs); the BVH's figure counts the
@@ -376,9 +377,13 @@ Notes (what the numbers mean and what was tried):
   (pool slots 450-2400 -> 110-190). BVH build times unchanged within noise.
 - **Intersection.** A batch of consecutive chunks sets each ray up once (box clip, hit so
   far, Woop frame) instead of once per 32-pair chunk: bunny 1024² intersection 93 -> 82 ms.
-  Tried without gain: the Woop frame precomputed per ray (the compiler already drops what
-  the test does not read); an early exit after two of the three edge functions (Sponza's
-  intersection time doubled: a branch that no predictor guesses).
+  Most rays an intersection task meets need no pair at all: its box clips them or they
+  already hit nearer (bunny 1024², RDH: 77% of 2.47 M ray visits, stats
+  `intersection_rays_skipped`); those now skip the Woop set-up as well: Intersect bunny
+  73 -> 64 ms, Sponza 254 -> 225 ms. Tried without gain: the Woop frame precomputed per ray
+  (the compiler already drops what the test does not read); an early exit after two of the
+  three edge functions (Sponza's intersection time doubled: a branch that no predictor
+  guesses).
 - **Plane test.** A ray's side of the plane is decided in t (the plane's crossings
   (split -+ margin - o) / d against the span's ends) instead of by coordinates at the span's
   ends, which needed a division by 1/d: Sponza PPS1 540 -> 508 ms.
@@ -404,6 +409,31 @@ Notes (what the numbers mean and what was tried):
   scenes, but the time saved there is about what sampling costs (at 1024, SplitPlane took
   16 ms of the bunny's 305 ms). Rows within +-5% of 1.00 are ties: the 65536 bunny row
   (1.06) had nearly the median's tree.
+- **RDH samples.** One sample in each of sqrt(n) equal strata of the task's interval, at a
+  hashed place in it. The paper's every-k-th sample aliased with the image: the root holds
+  the rays in row order, so at 1024² (and 512²) every one of its ray samples was a pixel of
+  the image's first column. Indoor scenes 1-3% faster with the fix, object scenes
+  unchanged (test `test_rdh_ray_samples_do_not_alias_with_image_rows`).
+- **RDH on the object scenes is a tie.** RDH keeps the median in two thirds to four fifths
+  of the tasks it samples there, and where it does not, its tree sorts 4-5% fewer rays but
+  tests about as many ray-triangle pairs (buddha: 4% more). With 16x the samples (nearly
+  exact counts) the bunny's tree sorts 13% fewer rays and tests as many pairs: about 6%
+  of the time if the samples were free, and they cost far more. The cost of two
+  hypothetical leaves (pairs + C_SORT x items) does not see the early termination that the
+  median's splits of the longest axis get from the near-first order (rays that hit in the
+  near child are clipped in the far one). Tried and measured against the median in paired
+  runs, none better on every scene: costs (R + T) log T, R log T, R T^0.5 or T^0.75, the far
+  child's straddling rays discounted by half (Sponza 0.59 instead of 0.65 of the median,
+  conference 0.92 instead of 0.88); median trust 0.5, 0.7, 0.8, 1.0 (1.0: indoor scenes up
+  to 10% faster, object scenes 3-10% slower); 4x and 16x the samples; `rdh_min_rays` 8192,
+  16384, 65536; sampling stopped below a task that kept the median (Sponza falls back to
+  the median's time: its root keeps the median); rays cut at their closest hit so far
+  (0.2% fewer rays sorted, 3-5% slower); for unsampled tasks the midplane of the axis the
+  rays straddle least (|d_k| / e_k smallest: fewer pairs, but intersection up to 20%
+  slower: the near-first order is lost); candidates on the longest axis only (indoor
+  scenes up to 15% slower than the median). So the floor's "no slower" is judged by paired
+  runs: each round runs the median and RDH back to back (in alternating order), and a row
+  counts as slower only when the sign-test interval of the paired ratios lies above 1.
 - **Early termination.** A ray whose closest hit so far lies before its entry into a node's
   box is clipped there (in PPS1 and in intersection tasks); the seven-child order lets
   straddling rays meet near triangles before far ones. Breadth-first has no such cut
@@ -423,15 +453,21 @@ Notes (what the numbers mean and what was tried):
   record, direction and closest-hit key (one cache line per gathered ray instead of three):
   Sort unchanged, the root's PPS1 35% slower (twice the bytes in order); the sort is
   bound by instructions, not by cache misses.
-- **Where the time goes** (Sponza 1024², RDH, cpu constants, two workers, 0.82 s): rays are
-  sorted about 52 times each (54.5 M ray classifications, 2.6 M triangle ones) and
-  intersection tasks hold 90 M ray-triangle pairs: Sort ~45%, intersection ~34%, the
-  root's PPS1 ~12%, SplitPlane 2%. Indoor cameras (Sponza, Sibenik, Conference) are the
-  hard case: every ray straddles the first planes. Per item the sort costs about 13 ns on
-  one core and a pair test about 6 ns (scalar code: Warp's CPU back end runs one ray per
-  loop iteration; Woop's test indexes the vertices by the ray's axis permutation, which
-  goes through the stack); a BVH ray visits a few dozen boxes and a handful of
-  triangles, so on a CPU DACRT stays about 2x behind BVH build + trace.
+- **Where the time goes** (Sponza 1024², RDH, cpu constants, two workers, 0.75 s of tracing):
+  rays are sorted about 49 times each (51.2 M ray classifications, 2.6 M triangle ones);
+  Sort 44%, intersection 33%, the root's PPS1 to Swap2 20%, SplitPlane 3%. A third of the
+  ray classifications end in "clipped" (26%: the ray already hit nearer, in a task that ran
+  earlier), and 77% of the rays that intersection tasks meet need no pair. Indoor cameras
+  (Sponza, Sibenik, Conference) are the hard case: every ray straddles the first planes.
+  Per item the sort costs about 13 ns on one core and a pair test about 6 ns (scalar code:
+  Warp's CPU back end runs one ray per loop iteration; Woop's test indexes the vertices by
+  the ray's axis permutation, which goes through the stack); a BVH ray visits a few dozen
+  boxes and a handful of triangles, so on a CPU DACRT stays about 2x behind BVH build +
+  trace.
+- **Set-up.** The scene box is a column-wise reduction over the vertices the triangles use:
+  numpy's `min(axis=0)` over the (3M, 3) triangle corners had taken 18 ms of a 260 ms
+  buddha call (10x slower than over contiguous columns); degenerate triangles are found by
+  the engine's multi-core kernel (as `build_bvh` counts them).
 - **Memory state.** On this VM the time of BVH build + trace depends on what ran before
   it: right after a big free (a breadth-first run, or touching and freeing 0.5-1 GiB) it is
   up to 30% faster than after a pause or after its own previous call (buddha 1024²:
@@ -458,7 +494,7 @@ def write_docs(rows: list[dict], args, command: str) -> None:
         "## Divide-and-conquer ray tracing (issue 3)",
         "Produced by `benchmarks/dacrt.py` (ray kinds, memory accounting and tuning in its "
         f"docstring). Run: `{command}` on 2 CPU cores of a VM: medians of interleaved runs, "
-        "each after `warm_memory`; rows still move by +-5-10% between runs.",
+        "the splits paired in alternating order; rows still move by +-5-10% between runs.",
         "Constants: " + "; ".join(f"**{t}** = `{json.dumps(TUNINGS[t])}`"
                                   for t in sorted({*args.tuning.split(","),
                                                    *args.tuning_1024.split(",")})) + ".",
