@@ -245,16 +245,18 @@ def median_interval(x: list[float], level: float = 0.9) -> tuple[float, float, f
     sign test's order statistics); [min, max] if even that falls short (n < 5)."""
     n = len(x)
     xs = sorted(x)
+
+    def coverage(k: int) -> float:
+        return 1 - 2 * sum(comb(n, j) for j in range(k)) / 2**n
+
     k = 1
-    while k < n // 2 and 1 - 2 * sum(comb(n, j) for j in range(k + 1)) / 2**n >= level:
+    while k < n // 2 and coverage(k + 1) >= level:
         k += 1
-    return xs[k - 1], xs[n - k], 1 - 2 * sum(comb(n, j) for j in range(k)) / 2**n
+    return xs[k - 1], xs[n - k], coverage(k)
 
 
-def rdh_verdict(r: dict) -> str:
-    """'faster', 'tie' or 'slower': RDH against the median by the paired time ratios of
-    one row (a tie when their median's interval holds 1)."""
-    lo, hi, _ = median_interval(r["rdh_median_ratios"])
+def verdict(lo: float, hi: float) -> str:
+    """'faster', 'tie' or 'slower' for an interval of RDH / median time ratios."""
     return "slower" if lo > 1.0 else "faster" if hi < 1.0 else "tie"
 
 
@@ -264,17 +266,17 @@ def floors(rows: list[dict]) -> str:
     if big:
         for tuning in sorted({r["tuning"] for r in big}):
             rows_t = [r for r in big if r["tuning"] == tuning]
-            parts = []
+            parts, slower = [], 0
             for r in rows_t:
                 x = r["rdh_median_ratios"]
                 lo, hi, cover = median_interval(x)
+                slower += verdict(lo, hi) == "slower"
                 parts.append(f"{r['scene']} {statistics.median(x):.3f} [{lo:.3f}, {hi:.3f}] "
-                             f"{rdh_verdict(r)}")
-            slower = [r for r in rows_t if rdh_verdict(r) == "slower"]
+                             f"{verdict(lo, hi)}")
             out.append(f"- RDH no slower than median at 1024², {tuning} constants (median of "
                        f"the {len(x)} paired RDH / median time ratios, {100 * cover:.0f}% "
                        f"interval): {'PASS' if not slower else 'FAIL'} "
-                       f"({len(rows_t) - len(slower)} of {len(rows_t)} rows not slower): "
+                       f"({len(rows_t) - slower} of {len(rows_t)} rows not slower): "
                        + "; ".join(parts))
     prim = [r for r in rows if r["size"] >= 1024 and r["kind"] == "primary"]
     for r in prim:
