@@ -1,42 +1,89 @@
-"""`scenesort addon-zip`: build the installable Blender extension zip from addon/.
+"""`scenesort addon-zip`: build the installable Blender extension zip(s) from addon/.
+
+With `--platform` each zip is self-contained: the add-on, a wheel of scenesort built
+at zip time (the engine and the service) and the unmodified wheels of every runtime
+dependency Blender does not ship, for the Python of Blender 4.2-5.0 (3.11) and of
+5.1+ (3.13), listed under `wheels` with the manifest's `platforms`. Blender unpacks
+them into its extensions' site-packages when it installs the zip. Without
+`--platform` the zip holds the add-on alone (for a service of your own install).
 
 The zip holds the extension's files at its root (blender_manifest.toml beside
-__init__.py), as Blender's own `blender --command extension build` lays it out, so
-Edit > Preferences > Get Extensions > Install from Disk accepts it. Entries carry a
-fixed timestamp so the same sources give the same bytes.
+__init__.py), as `blender --command extension build` lays it out. Entries carry a
+fixed timestamp so that the same inputs give the same bytes. Wheels come from the
+package index (`pip download --only-binary=:all: --no-deps`) and are cached, with
+the resolved dependency closure, under `.cache/addon-wheels/`: a rebuild downloads
+nothing.
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
+import json
+import re
+import subprocess
 import sys
+import tempfile
 import tomllib
 import zipfile
 from pathlib import Path
 
-ADDON_DIR = Path(__file__).resolve().parents[1] / "addon"
+ROOT = Path(__file__).resolve().parents[1]
+ADDON_DIR = ROOT / "addon"
+CACHE_DIR = ROOT / ".cache" / "addon-wheels"
 MANIFEST = "blender_manifest.toml"
 INCLUDE_SUFFIXES = {".py", ".toml"}
 FIXED_DATE = (2024, 1, 1, 0, 0, 0)  # zip timestamps cannot predate 1980; any fixed value works
+
+# Blender's platform names -> the wheel platform tags pip may pick for them. Blender 4.2+
+# needs glibc 2.28 on Linux and macOS 11 on Apple silicon; pip does not widen an explicit
+# manylinux tag to older glibc versions, so they are listed.
+PLATFORMS: dict[str, list[str]] = {
+    "linux-x64": [f"manylinux_2_{m}_x86_64" for m in range(28, 16, -1)]
+    + ["manylinux2014_x86_64", "manylinux2010_x86_64", "manylinux1_x86_64"],
+    "windows-x64": ["win_amd64"],
+    "macos-arm64": ["macosx_11_0_arm64"],
+}
+# Blender 4.2-5.0 run Python 3.11, Blender 5.1+ Python 3.13.
+PYTHON_VERSIONS = ("3.11", "3.13")
+# Blender bundles numpy: it is never put in the zip. Blender 4.2-5.0 ship numpy 1.26.4
+# (the bpy 5.0 wheel requires numpy>=1.26,<2), so the 3.11 closure is resolved against
+# exactly that version: every bundled wheel then accepts Blender's numpy.
+BLENDER_SHIPS = {"numpy"}
+BLENDER_NUMPY = {"3.11": "numpy==1.26.4"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `scenesort addon-zip`."""
     parser.add_argument(
+        "--platform",
+        choices=[*PLATFORMS, "all"],
+        default=None,
+        help="bundle the engine and its wheels for this Blender platform ('all': one zip "
+        "each); without it the zip holds the add-on alone",
+    )
+    parser.add_argument(
         "--output",
         "-o",
         type=Path,
         default=None,
-        help="zip file to write (default: build/scenesort-<version>.zip)",
+        help="zip file to write, or the folder for --platform all "
+        "(default: build/scenesort-<version>[-<platform>].zip)",
     )
     parser.add_argument(
         "--source", type=Path, default=ADDON_DIR, help="the add-on folder (default: addon/)"
+    )
+    parser.add_argument(
+        "--cache",
+        type=Path,
+        default=CACHE_DIR,
+        help="where downloaded wheels are kept (default: .cache/addon-wheels/)",
     )
 
 
 def addon_files(source: Path) -> list[Path]:
     """The files that ship: sources and the manifest, no caches or editor leftovers."""
-    files = [
+    return [
         p
         for p in sorted(source.rglob("*"))
         if p.is_file()
@@ -44,32 +91,185 @@ def addon_files(source: Path) -> list[Path]:
         and "__pycache__" not in p.parts
         and not any(part.startswith(".") for part in p.relative_to(source).parts)
     ]
-    return files
 
 
-def build_zip(source: Path, output: Path | None = None) -> Path:
-    """Write the zip and return its path; ValueError if addon/ is not an extension."""
-    manifest_path = source / MANIFEST
-    if not manifest_path.is_file():
+def read_manifest(source: Path) -> tuple[str, dict]:
+    """The manifest's text and its parsed form; ValueError if `source` has none."""
+    path = source / MANIFEST
+    if not path.is_file():
         raise ValueError(f"{source} has no {MANIFEST}: is it the add-on folder?")
-    manifest = tomllib.loads(manifest_path.read_text(encoding="utf-8"))
+    text = path.read_text(encoding="utf-8")
+    return text, tomllib.loads(text)
+
+
+def manifest_with_wheels(text: str, platform: str, wheels: list[str]) -> str:
+    """The manifest with `platforms` and `wheels` added as top-level keys (before the
+    first table, where TOML would otherwise put them inside it)."""
+    lines = text.splitlines(keepends=True)
+    first_table = next((i for i, line in enumerate(lines) if line.startswith("[")), len(lines))
+    entries = "".join(f'  "./wheels/{name}",\n' for name in wheels)
+    added = f'platforms = ["{platform}"]\nwheels = [\n{entries}]\n\n'
+    return "".join(lines[:first_table]) + added + "".join(lines[first_table:])
+
+
+def runtime_requirements(pyproject: Path) -> list[str]:
+    """pyproject's pinned runtime dependencies, less those Blender ships."""
+    deps = tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]["dependencies"]
+    return [d for d in deps if re.split(r"[<>=!~\[; ]", d, maxsplit=1)[0] not in BLENDER_SHIPS]
+
+
+def _target_options(platform: str, python: str) -> list[str]:
+    """pip's options selecting CPython `python` wheels for a Blender platform."""
+    abi = "cp" + python.replace(".", "")
+    options = ["--only-binary=:all:", "--python-version", python]
+    options += ["--implementation", "cp", "--abi", abi, "--abi", "abi3", "--abi", "none"]
+    for tag in PLATFORMS[platform]:
+        options += ["--platform", tag]
+    return options
+
+
+def _pip(args: list[str], what: str) -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "--disable-pip-version-check", *args],
+        capture_output=True,
+        text=True,
+    )
+    if proc.returncode != 0:
+        tail = "\n".join((proc.stderr or proc.stdout).strip().splitlines()[-8:])
+        raise ValueError(f"pip could not {what}:\n{tail}")
+
+
+def resolve(platform: str, python: str, requirements: list[str], cache: Path) -> list[str]:
+    """Wheel file names of the dependency closure of `requirements` (numpy left out),
+    as pip resolves it for this platform and Python; cached by its inputs."""
+    pins = [*requirements, *([BLENDER_NUMPY[python]] if python in BLENDER_NUMPY else [])]
+    options = _target_options(platform, python)
+    key = hashlib.sha256(json.dumps([pins, options]).encode()).hexdigest()[:16]
+    cached = cache / "resolved" / f"{platform}-py{python}-{key}.json"
+    if cached.is_file():
+        return json.loads(cached.read_text())
+    with tempfile.TemporaryDirectory() as tmp:
+        report = Path(tmp) / "report.json"
+        _pip(
+            ["install", "--dry-run", "--ignore-installed", "--quiet", "--report", str(report),
+             "--target", str(Path(tmp) / "t"), *options, *pins],
+            f"resolve the dependencies for {platform}, Python {python}",
+        )  # fmt: skip
+        installs = json.loads(report.read_text())["install"]
+    names = sorted(
+        item["download_info"]["url"].rsplit("/", 1)[-1]
+        for item in installs
+        if item["metadata"]["name"].lower() not in BLENDER_SHIPS
+    )
+    cached.parent.mkdir(parents=True, exist_ok=True)
+    cached.write_text(json.dumps(names, indent=1))
+    return names
+
+
+def _pin_of(wheel_name: str) -> str:
+    """`name==version` of a wheel file name (PEP 427: name-version-...)."""
+    name, version = wheel_name.split("-")[:2]
+    return f"{name}=={version}"
+
+
+def fetch_wheels(platform: str, python: str, names: list[str], cache: Path) -> list[Path]:
+    """The wheels `names` from the cache, downloading only the missing ones."""
+    missing = [n for n in names if not (cache / n).is_file()]
+    if missing:
+        _pip(
+            ["download", "--no-deps", "--quiet", "--dest", str(cache),
+             *_target_options(platform, python), *map(_pin_of, missing)],
+            f"download {len(missing)} wheels for {platform}, Python {python}",
+        )  # fmt: skip
+    absent = [n for n in names if not (cache / n).is_file()]
+    if absent:
+        raise ValueError(f"pip did not download {', '.join(absent)} for {platform}")
+    return [cache / n for n in names]
+
+
+def engine_wheel(project: Path, out_dir: Path) -> Path:
+    """A wheel of scenesort (kernels + backend) built from the checkout, without deps."""
+    if not (project / "pyproject.toml").is_file():
+        raise ValueError(f"{project} has no pyproject.toml: run from a scenesort checkout")
+    _pip(
+        ["wheel", "--no-deps", "--quiet", "--wheel-dir", str(out_dir), str(project)],
+        "build the scenesort wheel",
+    )
+    wheels = sorted(out_dir.glob("scenesort-*.whl"))
+    if len(wheels) != 1:
+        raise ValueError(f"building the scenesort wheel gave {len(wheels)} wheels in {out_dir}")
+    return wheels[0]
+
+
+def platform_wheels(platform: str, project: Path, cache: Path) -> list[Path]:
+    """Every dependency wheel for one platform, both Pythons, each file once."""
+    requirements = runtime_requirements(project / "pyproject.toml")
+    found: dict[str, Path] = {}
+    for python in PYTHON_VERSIONS:
+        names = resolve(platform, python, requirements, cache)
+        for path in fetch_wheels(platform, python, names, cache):
+            found[path.name] = path
+    return [found[n] for n in sorted(found)]
+
+
+def _write(zf: zipfile.ZipFile, name: str, data: bytes, compress: int) -> None:
+    info = zipfile.ZipInfo(name, FIXED_DATE)
+    info.compress_type = compress
+    info.external_attr = 0o644 << 16
+    zf.writestr(info, data)
+
+
+def build_zip(
+    source: Path,
+    output: Path | None = None,
+    platform: str | None = None,
+    wheels: list[Path] = (),
+) -> Path:
+    """Write one zip and return its path; ValueError if `source` is not an extension."""
+    text, manifest = read_manifest(source)
     if output is None:
-        output = Path("build") / f"{manifest['id']}-{manifest['version']}.zip"
+        suffix = f"-{platform}" if platform else ""
+        output = Path("build") / f"{manifest['id']}-{manifest['version']}{suffix}.zip"
+    if platform:
+        text = manifest_with_wheels(text, platform, [w.name for w in wheels])
     output.parent.mkdir(parents=True, exist_ok=True)
-    with zipfile.ZipFile(output, "w", compression=zipfile.ZIP_DEFLATED) as zf:
+    with zipfile.ZipFile(output, "w") as zf:
         for path in addon_files(source):
-            info = zipfile.ZipInfo(path.relative_to(source).as_posix(), FIXED_DATE)
-            info.compress_type = zipfile.ZIP_DEFLATED
-            info.external_attr = 0o644 << 16
-            zf.writestr(info, path.read_bytes())
+            data = text.encode() if path.name == MANIFEST else path.read_bytes()
+            _write(zf, path.relative_to(source).as_posix(), data, zipfile.ZIP_DEFLATED)
+        for wheel in wheels:  # already compressed: stored as they are
+            _write(zf, f"wheels/{wheel.name}", wheel.read_bytes(), zipfile.ZIP_STORED)
     return output
+
+
+def build_platform_zips(
+    source: Path, platforms: list[str], output: Path | None, cache: Path
+) -> list[Path]:
+    """One self-contained zip per platform, sharing one freshly built engine wheel."""
+    project = source.resolve().parent
+    _, manifest = read_manifest(source)
+    zips = []
+    with tempfile.TemporaryDirectory() as tmp:
+        engine = engine_wheel(project, Path(tmp))
+        for platform in platforms:
+            wheels = [engine, *platform_wheels(platform, project, cache)]
+            target = output
+            if output is not None and len(platforms) > 1:
+                target = output / f"{manifest['id']}-{manifest['version']}-{platform}.zip"
+            zips.append(build_zip(source, target, platform, wheels))
+    return zips
 
 
 def run(args: argparse.Namespace) -> int:
     try:
-        path = build_zip(args.source, args.output)
+        if args.platform is None:
+            zips = [build_zip(args.source, args.output)]
+        else:
+            platforms = list(PLATFORMS) if args.platform == "all" else [args.platform]
+            zips = build_platform_zips(args.source, platforms, args.output, args.cache)
     except (ValueError, OSError, KeyError, tomllib.TOMLDecodeError) as exc:
         print(f"scenesort addon-zip: {exc}", file=sys.stderr)
         return 1
-    print(path)
+    for path in zips:
+        print(f"{path}\t{path.stat().st_size / 1e6:.1f} MB")
     return 0
