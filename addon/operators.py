@@ -1,9 +1,11 @@
 """Operators: start/stop the service, refresh its status, build the BVH, render AO.
 
 `execute()` runs to completion (scripts, headless tests); `invoke()` runs the HTTP
-work on a thread, polled by a modal timer that shows progress in the status bar,
-and Esc cancels. Failures are reported in words for the user, stored in
-`window_manager.scenesort.error` for the panel, and leave the scene untouched.
+work on a thread, polled by a modal timer that shows progress in the status bar and
+the panel, and Esc cancels. `cancel()` (Blender ends a modal run: a file load, a
+closed window) and a `load_pre` handler stop the work and clear the busy state.
+Failures are reported in words for the user, stored in `window_manager.scenesort`
+for the panel, and leave the scene untouched.
 """
 
 from __future__ import annotations
@@ -13,16 +15,16 @@ import traceback
 from typing import Any
 
 import bpy
+from bpy.app.handlers import persistent
 
 from . import camera, export, image, pipeline, prefs, service, timings
-from .client import Client, ServiceError
+from .client import ServiceError
+from .connection import Connection, VersionMismatch, connect
 from .tasks import Cancelled, Task
 
-START_TIMEOUT_S = 90.0  # first start imports Warp and may compile kernels
-POLL_S = 0.25
 _EXPECTED = (ServiceError, service.LaunchError, ValueError, Cancelled)
 
-_active: Task | None = None  # one build or render at a time
+_active: Task | None = None  # one request (start, build, render) at a time
 
 
 def _status(context: bpy.types.Context) -> Any:
@@ -32,8 +34,16 @@ def _status(context: bpy.types.Context) -> Any:
 def _redraw(context: bpy.types.Context) -> None:
     for window in context.window_manager.windows:
         for area in window.screen.areas:
-            if area.type in {"PROPERTIES", "VIEW_3D"}:
+            if area.type in {"PROPERTIES", "VIEW_3D", "PREFERENCES"}:
                 area.tag_redraw()
+
+
+def _release(status: Any | None) -> None:
+    """No request runs any more: the buttons work again."""
+    global _active
+    _active = None
+    if status is not None:
+        status.busy, status.progress = False, ""
 
 
 def _fail(op: bpy.types.Operator, context: bpy.types.Context, exc: BaseException) -> set[str]:
@@ -45,143 +55,24 @@ def _fail(op: bpy.types.Operator, context: bpy.types.Context, exc: BaseException
         message = f"Unexpected error ({type(exc).__name__}: {exc}); see the system console"
     status = _status(context)
     status.error = message
-    status.busy = False
-    status.progress = ""
+    status.mismatch = isinstance(exc, VersionMismatch)
+    if isinstance(exc, ServiceError) and not status.mismatch:
+        status.connected = False
+    status.busy, status.progress = False, ""
     op.report({"ERROR"}, message)
     _redraw(context)
     return {"CANCELLED"}
 
 
-def _remember_health(context: bpy.types.Context, health: dict) -> None:
+def _remember(context: bpy.types.Context, connection: Connection) -> None:
+    """What the service's health answer says, for the panel and the Device menu."""
     status = _status(context)
-    status.connected = True
+    health = connection.health
+    status.connected, status.mismatch, status.error = True, False, ""
+    status.url = connection.client.base_url
     status.version = str(health.get("version", "?"))
     status.device = str(health.get("device", "?"))
-    status.error = ""
-
-
-class SCENESORT_OT_server_status(bpy.types.Operator):
-    """Ask the service for its version and device"""
-
-    bl_idname = "scenesort.server_status"
-    bl_label = "Check Service"
-
-    def execute(self, context: bpy.types.Context) -> set[str]:
-        status = _status(context)
-        try:
-            health = Client(context.scene.scenesort.server_url).health()
-        except ServiceError as exc:
-            status.connected = False
-            return _fail(self, context, exc)
-        _remember_health(context, health)
-        self.report({"INFO"}, f"scenesort {status.version} on {status.device}")
-        return {"FINISHED"}
-
-
-class SCENESORT_OT_server_start(bpy.types.Operator):
-    """Start the local scenesort service (scenesort serve) as a child of Blender"""
-
-    bl_idname = "scenesort.server_start"
-    bl_label = "Start Local Service"
-
-    _deadline = 0.0
-    _timer = None
-
-    def _launch(self, context: bpy.types.Context) -> dict | None:
-        """Health of a service already there, or None after launching ours."""
-        url = context.scene.scenesort.server_url
-        client = Client(url)
-        try:
-            return client.health()
-        except ServiceError:
-            pass
-        service.start(prefs.server_command(context), url)
-        self._deadline = time.monotonic() + START_TIMEOUT_S
-        return None
-
-    def _poll(self, context: bpy.types.Context) -> dict | None:
-        """Health once the service answers; raises if it died or took too long."""
-        try:
-            return Client(context.scene.scenesort.server_url).health()
-        except ServiceError:
-            if not service.running():
-                raise service.LaunchError(
-                    f"The service did not start: {service.exit_message()}"
-                ) from None
-            if time.monotonic() > self._deadline:
-                service.stop()
-                raise service.LaunchError(
-                    f"The service did not answer within {START_TIMEOUT_S:g} s; "
-                    f"its log is {service.log_path()}"
-                ) from None
-            return None
-
-    def _started(self, context: bpy.types.Context, health: dict, launched: bool) -> set[str]:
-        _remember_health(context, health)
-        status = _status(context)
-        where = "started" if launched else "already running"
-        status.message = f"Service {where} at {context.scene.scenesort.server_url}"
-        self.report({"INFO"}, status.message)
-        _redraw(context)
-        return {"FINISHED"}
-
-    def execute(self, context: bpy.types.Context) -> set[str]:
-        try:
-            health = self._launch(context)
-            if health is not None:
-                return self._started(context, health, launched=False)
-            while (health := self._poll(context)) is None:
-                time.sleep(POLL_S)
-        except Exception as exc:  # noqa: BLE001 - reported to the user, never raised
-            return _fail(self, context, exc)
-        return self._started(context, health, launched=True)
-
-    def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        try:
-            health = self._launch(context)
-        except Exception as exc:  # noqa: BLE001
-            return _fail(self, context, exc)
-        if health is not None:
-            return self._started(context, health, launched=False)
-        _status(context).progress = "Starting the service..."
-        self._timer = context.window_manager.event_timer_add(POLL_S, window=context.window)
-        context.window_manager.modal_handler_add(self)
-        return {"RUNNING_MODAL"}
-
-    def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        if event.type != "TIMER":
-            return {"PASS_THROUGH"}
-        try:
-            health = self._poll(context)
-        except Exception as exc:  # noqa: BLE001
-            self._end(context)
-            return _fail(self, context, exc)
-        if health is None:
-            return {"RUNNING_MODAL"}
-        self._end(context)
-        return self._started(context, health, launched=True)
-
-    def _end(self, context: bpy.types.Context) -> None:
-        context.window_manager.event_timer_remove(self._timer)
-        _status(context).progress = ""
-
-
-class SCENESORT_OT_server_stop(bpy.types.Operator):
-    """Stop the scenesort service that Blender started"""
-
-    bl_idname = "scenesort.server_stop"
-    bl_label = "Stop Service"
-
-    def execute(self, context: bpy.types.Context) -> set[str]:
-        status = _status(context)
-        if service.stop():
-            status.connected = False
-            status.message = "Service stopped"
-            self.report({"INFO"}, status.message)
-            _redraw(context)
-            return {"FINISHED"}
-        self.report({"WARNING"}, "No service started by Blender is running")
-        return {"CANCELLED"}
+    prefs.remember_devices(health)
 
 
 class _TaskOperator:
@@ -195,7 +86,7 @@ class _TaskOperator:
     def prepare(self, context: bpy.types.Context) -> Task:
         raise NotImplementedError
 
-    def apply(self, context: bpy.types.Context, outcome: pipeline.Outcome) -> str:
+    def apply(self, context: bpy.types.Context, outcome: Any) -> str:
         raise NotImplementedError
 
     def _begin(self, context: bpy.types.Context) -> Task:
@@ -209,17 +100,14 @@ class _TaskOperator:
         return task
 
     def _finish(self, context: bpy.types.Context, task: Task) -> set[str]:
-        global _active
-        _active = None
-        status = _status(context)
-        status.busy, status.progress = False, ""
+        _release(_status(context))
         if task.error is not None:
             return _fail(self, context, task.error)
         try:
             message = self.apply(context, task.result)
         except Exception as exc:  # noqa: BLE001
             return _fail(self, context, exc)
-        status.message, status.connected = message, True
+        _status(context).message = message
         self.report({"INFO"}, message)
         _redraw(context)
         return {"FINISHED"}
@@ -249,33 +137,125 @@ class _TaskOperator:
         return {"RUNNING_MODAL"}
 
     def modal(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        global _active
         task = self._task
         if event.type == "ESC" and event.value == "PRESS":
-            task.cancel()  # the thread stops at its next step; its answer is dropped
-            self._stop_ui(context)
-            _active = None
-            status = _status(context)
-            status.busy, status.progress, status.message = False, "", "Cancelled"
+            self.cancel(context)  # the thread stops at its next step; its answer is dropped
+            _status(context).message = "Cancelled"
             self.report({"WARNING"}, "scenesort: cancelled")
             return {"CANCELLED"}
         if event.type != "TIMER":
             return {"PASS_THROUGH"}
         if not task.done:
             elapsed = time.monotonic() - self._started_at
-            text = f"scenesort: {task.step}... {elapsed:.0f} s (Esc to cancel)"
-            _status(context).progress = task.step
+            _status(context).progress = f"{task.step} ({elapsed:.0f} s)"
             if context.workspace is not None:
-                context.workspace.status_text_set(text)
+                context.workspace.status_text_set(
+                    f"scenesort: {task.step}... {elapsed:.0f} s (Esc to cancel)"
+                )
             _redraw(context)
             return {"RUNNING_MODAL"}
         self._stop_ui(context)
         return self._finish(context, task)
 
+    def cancel(self, context: bpy.types.Context) -> None:
+        """Blender ends the modal run (Esc, a file load, a closed window): stop the work
+        at its next step and clear the busy state."""
+        if self._task is not None:
+            self._task.cancel()
+        self._stop_ui(context)
+        _release(_status(context))
+        _redraw(context)
+
     def _stop_ui(self, context: bpy.types.Context) -> None:
-        context.window_manager.event_timer_remove(self._timer)
+        if self._timer is not None:
+            context.window_manager.event_timer_remove(self._timer)
+            self._timer = None
         if context.workspace is not None:
             context.workspace.status_text_set(None)
+
+
+class SCENESORT_OT_server_status(_TaskOperator, bpy.types.Operator):
+    """Ask the service for its version and device"""
+
+    bl_idname = "scenesort.server_status"
+    bl_label = "Check Service"
+
+    def prepare(self, context: bpy.types.Context) -> Task:
+        target = prefs.target(context, start=False)
+        return Task(lambda task: connect(task, target))
+
+    def apply(self, context: bpy.types.Context, outcome: Connection) -> str:
+        _remember(context, outcome)
+        status = _status(context)
+        return f"scenesort {status.version} on {status.device} at {status.url}"
+
+
+class _StartOperator(_TaskOperator):
+    """Start the local service (unless one answers) and wait for its health answer."""
+
+    def prepare(self, context: bpy.types.Context) -> Task:
+        target = prefs.target(context, start=True)
+        if target.url:
+            service.host_port(target.url)  # a remote URL: say that it cannot be started
+        return Task(lambda task: connect(task, target))
+
+    def apply(self, context: bpy.types.Context, outcome: Connection) -> str:
+        _remember(context, outcome)
+        where = "started" if outcome.started else "already running"
+        return f"Service {where} at {outcome.client.base_url}"
+
+
+class SCENESORT_OT_server_start(_StartOperator, bpy.types.Operator):
+    """Start the local scenesort service with Blender's own Python (unless one answers)"""
+
+    bl_idname = "scenesort.server_start"
+    bl_label = "Start Local Service"
+
+
+class SCENESORT_OT_server_restart(_StartOperator, bpy.types.Operator):
+    """Stop the local service that Blender started and start it again (e.g. after the
+    add-on was updated, or to use another device)"""
+
+    bl_idname = "scenesort.server_restart"
+    bl_label = "Restart Local Service"
+
+    def prepare(self, context: bpy.types.Context) -> Task:
+        service.stop()
+        _status(context).connected = False
+        return super().prepare(context)
+
+
+class SCENESORT_OT_server_stop(bpy.types.Operator):
+    """Stop the scenesort service that Blender started"""
+
+    bl_idname = "scenesort.server_stop"
+    bl_label = "Stop Service"
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        status = _status(context)
+        if service.stop():
+            status.connected, status.mismatch = False, False
+            status.message = "Service stopped"
+            self.report({"INFO"}, status.message)
+            _redraw(context)
+            return {"FINISHED"}
+        self.report({"WARNING"}, "No service started by Blender is running")
+        return {"CANCELLED"}
+
+
+class SCENESORT_OT_open_log(bpy.types.Operator):
+    """Open the log of the local service (its output and errors) in the system's viewer"""
+
+    bl_idname = "scenesort.open_log"
+    bl_label = "Open Service Log"
+
+    def execute(self, context: bpy.types.Context) -> set[str]:
+        path = service.log_path()
+        if path is None or not path.exists():
+            self.report({"WARNING"}, "No service log yet: the local service has not started")
+            return {"CANCELLED"}
+        bpy.ops.wm.path_open(filepath=str(path))
+        return {"FINISHED"}
 
 
 def _apply_build(context: bpy.types.Context, outcome: pipeline.Outcome, settings: Any) -> str:
@@ -296,12 +276,14 @@ class SCENESORT_OT_build_bvh(_TaskOperator, bpy.types.Operator):
     bl_label = "Build BVH"
 
     def prepare(self, context: bpy.types.Context) -> Task:
+        target = prefs.target(context)
         settings = pipeline.Settings.from_scene(context.scene.scenesort)
         mesh = export.export_scene(context.evaluated_depsgraph_get())
         self._settings = settings
-        return Task(lambda task: pipeline.build(task, settings, mesh))
+        return Task(lambda task: pipeline.build(task, target, settings, mesh))
 
     def apply(self, context: bpy.types.Context, outcome: pipeline.Outcome) -> str:
+        _remember(context, outcome.connection)
         return _apply_build(context, outcome, self._settings)
 
 
@@ -313,19 +295,21 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
 
     def prepare(self, context: bpy.types.Context) -> Task:
         scene = context.scene
+        target = prefs.target(context)
         settings = pipeline.Settings.from_scene(scene.scenesort)
         depsgraph = context.evaluated_depsgraph_get()
         cam = camera.camera_dict(scene, depsgraph)
         mesh = export.export_scene(depsgraph)
         self._settings, self._size = settings, (cam["width"], cam["height"])
         if self._interactive:  # a service job: progress in the status bar, Esc cancels it
-            return Task(lambda task: pipeline.render_job(task, settings, mesh, cam))
+            return Task(lambda task: pipeline.render_job(task, target, settings, mesh, cam))
         # Scripts: the camera's rays in one request, the same ones the engine would trace.
         origins, directions, _, _ = camera.rays(cam)
         body = camera.ray_body(origins, directions)
-        return Task(lambda task: pipeline.render(task, settings, mesh, body))
+        return Task(lambda task: pipeline.render(task, target, settings, mesh, body))
 
     def apply(self, context: bpy.types.Context, outcome: pipeline.Outcome) -> str:
+        _remember(context, outcome.connection)
         width, height = self._size
         build = ""
         if outcome.build is not None:
@@ -339,10 +323,21 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
         return f"AO {width}x{height} in {outcome.render_ms / 1e3:.1f} s{build}"
 
 
+@persistent
+def _on_load_pre(*_args: Any) -> None:
+    """A file is about to load: drop the running request, so nothing stays busy after."""
+    if _active is not None:
+        _active.cancel()
+    wm = bpy.context.window_manager
+    _release(None if wm is None else wm.scenesort)
+
+
 CLASSES = (
     SCENESORT_OT_server_status,
     SCENESORT_OT_server_start,
+    SCENESORT_OT_server_restart,
     SCENESORT_OT_server_stop,
+    SCENESORT_OT_open_log,
     SCENESORT_OT_build_bvh,
     SCENESORT_OT_render_ao,
 )
@@ -351,12 +346,14 @@ CLASSES = (
 def register() -> None:
     for cls in CLASSES:
         bpy.utils.register_class(cls)
+    bpy.app.handlers.load_pre.append(_on_load_pre)
 
 
 def unregister() -> None:
-    global _active
+    if _on_load_pre in bpy.app.handlers.load_pre:
+        bpy.app.handlers.load_pre.remove(_on_load_pre)
     if _active is not None:
         _active.cancel()
-        _active = None
+    _release(None)
     for cls in reversed(CLASSES):
         bpy.utils.unregister_class(cls)

@@ -7,17 +7,26 @@ import bpy
 from . import service
 
 
-def _draw_service(layout: bpy.types.UILayout, props, status) -> None:  # noqa: ANN001
+def _draw_service(layout: bpy.types.UILayout, status) -> None:  # noqa: ANN001
     box = layout.box()
-    box.prop(props, "server_url")
     row = box.row()
     if status.connected:
-        row.label(text=f"Connected: {status.version} on {status.device}", icon="CHECKMARK")
+        row.label(
+            text=f"scenesort {status.version} on {status.device} at {status.url}",
+            icon="CHECKMARK",
+        )
     else:
         row.label(text="Not connected", icon="UNLINKED")
     row.operator("scenesort.server_status", text="", icon="FILE_REFRESH")
+    settings = row.operator("preferences.addon_show", text="", icon="PREFERENCES")
+    settings.module = __package__
     row = box.row(align=True)
-    row.operator("scenesort.server_start", icon="PLAY")
+    row.enabled = not status.busy
+    if status.mismatch and service.running():
+        row.alert = True
+        row.operator("scenesort.server_restart", icon="FILE_REFRESH")
+    else:
+        row.operator("scenesort.server_start", icon="PLAY")
     stop = row.row(align=True)
     stop.enabled = service.running()
     stop.operator("scenesort.server_stop", icon="PAUSE")
@@ -73,7 +82,7 @@ def draw(layout: bpy.types.UILayout, context: bpy.types.Context) -> None:
     """The whole panel; shared by both locations."""
     props = context.scene.scenesort
     status = context.window_manager.scenesort
-    _draw_service(layout, props, status)
+    _draw_service(layout, status)
     _draw_settings(layout, props)
     row = layout.row(align=True)
     row.enabled = not status.busy

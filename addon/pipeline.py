@@ -7,13 +7,14 @@ Blender beforehand, outputs are plain dicts and arrays applied afterwards.
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 
 from .client import Client, ServiceError
 from .client import scene_id as content_id
+from .connection import Connection, Target, connect
 from .export import SceneMesh
 from .tasks import Task
 
@@ -22,7 +23,6 @@ from .tasks import Task
 class Settings:
     """A snapshot of `scene.scenesort`, safe to read off the main thread."""
 
-    server_url: str
     method: str
     leaf_size: int
     spp: int
@@ -34,7 +34,6 @@ class Settings:
     @classmethod
     def from_scene(cls, props: Any) -> Settings:
         return cls(
-            server_url=props.server_url,
             method=props.method,
             leaf_size=int(props.leaf_size),
             spp=int(props.spp),
@@ -49,6 +48,7 @@ class Settings:
 class Outcome:
     """What the service did: upload size, the build answer, the AO image."""
 
+    connection: Connection | None = None  # the service that did it (health, started)
     scene_id: str = ""
     uploaded_bytes: int = 0
     build: dict | None = None
@@ -79,25 +79,27 @@ def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) 
     return scene_id
 
 
-def build(task: Task, settings: Settings, mesh: SceneMesh) -> Outcome:
+def build(task: Task, target: Target, settings: Settings, mesh: SceneMesh) -> Outcome:
     """Make sure the scene is on the service and build (or reuse) its BVH."""
-    client = Client(settings.server_url)
-    outcome = Outcome()
-    scene_id = ensure_scene(task, client, mesh, outcome)
-    task.set_step(f"building the BVH ({settings.method}, leaf size {settings.leaf_size})")
-    outcome.build = client.build_bvh(scene_id, settings.method, settings.leaf_size)
+    client, outcome, _ = prepare(task, target, replace(settings, engine="bvh"), mesh)
     outcome.requests = client.requests
     return outcome
 
 
-def prepare(task: Task, settings: Settings, mesh: SceneMesh) -> tuple[Client, Outcome, str]:
-    """What both renders do first: the scene on the service and, for the BVH engine, its
-    BVH. Returns the client, the outcome so far and the scene's id."""
-    client = Client(settings.server_url)
-    outcome = Outcome()
+def prepare(
+    task: Task, target: Target, settings: Settings, mesh: SceneMesh
+) -> tuple[Client, Outcome, str]:
+    """What both renders do first: the service (started if allowed), the scene on it and,
+    for the BVH engine, its BVH. Returns the client, the outcome so far, the scene's id."""
+    outcome = Outcome(connection=connect(task, target))
+    client = outcome.connection.client
     scene_id = ensure_scene(task, client, mesh, outcome)
     if settings.engine == "bvh":
-        task.set_step(f"building the BVH ({settings.method}, leaf size {settings.leaf_size})")
+        started = outcome.connection.started
+        first = "; a new service compiles Warp's kernels first" if started else ""
+        task.set_step(
+            f"building the BVH ({settings.method}, leaf size {settings.leaf_size}{first})"
+        )
         outcome.build = client.build_bvh(scene_id, settings.method, settings.leaf_size)
     return client, outcome, scene_id
 
@@ -105,9 +107,11 @@ def prepare(task: Task, settings: Settings, mesh: SceneMesh) -> tuple[Client, Ou
 JOB_POLL_S = 0.25
 
 
-def render_job(task: Task, settings: Settings, mesh: SceneMesh, camera: dict) -> Outcome:
+def render_job(
+    task: Task, target: Target, settings: Settings, mesh: SceneMesh, camera: dict
+) -> Outcome:
     """Like `render`, as a service job: real progress, and Esc cancels it on the service."""
-    client, outcome, scene_id = prepare(task, settings, mesh)
+    client, outcome, scene_id = prepare(task, target, settings, mesh)
     payload = {
         "scene_id": scene_id,
         "camera": camera,
@@ -139,9 +143,11 @@ def render_job(task: Task, settings: Settings, mesh: SceneMesh, camera: dict) ->
     return outcome
 
 
-def render(task: Task, settings: Settings, mesh: SceneMesh, ray_body: bytes) -> Outcome:
+def render(
+    task: Task, target: Target, settings: Settings, mesh: SceneMesh, ray_body: bytes
+) -> Outcome:
     """Scene, BVH (for the BVH engine), then one AO value per camera ray."""
-    client, outcome, scene_id = prepare(task, settings, mesh)
+    client, outcome, scene_id = prepare(task, target, settings, mesh)
     task.set_step(f"rendering AO ({len(ray_body) // 24:,} rays, {settings.spp} spp)")
     start = time.perf_counter()
     outcome.ao, _ = client.ambient_occlusion(

@@ -1,49 +1,172 @@
-"""Add-on preferences: which command starts the local service."""
+"""Add-on preferences: where the service is, how the local one starts, on which device.
+
+Kept in the user's preferences, never in a .blend: a file someone sends you cannot
+choose where your geometry goes or which program Blender runs.
+"""
 
 from __future__ import annotations
 
 import os
 
 import bpy
-from bpy.props import StringProperty
+from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
 
-DEFAULT_COMMAND = "scenesort"
-# Scripts and tests without enabled preferences (the add-on imported as a plain
-# package) can point at another launcher with this variable.
+from .connection import Target, check_remote
+
+# Scripts and tests can point at another launcher with this variable when the
+# preference is empty.
 COMMAND_ENV = "SCENESORT_COMMAND"
+LEGACY_COMMAND = "scenesort"  # the old default ('scenesort' on PATH): now means "unset"
+
+# Devices the service reported (`devices` of its health answer); Blender needs the
+# enum items kept alive on the Python side while they are shown.
+_reported: list[str] = []
+_items: list[tuple[str, str, str, int]] = []
+
+
+def remember_devices(health: dict) -> None:
+    """Keep the Warp devices of a health answer for the Device menu."""
+    devices = health.get("devices")
+    if isinstance(devices, list):
+        _reported[:] = [str(d) for d in devices if str(d) != "cpu"]
+
+
+def _device_items(self, context):  # noqa: ANN001, ANN202 - Blender's callback signature
+    names = ["cpu", *_reported]
+    if self.device_name not in names:
+        names.append(self.device_name)  # chosen in an earlier session: keep showing it
+    _items[:] = [
+        (name, "CPU" if name == "cpu" else name.upper().replace(":", " "), f"Warp device {name}", i)
+        for i, name in enumerate(names)
+    ]
+    return _items
+
+
+def _get_device(self) -> int:  # noqa: ANN001
+    names = [item[0] for item in _device_items(self, None)]
+    return names.index(self.device_name)
+
+
+def _set_device(self, value: int) -> None:  # noqa: ANN001
+    self.device_name = _device_items(self, None)[value][0]
 
 
 class SCENESORT_AP_preferences(bpy.types.AddonPreferences):
-    """Kept in the user's preferences, never in a .blend, so a file cannot pick a program."""
+    """The scenesort service: local (started by Blender) or one of your own."""
 
     bl_idname = __package__
 
+    device: EnumProperty(  # type: ignore[valid-type]
+        name="Device",
+        description=(
+            "Warp device of the local service: the CPU, or a CUDA device the service "
+            "reported (start it once to list them); applies at the next start"
+        ),
+        items=_device_items,
+        get=_get_device,
+        set=_set_device,
+    )
+    device_name: StringProperty(default="cpu", options={"HIDDEN"})  # type: ignore[valid-type]
+    port: IntProperty(  # type: ignore[valid-type]
+        name="Port",
+        description="TCP port of the local service on 127.0.0.1 (0: a free one at each start)",
+        default=0,
+        min=0,
+        max=65535,
+    )
+    start_on_render: BoolProperty(  # type: ignore[valid-type]
+        name="Start the service on first render",
+        description="Build BVH and Render AO start the local service when none runs",
+        default=True,
+    )
+    server_url: StringProperty(  # type: ignore[valid-type]
+        name="Service URL",
+        description=(
+            "A scenesort service you run yourself, e.g. http://127.0.0.1:8765 "
+            "(empty: the local service that Blender starts)"
+        ),
+        default="",
+    )
+    allow_remote: BoolProperty(  # type: ignore[valid-type]
+        name="Allow a remote service",
+        description=(
+            "Let Service URL name another computer, which then receives your scene's "
+            "geometry (needs Blender's Allow Online Access too)"
+        ),
+        default=False,
+    )
     server_command: StringProperty(  # type: ignore[valid-type]
         name="Service command",
         description=(
-            "Program that runs the service, e.g. 'scenesort' on PATH or "
-            "'/path/to/.venv/bin/scenesort'; 'serve --host ... --port ...' is added"
+            "Override: a program that runs the service, e.g. '/path/to/.venv/bin/scenesort' "
+            "('serve --host ... --port ... --device ...' is added; quote paths with spaces). "
+            "Empty: Blender's own Python runs the engine installed with the extension"
         ),
-        default=DEFAULT_COMMAND,
+        default="",
     )
 
     def draw(self, context: bpy.types.Context) -> None:
-        self.layout.prop(self, "server_command")
+        layout = self.layout
+        col = layout.column(heading="Local service")
+        col.prop(self, "device")
+        col.prop(self, "port")
+        col.prop(self, "start_on_render")
+        col.prop(self, "server_command")
+        col.operator("scenesort.open_log", icon="TEXT")
+        col = layout.column(heading="Own service")
+        col.prop(self, "server_url")
+        col.prop(self, "allow_remote")
 
 
-def server_command(context: bpy.types.Context) -> str:
-    """The launcher command line: the preference if enabled, else $SCENESORT_COMMAND."""
-    addon = context.preferences.addons.get(__package__)
-    prefs = getattr(addon, "preferences", None)
-    value = getattr(prefs, "server_command", "").strip()
-    if value and value != DEFAULT_COMMAND:
+def preferences(context: bpy.types.Context) -> SCENESORT_AP_preferences:
+    """This add-on's preferences."""
+    return context.preferences.addons[__package__].preferences
+
+
+def server_command(prefs: SCENESORT_AP_preferences) -> str:
+    """The launcher override: the preference if set, else $SCENESORT_COMMAND, else ''
+    (Blender's own Python runs the bundled engine)."""
+    value = prefs.server_command.strip()
+    if value and value != LEGACY_COMMAND:
         return value
-    return os.environ.get(COMMAND_ENV, "").strip() or DEFAULT_COMMAND
+    return os.environ.get(COMMAND_ENV, "").strip()
+
+
+def target(context: bpy.types.Context, start: bool | None = None) -> Target:
+    """Where requests go, checked (a remote URL only when allowed); `start` overrides
+    'Start the service on first render'."""
+    prefs = preferences(context)
+    url = prefs.server_url.strip()
+    if url:
+        check_remote(url, prefs.allow_remote, bool(bpy.app.online_access))
+    return Target(
+        url=url,
+        command=server_command(prefs),
+        port=prefs.port,
+        device=prefs.device_name,
+        start=prefs.start_on_render if start is None else start,
+    )
+
+
+# Set when the add-on is imported as a plain package (scripts, tests): Blender only
+# creates an add-on entry, which holds the preferences, for add-ons it enables itself.
+_own_entry = False
 
 
 def register() -> None:
+    global _own_entry
     bpy.utils.register_class(SCENESORT_AP_preferences)
+    addons = bpy.context.preferences.addons
+    if addons.get(__package__) is None:
+        addons.new().module = __package__
+        _own_entry = True
 
 
 def unregister() -> None:
+    global _own_entry
+    if _own_entry:
+        entry = bpy.context.preferences.addons.get(__package__)
+        if entry is not None:
+            bpy.context.preferences.addons.remove(entry)
+        _own_entry = False
     bpy.utils.unregister_class(SCENESORT_AP_preferences)

@@ -14,7 +14,6 @@ from bpy.props import (
 )
 
 HISTORY_LENGTH = 8  # earlier builds kept for comparison in the panel
-DEFAULT_URL = "http://127.0.0.1:8765"
 
 
 class SCENESORT_PG_phase(bpy.types.PropertyGroup):
@@ -34,13 +33,12 @@ class SCENESORT_PG_build(bpy.types.PropertyGroup):
 
 
 class SCENESORT_PG_settings(bpy.types.PropertyGroup):
-    """`scene.scenesort`: what to build and render, and the last build's timings."""
+    """`scene.scenesort`: what to build and render, and the last build's timings.
 
-    server_url: StringProperty(  # type: ignore[valid-type]
-        name="Service URL",
-        description="Base URL of the scenesort service (the local one by default)",
-        default=DEFAULT_URL,
-    )
+    The service URL is a preference, not a scene setting: a `server_url` that files
+    from older versions carry is never read.
+    """
+
     method: EnumProperty(  # type: ignore[valid-type]
         name="BVH method",
         items=[
@@ -109,7 +107,9 @@ class SCENESORT_PG_status(bpy.types.PropertyGroup):
     """`window_manager.scenesort`: runtime state; not saved, so errors never touch the scene."""
 
     connected: BoolProperty(default=False)  # type: ignore[valid-type]
+    url: StringProperty()  # type: ignore[valid-type]
     version: StringProperty()  # type: ignore[valid-type]
+    mismatch: BoolProperty(default=False)  # type: ignore[valid-type] - other version answered
     device: StringProperty()  # type: ignore[valid-type]
     message: StringProperty()  # type: ignore[valid-type]
     error: StringProperty()  # type: ignore[valid-type]

@@ -1,8 +1,11 @@
 """Start and stop the local service (`scenesort serve`) as a child process of Blender.
 
-The child never outlives Blender: it is stopped on unregister and at interpreter
-exit (atexit), and on Linux the kernel also sends it SIGTERM if Blender dies
-without cleaning up (PR_SET_PDEATHSIG). Only the process started here is stopped.
+By default the child is Blender's own Python (`sys.executable`) running the engine
+that the extension zip installed into Blender's extensions site-packages; the
+"Service command" preference overrides that for an install of your own. The child
+never outlives Blender: it is stopped on unregister and at interpreter exit
+(atexit), and on Linux the kernel also sends it SIGTERM if Blender dies without
+cleaning up (PR_SET_PDEATHSIG). Only the process started here is stopped.
 """
 
 from __future__ import annotations
@@ -10,7 +13,10 @@ from __future__ import annotations
 import atexit
 import contextlib
 import ctypes
+import importlib.util
+import ipaddress
 import os
+import re
 import shlex
 import shutil
 import signal
@@ -21,7 +27,10 @@ import urllib.parse
 from pathlib import Path
 
 STOP_TIMEOUT_S = 5.0
+ENGINE_PACKAGE = "backend"  # the service's package inside the bundled scenesort wheel
 _PR_SET_PDEATHSIG = 1
+# `scenesort serve` prints this first, with the port it bound (also for --port 0).
+_SERVING = re.compile(r"scenesort serving on (http://\S+)")
 
 _process: subprocess.Popen | None = None
 _log_path: Path | None = None
@@ -31,11 +40,21 @@ class LaunchError(Exception):
     """The service could not be started; the message is meant for the user."""
 
 
+def is_loopback(host: str) -> bool:
+    """Whether `host` (a URL's host name) can only be this computer."""
+    if host.lower() == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False  # a name: it may resolve to anything
+
+
 def host_port(url: str) -> tuple[str, int]:
     """Host and port of a service URL; only loopback URLs can be started locally."""
     parts = urllib.parse.urlsplit(url.strip())
     host = parts.hostname or ""
-    if host not in {"127.0.0.1", "localhost", "::1"}:
+    if not is_loopback(host):
         raise LaunchError(
             f"Only a local service can be started from Blender; '{url}' is not on 127.0.0.1"
         )
@@ -43,7 +62,112 @@ def host_port(url: str) -> tuple[str, int]:
         port = parts.port or 8765
     except ValueError:
         raise LaunchError(f"'{url}' has an invalid port") from None
-    return ("127.0.0.1" if host == "localhost" else host), port
+    return ("127.0.0.1" if host.lower() == "localhost" else host), port
+
+
+def split_command(command: str) -> list[str]:
+    """A command line as its words: quotes group, backslashes stay as they are.
+
+    POSIX `shlex.split` would read `C:\\Users\\me\\scenesort.exe` as escapes and drop
+    every backslash; paths with spaces are quoted on every platform.
+    """
+    lexer = shlex.shlex(command, posix=True)
+    lexer.whitespace_split = True
+    lexer.escape = ""  # no escape character: a Windows path keeps its backslashes
+    lexer.commenters = ""
+    try:
+        return list(lexer)
+    except ValueError as exc:
+        raise LaunchError(f"The service command '{command}' cannot be parsed: {exc}") from None
+
+
+def engine_root() -> Path | None:
+    """The folder that holds the bundled engine's packages, found without importing them
+    (Blender puts its extensions' site-packages first on `sys.path`)."""
+    spec = importlib.util.find_spec(ENGINE_PACKAGE)
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    package = Path(next(iter(spec.submodule_search_locations)))
+    return package.parent if (package / "cli.py").is_file() else None
+
+
+def _bundled_engine() -> Path:
+    root = engine_root()
+    if root is None:
+        raise LaunchError(
+            "The scenesort engine is not installed beside the add-on: install the zip made "
+            "by 'scenesort addon-zip --platform ...', or set 'Service command' in the "
+            "add-on preferences to a scenesort program of your own"
+        )
+    return root
+
+
+def command_line(command: str, host: str, port: int, device: str = "cpu") -> list[str]:
+    """The child's argument list (no shell involved): `command` (the preference's
+    override) if set, else Blender's own Python running the bundled engine, then
+    `serve --host H --port P --device D`."""
+    serve = ["serve", "--host", host, "--port", str(port), "--device", device]
+    if not command.strip():
+        _bundled_engine()
+        # -s: the user's own site-packages must not shadow the bundled wheels.
+        return [sys.executable, "-s", "-m", f"{ENGINE_PACKAGE}.cli", *serve]
+    argv = split_command(command)
+    if not argv:
+        raise LaunchError("The service command is empty: set it in the add-on preferences")
+    exe = shutil.which(argv[0])
+    if exe is None:
+        raise LaunchError(
+            f"The program '{argv[0]}' was not found: install scenesort, or set the full "
+            "path of its 'scenesort' command in the add-on preferences"
+        )
+    return [exe, *argv[1:], *serve]
+
+
+def child_env(command: str) -> dict[str, str]:
+    """The child's environment: Blender's, and for the bundled engine exactly the
+    extension's site-packages as the path (Blender's own Python finds numpy itself)."""
+    env = dict(os.environ)
+    if not command.strip():
+        for name in ("PYTHONHOME", "PYTHONPATH", "PYTHONSTARTUP"):
+            env.pop(name, None)
+        env["PYTHONPATH"] = str(_bundled_engine())
+    return env
+
+
+def log_path() -> Path | None:
+    """The log file of the service started last (stdout and stderr), if any."""
+    return _log_path
+
+
+def running() -> bool:
+    """Whether the service started by this add-on is still alive."""
+    return _process is not None and _process.poll() is None
+
+
+def served_url() -> str | None:
+    """The URL the running child listens on (from its first line), None before that."""
+    if not running() or _log_path is None:
+        return None
+    with contextlib.suppress(OSError), _log_path.open(errors="replace") as log:
+        for line in log:
+            if match := _SERVING.search(line):
+                return match.group(1)
+    return None
+
+
+def last_log_line() -> str:
+    """The latest line the service wrote, e.g. while it starts; '' if none."""
+    if _log_path is None or not _log_path.exists():
+        return ""
+    lines = _log_path.read_text(errors="replace").strip().splitlines()
+    return lines[-1] if lines else ""
+
+
+def exit_message() -> str:
+    """Why the started process ended early: its exit code and the end of its log."""
+    code = None if _process is None else _process.poll()
+    tail = last_log_line()
+    return f"the service exited (code {code})" + (f": {tail}" if tail else "")
 
 
 def _load_prctl():  # noqa: ANN202 - a ctypes function or None
@@ -67,50 +191,17 @@ def _die_with_parent(parent_pid: int) -> None:
         os._exit(1)
 
 
-def command_line(command: str, host: str, port: int) -> list[str]:
-    """`<command> serve --host H --port P` as an argument list (no shell involved)."""
-    try:
-        argv = shlex.split(command)
-    except ValueError as exc:
-        raise LaunchError(f"The service command '{command}' cannot be parsed: {exc}") from None
-    if not argv:
-        raise LaunchError("The service command is empty: set it in the add-on preferences")
-    exe = shutil.which(argv[0])
-    if exe is None:
-        raise LaunchError(
-            f"The program '{argv[0]}' was not found: install scenesort, or set the full "
-            "path of its 'scenesort' command in the add-on preferences"
-        )
-    return [exe, *argv[1:], "serve", "--host", host, "--port", str(port)]
-
-
-def log_path() -> Path | None:
-    """The log file of the service started last (stdout and stderr), if any."""
-    return _log_path
-
-
-def running() -> bool:
-    """Whether the service started by this add-on is still alive."""
-    return _process is not None and _process.poll() is None
-
-
-def exit_message() -> str:
-    """Why the started process ended early: its exit code and the end of its log."""
-    code = None if _process is None else _process.poll()
-    tail = ""
-    if _log_path is not None and _log_path.exists():
-        lines = _log_path.read_text(errors="replace").strip().splitlines()
-        tail = lines[-1] if lines else ""
-    return f"the service exited (code {code})" + (f": {tail}" if tail else "")
-
-
-def start(command: str, url: str) -> subprocess.Popen:
-    """Launch the service for `url` unless this add-on already runs one."""
+def start(command: str, url: str, device: str = "cpu") -> subprocess.Popen:
+    """Launch the service for `url` (port 0: any free one) unless one of ours runs."""
     global _process, _log_path
     if running():
         return _process
     host, port = host_port(url)
-    argv = command_line(command, host, port)
+    argv = command_line(command, host, port, device)
+    env = child_env(command)
+    # The bundled engine runs in its own folder: `-m` puts the working folder first on
+    # the path, and Blender's (or a temporary) one may hold anything.
+    cwd = None if command.strip() else str(_bundled_engine())
     if _log_path is not None:  # the previous run's log; only the latest one is kept
         _log_path.unlink(missing_ok=True)
     fd, name = tempfile.mkstemp(prefix="scenesort-service-", suffix=".log")
@@ -124,6 +215,8 @@ def start(command: str, url: str) -> subprocess.Popen:
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
+                env=env,
+                cwd=cwd,
                 preexec_fn=preexec,  # only prctl: it must run in the child before exec
                 close_fds=True,
             )

@@ -271,5 +271,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"scenesort addon-zip: {exc}", file=sys.stderr)
         return 1
     for path in zips:
-        print(f"{path}\t{path.stat().st_size / 1e6:.1f} MB")
+        size = path.stat().st_size
+        print(f"{path}\t{size / 1e6:.1f} MB ({size:,} bytes)")
     return 0

@@ -332,6 +332,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             version=__version__,
             warp_version=warp.config.version,
             device=settings.device,
+            devices=[str(d) for d in warp.get_devices()],
             cache=CacheUse(**store.usage()),
             queued=worker.queued,
             active_jobs=manager.active(),

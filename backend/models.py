@@ -34,6 +34,7 @@ class Health(Strict):
     version: str
     warp_version: str
     device: str
+    devices: list[str]  # every Warp device on this machine ("cpu", "cuda:0", ...)
     cache: CacheUse
     queued: int
     active_jobs: int

@@ -55,7 +55,8 @@ def built_zip(tmp_path_factory: pytest.TempPathFactory) -> Path:
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.strip() == str(out)
+    path, size = proc.stdout.strip().split("\t")
+    assert path == str(out) and size.endswith(f"({out.stat().st_size:,} bytes)")
     return out
 
 
@@ -89,7 +90,8 @@ def test_zip_registers_as_its_own_package(built_zip: Path, tmp_path: Path) -> No
         bpy.ops.wm.read_factory_settings(use_empty=True)
         module.register()
         try:
-            assert bpy.context.scene.scenesort.server_url.startswith("http://127.0.0.1")
+            prefs = bpy.context.preferences.addons["scenesort_unzipped"].preferences
+            assert prefs.port == 0 and prefs.server_url == ""
         finally:
             module.unregister()
     finally:

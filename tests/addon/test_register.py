@@ -10,8 +10,11 @@ from conftest import REPO
 
 import addon
 
-OPERATORS = ("server_start", "server_stop", "server_status", "build_bvh", "render_ao")
-SETTINGS = ("server_url", "method", "leaf_size", "spp", "target_error", "ao_distance", "engine")
+OPERATORS = (
+    "server_start", "server_restart", "server_stop", "server_status", "open_log", "build_bvh",
+    "render_ao",
+)  # fmt: skip
+SETTINGS = ("method", "leaf_size", "spp", "target_error", "ao_distance", "engine")
 
 
 def _registered() -> bool:
@@ -26,7 +29,10 @@ def test_register_unregister_twice() -> None:
         scene = bpy.context.scene
         for name in SETTINGS:
             assert hasattr(scene.scenesort, name), name
-        assert scene.scenesort.server_url == "http://127.0.0.1:8765"
+        assert "server_url" not in scene.scenesort.bl_rna.properties  # a preference now
+        prefs = bpy.context.preferences.addons["addon"].preferences
+        assert (prefs.server_url, prefs.port, prefs.device) == ("", 0, "cpu")
+        assert prefs.start_on_render and not prefs.allow_remote and not prefs.server_command
         assert scene.scenesort.method == "sah" and scene.scenesort.leaf_size == 8
         for name in OPERATORS:
             # `get_rna_type` fails for an operator that is not registered.
@@ -38,6 +44,7 @@ def test_register_unregister_twice() -> None:
         assert not _registered()
         assert not hasattr(bpy.types, "SCENESORT_PT_render")
         assert not hasattr(bpy.types.WindowManager, "scenesort")
+        assert bpy.context.preferences.addons.get("addon") is None  # the entry it made
 
 
 def test_settings_survive_with_defaults_documented(registered: bpy.types.Scene) -> None:

@@ -36,9 +36,9 @@ def _wait_gone(pid: int, seconds: float = 10.0) -> bool:
 
 
 def test_command_line_appends_serve_and_address() -> None:
-    argv = service.command_line(SLEEPER, "127.0.0.1", 9999)
+    argv = service.command_line(SLEEPER, "127.0.0.1", 9999, "cuda:0")
     assert argv[0] == sys.executable
-    assert argv[-5:] == ["serve", "--host", "127.0.0.1", "--port", "9999"]
+    assert argv[-7:] == ["serve", "--host", "127.0.0.1", "--port", "9999", "--device", "cuda:0"]
     with pytest.raises(service.LaunchError, match="was not found"):
         service.command_line("no-such-program-scenesort", "127.0.0.1", 1)
     assert service.host_port("http://localhost:1234/") == ("127.0.0.1", 1234)

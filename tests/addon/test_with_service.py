@@ -1,5 +1,9 @@
 """Against a real service that the add-on's own `scenesort.server_start` launches.
 
+The launch is the add-on's default one: this interpreter (Blender's Python) runs the
+engine found on its path (here the checkout, in Blender the extension's wheels), on
+a free port; no SCENESORT_COMMAND, no preference set.
+
 Build fills the timings (and reuses a cached BVH), Render AO fills `scenesort AO`
 with exactly what the service returns for the same rays sent directly, and a
 second render of an unchanged scene uploads nothing.
@@ -8,31 +12,20 @@ second render of an unchanged scene uploads nothing.
 from __future__ import annotations
 
 import math
-import os
-import shlex
 import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import bpy
 import httpx
 import numpy as np
 import pytest
-from conftest import REPO, add_camera, add_object, box_mesh, free_port
+from conftest import add_camera, add_object, box_mesh
 
 import addon
 from addon import camera, export, image, pipeline, prefs, service
 from addon.tasks import Task
 
 WIDTH, HEIGHT = 40, 30
-
-
-def _launcher() -> str:
-    """The `scenesort` console script of this environment, else the module."""
-    script = Path(sys.executable).with_name("scenesort")
-    if script.exists():
-        return shlex.quote(str(script))
-    return shlex.join([sys.executable, "-m", "backend.cli"])
 
 
 def _grid_mesh(name: str, n: int, size: float) -> bpy.types.Mesh:
@@ -60,14 +53,11 @@ def live() -> Iterator[bpy.types.Scene]:
     """A floor with a box on it, a camera, and a service started by the add-on."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon.register()
-    old_env = {k: os.environ.get(k) for k in (prefs.COMMAND_ENV, "PYTHONPATH")}
-    os.environ[prefs.COMMAND_ENV] = _launcher()
-    os.environ["PYTHONPATH"] = str(REPO)  # for the `-m backend.cli` fallback
+    assert not prefs.server_command(prefs.preferences(bpy.context))
     scene = bpy.context.scene
     add_object(scene, "Floor", _grid_mesh("Floor", 8, 8.0))
     add_object(scene, "Box", box_mesh("Box", size=1.5), (0.0, 0.0, 0.75))
     add_camera(scene, (0.0, -7.0, 4.0), (math.radians(60), 0.0, 0.0), WIDTH, HEIGHT)
-    scene.scenesort.server_url = f"http://127.0.0.1:{free_port()}"
     scene.scenesort.ao_distance = 2.0
     try:
         yield scene
@@ -75,18 +65,15 @@ def live() -> Iterator[bpy.types.Scene]:
         proc = service._process
         addon.unregister()  # must stop the service it started
         assert proc is None or proc.poll() is not None, "unregister left the service running"
-        for key, value in old_env.items():
-            if value is None:
-                os.environ.pop(key, None)
-            else:
-                os.environ[key] = value
 
 
 def test_start_launches_the_service(live) -> None:
     assert bpy.ops.scenesort.server_start() == {"FINISHED"}
     status = bpy.context.window_manager.scenesort
     assert status.connected and status.version and status.device == "cpu"
-    assert service.running()
+    assert service.running() and status.url == service.served_url()
+    assert status.url.startswith("http://127.0.0.1:") and not status.url.endswith(":0")
+    assert service._process.args[:3] == [sys.executable, "-s", "-m"]  # Blender's Python
     pid = service._process.pid
     # A second start finds it running and launches nothing.
     assert bpy.ops.scenesort.server_start() == {"FINISHED"}
@@ -135,8 +122,9 @@ def _direct_ao(scene: bpy.types.Scene, scene_id: str) -> np.ndarray:
     params = {"rays": len(origins), "spp": props.spp, "seed": props.seed,
               "distance": props.ao_distance, "method": props.method,
               "leaf_size": props.leaf_size}  # fmt: skip
+    url = bpy.context.window_manager.scenesort.url
     resp = httpx.post(
-        f"{props.server_url}/v1/scenes/{scene_id}/ao", params=params, content=body,
+        f"{url}/v1/scenes/{scene_id}/ao", params=params, content=body,
         headers={"Content-Type": "application/octet-stream"}, timeout=600.0,
     )  # fmt: skip
     assert resp.status_code == 200, resp.text
@@ -195,9 +183,10 @@ def test_interactive_job_path_gives_the_same_image(live) -> None:
     scripted = _image_ao()
     depsgraph = bpy.context.evaluated_depsgraph_get()
     settings = pipeline.Settings.from_scene(live.scenesort)
+    target = prefs.target(bpy.context)
     mesh = export.export_scene(depsgraph)
     desc = camera.camera_dict(live, depsgraph)
-    task = Task(lambda t: pipeline.render_job(t, settings, mesh, desc))
+    task = Task(lambda t: pipeline.render_job(t, target, settings, mesh, desc))
     outcome = task.run()
     assert outcome.uploaded_bytes == 0  # the scene was already there
     assert any("%" in step for step in task.steps), task.steps  # progress was reported
@@ -208,5 +197,6 @@ def test_stop_ends_the_service(live) -> None:
     proc = service._process
     assert bpy.ops.scenesort.server_stop() == {"FINISHED"}
     assert proc.poll() is not None and not service.running()
+    prefs.preferences(bpy.context).start_on_render = False
     with pytest.raises(RuntimeError, match="No scenesort service is running"):
         bpy.ops.scenesort.build_bvh()

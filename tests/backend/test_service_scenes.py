@@ -50,6 +50,7 @@ def test_health_reports_versions_device_and_cache(api) -> None:
     health = api.health().json()
     assert health["status"] == "ok" and health["device"] == "cpu"
     assert health["warp_version"] == "1.19.0"
+    assert health["devices"][0] == "cpu"  # then each CUDA device Warp reports
     assert 0 < health["cache"]["bytes"] <= health["cache"]["max_bytes"]
 
 
