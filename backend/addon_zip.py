@@ -46,6 +46,16 @@ PLATFORMS: dict[str, list[str]] = {
 }
 # Blender 4.2-5.0 run Python 3.11, Blender 5.1+ Python 3.13.
 PYTHON_VERSIONS = ("3.11", "3.13")
+# The marker environment of each platform: pip evaluates dependency markers for the
+# machine it runs on, so the closure is checked against the target's afterwards.
+MARKER_ENV: dict[str, dict[str, str]] = {
+    "linux-x64": {"sys_platform": "linux", "platform_system": "Linux", "os_name": "posix",
+                  "platform_machine": "x86_64"},
+    "windows-x64": {"sys_platform": "win32", "platform_system": "Windows", "os_name": "nt",
+                    "platform_machine": "AMD64"},
+    "macos-arm64": {"sys_platform": "darwin", "platform_system": "Darwin", "os_name": "posix",
+                    "platform_machine": "arm64"},
+}  # fmt: skip
 # Blender bundles numpy: it is never put in the zip. Blender 4.2-5.0 ship numpy 1.26.4
 # (the bpy 5.0 wheel requires numpy>=1.26,<2), so the 3.11 closure is resolved against
 # exactly that version: every bundled wheel then accepts Blender's numpy.
@@ -156,6 +166,7 @@ def resolve(platform: str, python: str, requirements: list[str], cache: Path) ->
             f"resolve the dependencies for {platform}, Python {python}",
         )  # fmt: skip
         installs = json.loads(report.read_text())["install"]
+    check_markers(installs, platform, python)
     names = sorted(
         item["download_info"]["url"].rsplit("/", 1)[-1]
         for item in installs
@@ -164,6 +175,30 @@ def resolve(platform: str, python: str, requirements: list[str], cache: Path) ->
     cached.parent.mkdir(parents=True, exist_ok=True)
     cached.write_text(json.dumps(names, indent=1))
     return names
+
+
+def check_markers(installs: list[dict], platform: str, python: str) -> None:
+    """ValueError if a package of the closure needs, on the target platform and Python,
+    a dependency that pip (which evaluates markers for this machine) left out."""
+    from packaging.markers import Marker
+    from packaging.requirements import Requirement
+    from packaging.utils import canonicalize_name
+
+    env = {**MARKER_ENV[platform], "python_version": python, "python_full_version": python + ".0",
+           "implementation_name": "cpython", "platform_python_implementation": "CPython",
+           "extra": ""}  # fmt: skip
+    closure = {canonicalize_name(item["metadata"]["name"]) for item in installs}
+    for item in installs:
+        for text in item["metadata"].get("requires_dist") or []:
+            req = Requirement(text)
+            if req.marker is None or not Marker(str(req.marker)).evaluate(env):
+                continue
+            if canonicalize_name(req.name) not in closure:
+                raise ValueError(
+                    f"{item['metadata']['name']} needs {req} on {platform} (Python {python}), "
+                    "which pip left out when resolving on this machine: add it to the project's "
+                    "dependencies with that marker"
+                )
 
 
 def _pin_of(wheel_name: str) -> str:
