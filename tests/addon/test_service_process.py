@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import re
 import shlex
 import subprocess
 import sys
@@ -74,3 +75,44 @@ def test_child_dies_with_its_parent(ending: str) -> None:
     finally:
         if _alive(child):
             os.kill(child, 9)
+
+
+@pytest.mark.parametrize(
+    ("command", "words"),
+    [
+        (r"C:\Users\me\venv\Scripts\scenesort.exe", [r"C:\Users\me\venv\Scripts\scenesort.exe"]),
+        (
+            r'"C:\Program Files\scenesort\scenesort.exe" --log-level debug',
+            [r"C:\Program Files\scenesort\scenesort.exe", "--log-level", "debug"],
+        ),
+        ("'/opt/my tools/scenesort'", ["/opt/my tools/scenesort"]),
+        ("/usr/bin/env scenesort", ["/usr/bin/env", "scenesort"]),
+    ],
+)
+def test_split_keeps_backslashes_and_quoted_spaces(command: str, words: list[str]) -> None:
+    assert service.split_command(command) == words
+
+
+def test_a_missing_windows_program_is_named_in_full() -> None:
+    path = r"C:\Users\me\venv\Scripts\scenesort.exe"
+    with pytest.raises(service.LaunchError, match=re.escape(f"'{path}' was not found")):
+        service.command_line(path, "127.0.0.1", 1)
+    with pytest.raises(service.LaunchError, match="cannot be parsed"):
+        service.command_line('"unclosed', "127.0.0.1", 1)
+
+
+def test_default_launch_is_this_python_running_the_engine_on_its_path() -> None:
+    """No command: Blender's own interpreter, the engine's folder as the whole path."""
+    argv = service.command_line("", "127.0.0.1", 0, "cpu")
+    assert argv[:4] == [sys.executable, "-s", "-m", "backend.cli"]
+    assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--device", "cpu"]
+    assert service.engine_root() == REPO  # here the checkout; in Blender the wheels' folder
+    env = service.child_env("")
+    assert env["PYTHONPATH"] == str(REPO) and "PYTHONHOME" not in env
+    assert "PYTHONPATH" not in service.child_env(SLEEPER) or os.environ.get("PYTHONPATH")
+
+
+def test_default_launch_without_the_engine_explains(monkeypatch) -> None:
+    monkeypatch.setattr(service, "ENGINE_PACKAGE", "scenesort_no_such_engine")
+    with pytest.raises(service.LaunchError, match="not installed beside the add-on"):
+        service.command_line("", "127.0.0.1", 0)

@@ -1,0 +1,91 @@
+"""Run by tests/addon/test_extension_install.py in a Python that has only `bpy`.
+
+Installs the extension zip with Blender's own installer into the (fresh) user
+directory named by the BLENDER_USER_* variables, renders the scene below through the
+add-on with its defaults, and writes what the test compares to OUT_DIR:
+render.npz (the image's AO, the exported triangles) and render.json (camera, settings,
+how the service was started). Usage: python install_and_render.py ZIP OUT_DIR
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import math
+import os
+import shutil
+import sys
+from pathlib import Path
+
+import bpy
+import numpy as np
+
+MODULE = "bl_ext.user_default.scenesort"
+WIDTH, HEIGHT = 32, 24
+
+
+def _scene() -> bpy.types.Scene:
+    """A floor with a box on it and a camera: occlusion in the corners where they meet."""
+    for obj in list(bpy.data.objects):  # the factory startup's cube, light and camera
+        bpy.data.objects.remove(obj)
+    scene = bpy.context.scene
+    floor = bpy.data.meshes.new("Floor")
+    floor.from_pydata([(-4, -4, 0), (4, -4, 0), (4, 4, 0), (-4, 4, 0)], [], [(0, 1, 2, 3)])
+    box = bpy.data.meshes.new("Box")
+    h = 0.75
+    verts = [(x, y, z) for z in (0, 2 * h) for y in (-h, h) for x in (-h, h)]
+    faces = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (0, 4, 6, 2), (1, 3, 7, 5)]
+    box.from_pydata(verts, [], faces)
+    for name, data in (("Floor", floor), ("Box", box)):
+        scene.collection.objects.link(bpy.data.objects.new(name, data))
+    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+    scene.collection.objects.link(cam)
+    cam.location, cam.rotation_euler = (0.0, -7.0, 4.0), (math.radians(60), 0.0, 0.0)
+    scene.camera = cam
+    scene.render.resolution_x, scene.render.resolution_y = WIDTH, HEIGHT
+    scene.render.resolution_percentage = 100
+    return scene
+
+
+def main(zip_path: str, out_dir: str) -> None:
+    import addon_utils  # only importable once bpy is
+
+    out = Path(out_dir)
+    assert shutil.which("scenesort") is None and "SCENESORT_COMMAND" not in os.environ
+    result = bpy.ops.extensions.package_install_files(
+        filepath=zip_path, repo="user_default", enable_on_install=True
+    )
+    assert result == {"FINISHED"}, result
+    ext = importlib.import_module(MODULE)
+    scene = _scene()
+    scene.scenesort.spp, scene.scenesort.seed, scene.scenesort.ao_distance = 8, 3, 2.0
+    try:
+        assert bpy.ops.scenesort.render_ao() == {"FINISHED"}  # starts the service itself
+        img = bpy.data.images["scenesort AO"]
+        pixels = np.empty(len(img.pixels), dtype=np.float32)
+        img.pixels.foreach_get(pixels)
+        ao = pixels.reshape(HEIGHT, WIDTH, 4)[::-1, :, 0].ravel()  # top row first
+        depsgraph = bpy.context.evaluated_depsgraph_get()
+        mesh = ext.export.export_scene(depsgraph)
+        proc = ext.service._process
+        status = bpy.context.window_manager.scenesort
+        props = scene.scenesort
+        info = {
+            "camera": ext.camera.camera_dict(scene, depsgraph),
+            "settings": {"spp": props.spp, "seed": props.seed, "distance": props.ao_distance,
+                         "method": props.method, "leaf_size": props.leaf_size},
+            "argv": list(proc.args),
+            "site_packages": str(ext.service.engine_root()),
+            "url": status.url,
+            "version": status.version,
+            "python": sys.executable,
+        }  # fmt: skip
+        np.savez(out / "render.npz", ao=ao, vertices=mesh.vertices, indices=mesh.indices)
+    finally:
+        addon_utils.disable(MODULE)  # unregister: stops the service it started
+    info["service_exit"] = proc.poll()
+    (out / "render.json").write_text(json.dumps(info))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2])
