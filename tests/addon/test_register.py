@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import os
 import subprocess
 import sys
 
@@ -69,3 +71,29 @@ def test_addon_imports_neither_warp_nor_the_project() -> None:
         [sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=120
     )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+
+
+def test_preferences_round_trip_through_blenders_userpref(tmp_path) -> None:
+    """Saved with Blender's preferences (never a .blend) and read back by a new session."""
+    env = {**os.environ, **{f"BLENDER_USER_{d.upper()}": str(tmp_path / d)
+                            for d in ("config", "scripts", "datafiles", "extensions")}}  # fmt: skip
+    values = [8777, False, True, "http://127.0.0.1:8777", r"C:\Tools\scenesort.exe", "cuda:0"]
+    names = ["port", "start_on_render", "allow_remote", "server_url", "server_command"]
+    save = (
+        "import bpy, addon; addon.register();"
+        "p = bpy.context.preferences.addons['addon'].preferences;"
+        f"{', '.join('p.' + n for n in names)}, p.device_name = {values!r};"
+        "bpy.ops.wm.save_userpref()"
+    )
+    load = (
+        "import json, bpy, addon; bpy.ops.wm.read_userpref(); addon.register();"
+        "p = bpy.context.preferences.addons['addon'].preferences;"
+        f"print(json.dumps([{', '.join('p.' + n for n in names)}, p.device]))"
+    )
+    for code in (save, load):
+        proc = subprocess.run(
+            [sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True,
+            timeout=120,
+        )  # fmt: skip
+        assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == values
