@@ -22,7 +22,7 @@ import pytest
 from conftest import add_camera, add_object, box_mesh
 
 import addon
-from addon import camera, export, image, pipeline, prefs, service
+from addon import camera, connection, export, image, pipeline, prefs, service
 from addon.tasks import Task
 
 WIDTH, HEIGHT = 40, 30
@@ -200,3 +200,17 @@ def test_stop_ends_the_service(live) -> None:
     prefs.preferences(bpy.context).start_on_render = False
     with pytest.raises(RuntimeError, match="No scenesort service is running"):
         bpy.ops.scenesort.build_bvh()
+
+
+def test_first_render_starts_the_service_with_progress(live) -> None:
+    """'Start the service on first render' (the default): Render AO alone is enough, and
+    the start reports its progress as steps (the panel's progress line)."""
+    prefs.preferences(bpy.context).start_on_render = True
+    assert not service.running()
+    task = Task(lambda t: connection.connect(t, prefs.target(bpy.context)))
+    outcome = task.run()
+    assert outcome.started and service.running()
+    assert any(step.startswith("starting the service, ") for step in task.steps), task.steps
+    assert bpy.ops.scenesort.server_stop() == {"FINISHED"}
+    assert bpy.ops.scenesort.render_ao() == {"FINISHED"}  # starts it again by itself
+    assert service.running() and bpy.context.window_manager.scenesort.url == service.served_url()
