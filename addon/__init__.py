@@ -1,8 +1,10 @@
 """scenesort: ambient-occlusion renders and BVH build timings from a local Warp service.
 
-A Blender extension (4.2+; settings in blender_manifest.toml, no bl_info). It uses
-only Blender's Python (standard library + numpy) and talks HTTP to `scenesort serve`.
-Relative imports only, so it also registers when imported as a plain package.
+A Blender extension (4.2+; settings in blender_manifest.toml, no bl_info). In Blender's
+process it uses only the standard library and numpy, and talks HTTP to `scenesort
+serve`, which it starts as a child of Blender's own Python from the engine wheels the
+extension zip installed. Relative imports only, so it also registers when imported as
+a plain package.
 """
 
 from __future__ import annotations

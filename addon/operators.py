@@ -56,8 +56,6 @@ def _fail(op: bpy.types.Operator, context: bpy.types.Context, exc: BaseException
     status = _status(context)
     status.error = message
     status.mismatch = isinstance(exc, VersionMismatch)
-    if isinstance(exc, ServiceError) and not status.mismatch:
-        status.connected = False
     status.busy, status.progress = False, ""
     op.report({"ERROR"}, message)
     _redraw(context)
