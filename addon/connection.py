@@ -84,13 +84,16 @@ def check_version(health: dict, url: str) -> None:
     )
 
 
-def _health(url: str) -> dict:
-    health = Client(url).health()
+def _checked(url: str) -> Connection:
+    """A client of `url` whose health answer has the add-on's version (the one place
+    where the add-on's clients are made)."""
+    client = Client(url)
+    health = client.health()
     check_version(health, url)
-    return health
+    return Connection(client, health, started=False)
 
 
-def _wait_for_start(task: Task) -> tuple[str, dict]:
+def _wait_for_start(task: Task) -> Connection:
     """Poll our child until it answers; the step shows the time and its latest line."""
     started = time.monotonic()
     while True:
@@ -99,7 +102,7 @@ def _wait_for_start(task: Task) -> tuple[str, dict]:
         url = service.served_url()
         if url is not None:
             try:
-                return url, _health(url)
+                return _checked(url)
             except VersionMismatch:
                 raise
             except ServiceError:
@@ -132,12 +135,11 @@ def connect(task: Task, target: Target) -> Connection:
     """
     task.set_step("connecting to the service")
     if service.running() and not target.url:
-        url, health = _wait_for_start(task)  # at once if it already answers
-        return Connection(Client(url), health, started=False)
+        return _wait_for_start(task)  # at once if it already answers
     url = target.url or (f"http://{LOCAL_HOST}:{target.port}" if target.port else None)
     if url is not None:
         try:
-            return Connection(Client(url), _health(url), started=False)
+            return _checked(url)
         except VersionMismatch:
             raise
         except ServiceError:
@@ -150,8 +152,9 @@ def connect(task: Task, target: Target) -> Connection:
         )
     service.start(target.command, url or f"http://{LOCAL_HOST}:0", target.device)
     try:
-        url, health = _wait_for_start(task)
+        connection = _wait_for_start(task)
     except Cancelled:
         service.stop()  # a start the user abandoned leaves nothing running
         raise
-    return Connection(Client(url), health, started=True)
+    connection.started = True
+    return connection

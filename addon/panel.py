@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import bpy
 
-from . import service
+from . import prefs, service
 
 
-def _draw_service(layout: bpy.types.UILayout, status) -> None:  # noqa: ANN001
+def _draw_service(layout: bpy.types.UILayout, status, device: str) -> None:  # noqa: ANN001
     box = layout.box()
     row = box.row()
     if status.connected:
@@ -30,6 +30,10 @@ def _draw_service(layout: bpy.types.UILayout, status) -> None:  # noqa: ANN001
     stop = row.row(align=True)
     stop.enabled = service.running()
     stop.operator("scenesort.server_stop", icon="PAUSE")
+    if status.connected and service.running() and status.device != device:
+        row = box.row()
+        row.label(text=f"Restart the service to use {device}", icon="INFO")
+        row.operator("scenesort.server_restart", text="", icon="FILE_REFRESH")
 
 
 def _draw_settings(layout: bpy.types.UILayout, props) -> None:  # noqa: ANN001
@@ -82,7 +86,7 @@ def draw(layout: bpy.types.UILayout, context: bpy.types.Context) -> None:
     """The whole panel; shared by both locations."""
     props = context.scene.scenesort
     status = context.window_manager.scenesort
-    _draw_service(layout, status)
+    _draw_service(layout, status, prefs.preferences(context).device_name)
     _draw_settings(layout, props)
     row = layout.row(align=True)
     row.enabled = not status.busy

@@ -224,8 +224,6 @@ def fetch_wheels(platform: str, python: str, names: list[str], cache: Path) -> l
 
 def engine_wheel(project: Path, out_dir: Path) -> Path:
     """A wheel of scenesort (kernels + backend) built from the checkout, without deps."""
-    if not (project / "pyproject.toml").is_file():
-        raise ValueError(f"{project} has no pyproject.toml: run from a scenesort checkout")
     _pip(
         ["wheel", "--no-deps", "--quiet", "--wheel-dir", str(out_dir), str(project)],
         "build the scenesort wheel",
@@ -283,6 +281,16 @@ def build_platform_zips(
     """One self-contained zip per platform, sharing one freshly built engine wheel."""
     project = source.resolve().parent
     _, manifest = read_manifest(source)
+    if not (project / "pyproject.toml").is_file():
+        raise ValueError(f"{project} has no pyproject.toml: run from a scenesort checkout")
+    pyproject = tomllib.loads((project / "pyproject.toml").read_text(encoding="utf-8"))
+    engine_version = pyproject["project"]["version"]
+    if manifest["version"] != engine_version:
+        raise ValueError(
+            f"the add-on is version {manifest['version']} ({MANIFEST}) but the engine "
+            f"{engine_version} (pyproject.toml): the add-on refuses a service of another "
+            "version, so set both to the same"
+        )
     zips = []
     with tempfile.TemporaryDirectory() as tmp:
         engine = engine_wheel(project, Path(tmp))

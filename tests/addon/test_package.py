@@ -106,3 +106,27 @@ def test_missing_source_fails_with_a_message(tmp_path: Path) -> None:
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 1 and "no blender_manifest.toml" in proc.stderr
+
+
+def test_addon_and_engine_have_one_version() -> None:
+    """The add-on refuses a service of another version: the zip's two halves must agree."""
+    import backend
+
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    assert _manifest()["version"] == pyproject["project"]["version"] == backend.__version__
+
+
+def test_platform_zip_refuses_versions_that_differ(tmp_path: Path) -> None:
+    source = tmp_path / "addon"
+    source.mkdir()
+    text = (ADDON / "blender_manifest.toml").read_text(encoding="utf-8")
+    newer = text.replace('\nversion = "', '\nversion = "9', 1)
+    (source / "blender_manifest.toml").write_text(newer)
+    (tmp_path / "pyproject.toml").write_text('[project]\nversion = "0.1.0"\n')
+    proc = subprocess.run(
+        [sys.executable, "-m", "backend.cli", "addon-zip", "--platform", "linux-x64",
+         "--source", str(source), "-o", str(tmp_path / "x.zip")],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 1 and "the add-on is version 9" in proc.stderr
+    assert not (tmp_path / "x.zip").exists()

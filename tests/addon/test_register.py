@@ -8,6 +8,7 @@ import subprocess
 import sys
 
 import bpy
+import pytest
 from conftest import REPO
 
 import addon
@@ -97,3 +98,36 @@ def test_preferences_round_trip_through_blenders_userpref(tmp_path) -> None:
         )  # fmt: skip
         assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == values
+
+
+class _Layout:
+    """Takes every UILayout call the panel makes (Blender only draws with a window)."""
+
+    alert = enabled = False
+
+    def __init__(self, calls: list) -> None:
+        self.calls = calls
+
+    def __getattr__(self, name: str):  # noqa: ANN204
+        def call(*args: object, **kwargs: object) -> _Layout:
+            self.calls.append((name, args, kwargs))
+            return _Layout(self.calls)
+
+        return call
+
+
+@pytest.mark.parametrize("state", ["offline", "connected", "mismatch", "other_device"])
+def test_panel_draws_in_every_state(registered, state: str, monkeypatch) -> None:
+    from addon import panel, service
+
+    status = bpy.context.window_manager.scenesort
+    status.connected = state != "offline"
+    status.mismatch = state == "mismatch"
+    status.device = "cuda:0" if state == "other_device" else "cpu"
+    calls: list = []
+    ours = state in {"mismatch", "other_device"}
+    monkeypatch.setattr(service, "running", lambda: ours)  # a child of ours runs
+    panel.draw(_Layout(calls), bpy.context)
+    operators = {args[0] for name, args, _ in calls if name == "operator"}
+    assert ("scenesort.server_restart" in operators) == ours
+    assert {"scenesort.build_bvh", "scenesort.render_ao"} <= operators
