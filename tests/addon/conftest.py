@@ -20,6 +20,9 @@ if str(REPO) not in sys.path:
 
 import addon  # noqa: E402 - needs the repo root on sys.path
 
+# Blender's own extension validator, shipped inside the bpy wheel.
+BLENDER_EXT = Path(bpy.utils.system_resource("SCRIPTS")) / "addons_core/bl_pkg/cli/blender_ext.py"
+
 
 @pytest.fixture
 def registered() -> Iterator[bpy.types.Scene]:

@@ -12,13 +12,11 @@ from pathlib import Path
 
 import bpy
 import pytest
-from conftest import REPO
+from conftest import BLENDER_EXT, REPO
 
 from backend import addon_zip
 
 ADDON = REPO / "addon"
-# Blender's own extension validator, shipped inside the bpy wheel.
-BLENDER_EXT = Path(bpy.utils.system_resource("SCRIPTS")) / "addons_core/bl_pkg/cli/blender_ext.py"
 
 
 def _manifest() -> dict:
