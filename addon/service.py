@@ -1,8 +1,11 @@
 """Start and stop the local service (`scenesort serve`) as a child process of Blender.
 
-The child never outlives Blender: it is stopped on unregister and at interpreter
-exit (atexit), and on Linux the kernel also sends it SIGTERM if Blender dies
-without cleaning up (PR_SET_PDEATHSIG). Only the process started here is stopped.
+Each start makes a fresh token (the service refuses requests without it) and hands it
+over in the child's environment as $SCENESORT_TOKEN, never on its command line where
+`ps` shows it; `token_for(url)` gives it to the client. The child never outlives
+Blender: it is stopped on unregister and at interpreter exit (atexit), and on Linux the
+kernel also sends it SIGTERM if Blender dies without cleaning up (PR_SET_PDEATHSIG).
+Only the process started here is stopped.
 """
 
 from __future__ import annotations
@@ -11,6 +14,7 @@ import atexit
 import contextlib
 import ctypes
 import os
+import secrets
 import shlex
 import shutil
 import signal
@@ -25,6 +29,8 @@ _PR_SET_PDEATHSIG = 1
 
 _process: subprocess.Popen | None = None
 _log_path: Path | None = None
+_token: str | None = None  # the started service's token, and the address it serves
+_address: tuple[str, int] | None = None
 
 
 class LaunchError(Exception):
@@ -84,6 +90,14 @@ def command_line(command: str, host: str, port: int) -> list[str]:
     return [exe, *argv[1:], "serve", "--host", host, "--port", str(port)]
 
 
+def token_for(url: str) -> str | None:
+    """The token of the service this add-on started, if it serves `url`."""
+    try:
+        return _token if running() and host_port(url) == _address else None
+    except LaunchError:
+        return None
+
+
 def log_path() -> Path | None:
     """The log file of the service started last (stdout and stderr), if any."""
     return _log_path
@@ -106,10 +120,11 @@ def exit_message() -> str:
 
 def start(command: str, url: str) -> subprocess.Popen:
     """Launch the service for `url` unless this add-on already runs one."""
-    global _process, _log_path
+    global _process, _log_path, _token, _address
     if running():
         return _process
     host, port = host_port(url)
+    _token, _address = secrets.token_urlsafe(32), (host, port)
     argv = command_line(command, host, port)
     if _log_path is not None:  # the previous run's log; only the latest one is kept
         _log_path.unlink(missing_ok=True)
@@ -124,6 +139,7 @@ def start(command: str, url: str) -> subprocess.Popen:
                 stdin=subprocess.DEVNULL,
                 stdout=log,
                 stderr=subprocess.STDOUT,
+                env={**os.environ, "SCENESORT_TOKEN": _token},
                 preexec_fn=preexec,  # only prctl: it must run in the child before exec
                 close_fds=True,
             )

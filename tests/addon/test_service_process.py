@@ -7,11 +7,12 @@ import shlex
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from conftest import REPO
 
-from addon import service
+from addon import client, service
 
 # Stands in for `scenesort serve`: sleeps (bounded) whatever arguments it gets.
 SLEEPER = shlex.join([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -54,6 +55,26 @@ def test_stop_ends_the_child() -> None:
         assert service.stop()
     assert proc.poll() is not None and not service.running()
     assert not service.stop()  # nothing left to stop
+
+
+def test_each_start_hands_a_fresh_token_over_in_the_environment() -> None:
+    """The token is in the child's environment and never in its argv (which `ps` shows);
+    the client sends it only to the address the child serves."""
+    tokens = []
+    for _ in range(2):
+        proc = service.start(SLEEPER, "http://127.0.0.1:1")
+        try:
+            token = service.token_for("http://localhost:1/")
+            environ = Path(f"/proc/{proc.pid}/environ").read_bytes().split(b"\0")
+            cmdline = Path(f"/proc/{proc.pid}/cmdline").read_bytes()
+            assert token and f"SCENESORT_TOKEN={token}".encode() in environ
+            assert token.encode() not in cmdline
+            assert client.Client("http://127.0.0.1:1").token == token
+            assert client.Client("http://127.0.0.1:2").token is None  # another service
+            tokens.append(token)
+        finally:
+            service.stop()
+    assert tokens[0] != tokens[1] and service.token_for("http://127.0.0.1:1") is None
 
 
 @pytest.mark.parametrize("ending", ["normal_exit", "killed"])
