@@ -73,6 +73,7 @@ class Settings:
 
     device: str = "cpu"
     cache_bytes: int = 2048 * 2**20
+    result_bytes: int = 512 * 2**20  # finished jobs' images
     max_work: int = 2**32  # ray casts per request or job (rays x spp, pixels x spp)
     max_seconds: float = 1800.0  # deadline of a request's or a job's work
     max_streams_per_job: int = 4
@@ -158,10 +159,14 @@ async def run_on_worker(
         waiting.add_done_callback(lambda f: f.cancelled() or f.exception())  # no warning
         while not waiting.done():
             await asyncio.wait({waiting}, timeout=DISCONNECT_POLL_S)
-            if not waiting.done() and await request.is_disconnected():
+            if waiting.done():
+                break
+            if await request.is_disconnected():
                 signal.stop("the client disconnected")
                 future.cancel()
                 raise _gone()
+            if signal.stopped and future.cancel():  # stopped while queued: never starts
+                raise Stopped(signal.reason)
         return waiting.result()
     except QueueFull as exc:
         raise _queue_full(exc) from None
@@ -319,7 +324,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     store = Store(settings.cache_bytes)
     worker = DeviceWorker(settings.device)
-    manager = JobManager(worker, max_seconds=settings.max_seconds)
+    manager = JobManager(
+        worker, result_bytes=settings.result_bytes, max_seconds=settings.max_seconds
+    )
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:

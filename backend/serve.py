@@ -11,6 +11,7 @@ a long render in flight.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ipaddress
 import logging
 import os
@@ -43,6 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--uploads-mb", type=float, default=1024.0,
                         help="request-body bytes in flight over all uploads at once")
     parser.add_argument("--cache-mb", type=float, default=2048.0, help="scene+BVH cache budget")
+    parser.add_argument("--results-mb", type=float, default=512.0,
+                        help="finished jobs' images kept (oldest forgotten first)")
     parser.add_argument("--max-work", type=int, default=2**32,
                         help="ray casts per request or job (rays x spp; default 2^32)")
     parser.add_argument("--max-seconds", type=float, default=1800.0,
@@ -74,7 +77,7 @@ def _problem(args: argparse.Namespace) -> str | None:
         )
     if not 0 <= args.port <= 65535:
         return f"--port must be in 0..65535, got {args.port}"
-    positive = ("max_body_mb", "uploads_mb", "cache_mb", "max_work", "max_seconds",
+    positive = ("max_body_mb", "uploads_mb", "cache_mb", "results_mb", "max_work", "max_seconds",
                 "max_connections", "body_timeout")
     bad = [f"--{name.replace('_', '-')}" for name in positive if not getattr(args, name) > 0]
     if bad:
@@ -147,8 +150,8 @@ def run(args: argparse.Namespace) -> int:
     app = _app(args, token, port, shown)
     print(f"scenesort serving on http://{shown}:{port} (device {args.device}, {described})",
           flush=True)
-    server = _server(app, args)
-    server.run(sockets=[sock])
+    with contextlib.suppress(KeyboardInterrupt):  # uvicorn re-raises the SIGINT it handled
+        _server(app, args).run(sockets=[sock])
     if not app.state.worker.stop(0.0):  # a launch that ignored the cancel: do not wait on it
         log.warning("the device worker is still in a kernel launch; exiting without it")
         logging.shutdown()
@@ -176,6 +179,7 @@ def _app(args: argparse.Namespace, token: str | None, port: int, shown: str) -> 
     return create_app(Settings(
         device=args.device,
         cache_bytes=int(args.cache_mb * 2**20),
+        result_bytes=int(args.results_mb * 2**20),
         max_work=args.max_work,
         max_seconds=args.max_seconds,
         policy=policy,
