@@ -295,6 +295,11 @@ def _http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
     return error.response()
 
 
+def _memory_error(_: Request, exc: MemoryError) -> JSONResponse:
+    """Out of memory anywhere in a request (reading, hashing, decoding): 507, not 500."""
+    return _out_of_memory(exc).response()
+
+
 def _internal_error(request: Request, exc: Exception) -> JSONResponse:
     log.error("internal error on %s %s", request.method, escape(request.url.path), exc_info=exc)
     fix = "this is a service bug; the log has the traceback"
@@ -348,6 +353,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.add_exception_handler(ApiError, _api_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(MemoryError, _memory_error)
     app.add_exception_handler(Exception, _internal_error)
     app.add_middleware(Guard, policy=settings.policy)
     common = error_responses(400, 401, 403, 408, 413, 415, 422, 429, 503, 507)

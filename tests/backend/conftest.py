@@ -46,7 +46,10 @@ class Service:
         return self.log_path.read_text(errors="replace")
 
 
-def _launch(args: tuple[str, ...], log_path: Path, env: dict[str, str] | None) -> Service:
+def _launch(
+    args: tuple[str, ...], log_path: Path, env: dict[str, str | None] | None,
+    preexec_fn: Callable[[], None] | None = None,
+) -> Service:
     env = {"SCENESORT_TOKEN": secrets.token_urlsafe(24), **(env or {})}
     if "--no-token" in args:
         env.pop("SCENESORT_TOKEN")
@@ -58,6 +61,7 @@ def _launch(args: tuple[str, ...], log_path: Path, env: dict[str, str] | None) -
         stderr=log_file,
         text=True,
         env={k: v for k, v in {**os.environ, **env}.items() if v is not None},
+        preexec_fn=preexec_fn,
     )
     log_file.close()
     lines: queue.Queue[str] = queue.Queue()
@@ -104,12 +108,16 @@ def _stop(service: Service) -> None:
 
 @pytest.fixture(scope="session")
 def start_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable[..., Service]]:
-    """Start a service with extra `serve` arguments; every one is stopped at session end."""
+    """Start a service with extra `serve` arguments (and, for the child, environment
+    changes and a function run before exec); every one is stopped at session end."""
     started: list[Service] = []
 
-    def start(*args: str, env: dict[str, str] | None = None) -> Service:
+    def start(
+        *args: str, env: dict[str, str | None] | None = None,
+        preexec_fn: Callable[[], None] | None = None,
+    ) -> Service:
         log_path = tmp_path_factory.mktemp("service") / "stderr.log"
-        service = _launch(args, log_path, env)
+        service = _launch(args, log_path, env, preexec_fn)
         started.append(service)
         return service
 
