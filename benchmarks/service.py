@@ -58,9 +58,9 @@ def framing_camera(vertices: np.ndarray, width: int, height: int) -> Camera:
     return Camera.look_at(position, centre, (0, 1, 0), fov, width, height)
 
 
-def start_service() -> tuple[subprocess.Popen, str, dict[str, str]]:
+def start_service(*extra: str) -> tuple[subprocess.Popen, str, dict[str, str]]:
     """A `scenesort serve` child with a fresh token in its environment (as the add-on
-    starts it); (process, base URL, the Authorization header)."""
+    starts it) and `extra` options; (process, base URL, the Authorization header)."""
     token = secrets.token_urlsafe(32)
     proc = subprocess.Popen(
         [
@@ -76,6 +76,7 @@ def start_service() -> tuple[subprocess.Popen, str, dict[str, str]]:
             "2048",
             "--cache-mb",
             "8192",
+            *extra,  # later options win
         ],
         cwd=REPO,
         stdout=subprocess.PIPE,
@@ -159,7 +160,7 @@ def main() -> int:
     direct: dict[str, list[float]] = {"build": [], "render": []}
     http: dict[str, list[float]] = {k: [] for k in ("upload", "bvh", "ao", "total")}
     server: dict[str, list[float]] = {}
-    proc, url, auth = start_service()
+    proc, url, auth = start_service("--uploads-mb", "4096")
     try:
         client = httpx.Client(base_url=url, timeout=3600, headers=auth)
         expected: list[np.ndarray] = []
