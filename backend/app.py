@@ -11,7 +11,6 @@ carries on. docs/api.md describes the API for people, docs/security.md its defen
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import importlib
 import logging
 import time
@@ -134,6 +133,10 @@ def _out_of_memory(exc: BaseException) -> ApiError:
                 code="engine_unavailable")
 
 
+def _shutting_down() -> ApiError:
+    return busy("request", SHUTDOWN, "retry when the service runs again", 5)
+
+
 def _stopped(exc: Stopped, signal: StopSignal) -> ApiError:
     if not signal.stopped:  # the deadline
         return ApiError(
@@ -142,7 +145,7 @@ def _stopped(exc: Stopped, signal: StopSignal) -> ApiError:
             "deadline",
         )
     if signal.reason == SHUTDOWN:
-        return busy("request", SHUTDOWN, "retry when the service runs again", 5)
+        return _shutting_down()
     return _gone()
 
 
@@ -167,6 +170,8 @@ async def run_on_worker(
                 raise _gone()
             if signal.stopped and future.cancel():  # stopped while queued: never starts
                 raise Stopped(signal.reason)
+        if waiting.cancelled():  # the worker dropped it: the service is stopping
+            raise _shutting_down()
         return waiting.result()
     except QueueFull as exc:
         raise _queue_full(exc) from None
@@ -176,8 +181,6 @@ async def run_on_worker(
         raise _stopped(exc, signal) from None
     except (MemoryError, RuntimeError) as exc:
         raise _out_of_memory(exc) from None
-    except concurrent.futures.CancelledError:  # the service is stopping
-        raise busy("request", SHUTDOWN, "retry when the service runs again", 5) from None
     finally:
         live.discard(signal)
 
