@@ -149,6 +149,12 @@ def _stopped(exc: Stopped, signal: StopSignal) -> ApiError:
     return _gone()
 
 
+def _log_stop(done: asyncio.Future) -> None:
+    """Say when work ended early (also after its client left: nobody else would know)."""
+    if not done.cancelled() and isinstance(done.exception(), Stopped):
+        log.info("work stopped early: %s", done.exception())
+
+
 async def run_on_worker(
     request: Request, signal: StopSignal, parameter: str, fn: Callable[[], Any]
 ) -> Any:
@@ -159,7 +165,7 @@ async def run_on_worker(
     try:
         future = worker.submit(fn)
         waiting = asyncio.wrap_future(future)
-        waiting.add_done_callback(lambda f: f.cancelled() or f.exception())  # no warning
+        waiting.add_done_callback(_log_stop)
         while not waiting.done():
             await asyncio.wait({waiting}, timeout=DISCONNECT_POLL_S)
             if waiting.done():

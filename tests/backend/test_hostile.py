@@ -342,6 +342,23 @@ def test_heavy_requests_then_disconnect_free_the_worker(svc, client, scene_id) -
     assert "Traceback" not in svc.log()
 
 
+def test_a_running_ao_request_stops_when_its_client_hangs_up(svc, client, scene_id) -> None:
+    """2^16 rays x 512 spp is 16 rounds of the engine; hung up on during the first ones,
+    the work stops at the next round (which the service logs) instead of running on."""
+    body = ray_body(*rays_towards_floor(2**16, seed=7))
+    head = post_head(svc, f"/v1/scenes/{scene_id}/ao?rays={2**16}&spp=512&seed=7",
+                     "application/octet-stream", f"Content-Length: {len(body)}")
+    before = svc.log().count("work stopped early: the client disconnected")
+    with socket.create_connection(host_port(svc), timeout=10) as sock:
+        sock.sendall(head.replace("\n", "\r\n").encode() + b"\r\n\r\n" + body)
+        time.sleep(1.0)  # reading, decoding, the first round
+    deadline = time.monotonic() + WAIT_S
+    while svc.log().count("work stopped early: the client disconnected") == before:
+        assert time.monotonic() < deadline, "the work ran on"
+        time.sleep(0.05)
+    assert "rays=65536&spp=512&seed=7 -> 400" in svc.log()  # client_disconnected
+
+
 def test_fifty_concurrent_large_uploads_get_503_past_the_budget(svc, client) -> None:
     """Each holds 1 MiB in flight; the budget is 8 MiB: the rest are told to retry."""
     n_v = 2**16  # 1.5 MiB with the triangles below
