@@ -55,6 +55,7 @@ from backend.problems import ApiError, busy
 from backend.security import AUTHORIZED, Guard, Policy, escape
 from backend.store import Store
 
+BEARER = "bearer"  # the OpenAPI security scheme of the token
 log = logging.getLogger("scenesort.app")
 
 MAX_JOB_PIXELS = 4096 * 4096
@@ -370,7 +371,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     def deadline() -> StopSignal:
         return StopSignal(deadline=time.monotonic() + settings.max_seconds)
 
-    @app.get("/v1/health", response_model=Health, response_model_exclude_none=True)
+    @app.get("/v1/health", response_model=Health, response_model_exclude_none=True,
+             openapi_extra={"security": [{}, {BEARER: []}]})  # the token is optional here
     async def health(request: Request) -> Health:
         """Liveness and versions; with the token also the device, cache and queue."""
         import warp
@@ -724,7 +726,25 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             background=BackgroundTask(release),
         )
 
+    with_bearer_scheme(app)
     return app
+
+
+def with_bearer_scheme(app: FastAPI) -> None:
+    """Declare the token in the schema, so that /docs has an Authorize button for it."""
+    make = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = make()
+            schema.setdefault("components", {})["securitySchemes"] = {
+                BEARER: {"type": "http", "scheme": "bearer",
+                         "description": "the token that `scenesort token` prints"}
+            }
+            schema["security"] = [{BEARER: []}]
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
 
 
 def _scene_info(scene_id: str, scene: wire.SceneArrays) -> SceneInfo:

@@ -4,11 +4,12 @@ In order, for every HTTP request (docs/security.md says what each check stops):
 
 1. Host must name this service (loopback names with the bound port, or an allowed host):
    a page whose domain was rebound to 127.0.0.1 sends its own name and gets 403.
-2. Origin, when present, must be on the allowlist (empty by default): browsers send it
-   with every cross-site fetch, `no-cors` ones included (403).
+2. Origin, when present, must be the service's own (its /docs page) or on the allowlist
+   (empty by default): browsers send it with every cross-site fetch, `no-cors` ones
+   included (403).
 3. A cap on requests in flight (503 with Retry-After); /v1/health is exempt.
-4. The bearer token on every route but /v1/health (401): scheme case-insensitive,
-   compared in constant time.
+4. The bearer token on every route but /v1/health and the schema pages (401): scheme
+   case-insensitive, compared in constant time.
 5. POST bodies: the declared Content-Type of the route (415); JSON bodies at most
    `max_json_bytes`, refused from Content-Length or as soon as the stream passes it
    (413); binary bodies at most `max_body_bytes` and within a budget of bytes in flight
@@ -38,6 +39,9 @@ log = logging.getLogger("scenesort.app")
 JSON = "application/json"
 LOOPBACK_NAMES = frozenset({"localhost", "127.0.0.1", "[::1]"})
 OPEN_PATH = "/v1/health"  # answers without the token, and then only status and versions
+# Also without the token: the API's schema and its page (no data; Swagger's Authorize
+# button then takes the token, which a browser could not otherwise add to /docs).
+PUBLIC_PATHS = frozenset({OPEN_PATH, "/openapi.json", "/docs"})
 AUTHORIZED = "scenesort.authorized"  # scope key the middleware sets for the routes
 _BINARY_ROUTES = re.compile(r"^/v1/scenes(/[^/]+/ao)?$")  # raw little-endian bodies
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\\]")
@@ -140,7 +144,9 @@ class Guard:
                 "foreign_host",
             )
         origin = _header(scope, b"origin")
-        if origin is not None and origin not in self.policy.origins:
+        # The Host check passed, so an Origin naming that host is this service's own page.
+        own = f"http://{str(host).strip().lower()}"
+        if origin is not None and origin != own and origin not in self.policy.origins:
             return ApiError(
                 403, "Origin", f"requests from web pages at {escape(origin)!r} are not allowed",
                 "call the service from a program, or start it with --allow-origin ORIGIN",
@@ -150,7 +156,7 @@ class Guard:
             return busy("request", f"{self.policy.max_requests} requests are in flight",
                         "retry after the Retry-After seconds")
         scope[AUTHORIZED] = self._authorized(scope)
-        if scope["path"] != OPEN_PATH and not scope[AUTHORIZED]:
+        if scope["path"] not in PUBLIC_PATHS and not scope[AUTHORIZED]:
             return ApiError(
                 401, "Authorization", "missing or wrong bearer token",
                 "send 'Authorization: Bearer TOKEN' with the token `scenesort token` prints "

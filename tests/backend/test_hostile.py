@@ -195,8 +195,24 @@ def test_health_without_the_token_shows_only_versions(svc: Service) -> None:
     assert set(body) == {"status", "version", "warp_version"}
 
 
-def test_openapi_needs_the_token(svc: Service) -> None:
-    assert httpx.get(f"{svc.url}/openapi.json").status_code == 401
+def test_schema_pages_answer_without_the_token_and_declare_it(svc: Service) -> None:
+    """/docs must open in a browser (which cannot add the header): its Authorize button
+    takes the token, because the schema declares it for every route but health."""
+    assert httpx.get(f"{svc.url}/docs").status_code == 200
+    schema = httpx.get(f"{svc.url}/openapi.json").json()
+    assert schema["components"]["securitySchemes"]["bearer"]["scheme"] == "bearer"
+    assert schema["security"] == [{"bearer": []}]
+    assert {} in schema["paths"]["/v1/health"]["get"]["security"]
+    problem(httpx.get(f"{svc.url}/v1/scenes/{'0' * 32}"), 401, "Authorization")
+
+
+def test_the_services_own_page_is_an_allowed_origin(svc: Service) -> None:
+    """What /docs's Try-it-out sends; a rebound page would have failed the Host check."""
+    headers = {**svc.auth, "Origin": svc.url}
+    assert httpx.get(f"{svc.url}/v1/scenes/{'0' * 32}", headers=headers).status_code == 404
+    other_port = f"http://127.0.0.1:{host_port(svc)[1] + 1}"
+    problem(httpx.get(f"{svc.url}/v1/scenes/{'0' * 32}",
+                      headers={**svc.auth, "Origin": other_port}), 403, "Origin")
 
 
 # --- bodies -------------------------------------------------------------------------------
