@@ -3,7 +3,7 @@
 Proxies are disabled (the service is local: a system proxy must not see or break
 the traffic), and every call has a timeout. Errors become `ServiceError` with a
 message a user understands; the service's own JSON error (`message`, `fix`) is
-passed on.
+passed on. The token of a service this add-on started goes with every request.
 """
 
 from __future__ import annotations
@@ -16,6 +16,8 @@ import urllib.request
 from typing import Any
 
 import numpy as np
+
+from .service import token_for
 
 HEALTH_TIMEOUT_S = 2.0  # health and HEAD are cheap: fail fast when nothing listens
 UPLOAD_TIMEOUT_S = 60.0
@@ -51,12 +53,10 @@ def _error_text(exc: urllib.error.HTTPError) -> str:
     except (ValueError, OSError):
         data = {}
     if isinstance(data, dict):
-        detail = data.get("detail", data)
-        if isinstance(detail, dict) and detail.get("message"):
-            fix = detail.get("fix")
-            return f"{detail['message']} ({fix})" if fix else str(detail["message"])
-        if isinstance(detail, str):
-            return detail
+        detail = data.get("detail")
+        if isinstance(detail, str):  # a problem document (RFC 9457): detail, and our fix
+            fix = data.get("fix")
+            return f"{detail} ({fix})" if isinstance(fix, str) else detail
         if isinstance(detail, list) and detail and isinstance(detail[0], dict):
             return str(detail[0].get("msg", detail[0]))
     return exc.reason if isinstance(exc.reason, str) else f"HTTP {exc.code}"
@@ -66,12 +66,13 @@ class Client:
     """Calls on one service base URL, e.g. http://127.0.0.1:8765."""
 
     def __init__(self, base_url: str, token: str | None = None) -> None:
+        """`token` defaults to that of the service this add-on started at `base_url`."""
         url = base_url.strip().rstrip("/")
         parts = urllib.parse.urlsplit(url)
         if parts.scheme not in {"http", "https"} or not parts.hostname:
             raise ServiceError(f"'{base_url}' is not a service URL like http://127.0.0.1:8765")
         self.base_url = url
-        self.token = token
+        self.token = token if token is not None else token_for(url)
         self.requests: list[str] = []  # "METHOD path" of every request made, for the panel
 
     def _request(

@@ -2,10 +2,13 @@
 
 By default the child is Blender's own Python (`sys.executable`) running the engine
 that the extension zip installed into Blender's extensions site-packages; the
-"Service command" preference overrides that for an install of your own. The child
-never outlives Blender: it is stopped on unregister and at interpreter exit
-(atexit), and on Linux the kernel also sends it SIGTERM if Blender dies without
-cleaning up (PR_SET_PDEATHSIG). Only the process started here is stopped.
+"Service command" preference overrides that for an install of your own. Each start
+makes a fresh token (the service refuses requests without it) and hands it over in
+the child's environment as $SCENESORT_TOKEN, never on its command line where `ps`
+shows it; `token_for(url)` gives it to the client. The child never outlives Blender:
+it is stopped on unregister and at interpreter exit (atexit), and on Linux the kernel
+also sends it SIGTERM if Blender dies without cleaning up (PR_SET_PDEATHSIG). Only
+the process started here is stopped.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import importlib.util
 import ipaddress
 import os
 import re
+import secrets
 import shlex
 import shutil
 import signal
@@ -34,6 +38,8 @@ _SERVING = re.compile(r"scenesort serving on (http://\S+)")
 
 _process: subprocess.Popen | None = None
 _log_path: Path | None = None
+_token: str | None = None  # the started service's token, and the address it serves
+_address: tuple[str, int] | None = None
 
 
 class LaunchError(Exception):
@@ -123,10 +129,11 @@ def command_line(command: str, host: str, port: int, device: str = "cpu") -> lis
     return [exe, *argv[1:], *serve]
 
 
-def child_env(command: str) -> dict[str, str]:
-    """The child's environment: Blender's, and for the bundled engine exactly the
-    extension's site-packages as the path (Blender's own Python finds numpy itself)."""
-    env = dict(os.environ)
+def child_env(command: str, token: str) -> dict[str, str]:
+    """The child's environment: Blender's, the service's token, and for the bundled
+    engine exactly the extension's site-packages as the path (Blender's own Python
+    finds numpy itself)."""
+    env = {**os.environ, "SCENESORT_TOKEN": token}
     if not command.strip():
         for name in ("PYTHONHOME", "PYTHONPATH", "PYTHONSTARTUP"):
             env.pop(name, None)
@@ -191,17 +198,30 @@ def _die_with_parent(parent_pid: int) -> None:
         os._exit(1)
 
 
+def token_for(url: str) -> str | None:
+    """The token of the service this add-on started, if it serves `url`."""
+    if not running():
+        return None
+    served = served_url()  # the bound port, also when it was started with port 0
+    try:
+        return _token if host_port(url) == (host_port(served) if served else _address) else None
+    except LaunchError:
+        return None
+
+
 def start(command: str, url: str, device: str = "cpu") -> subprocess.Popen:
     """Launch the service for `url` (port 0: any free one) unless one of ours runs."""
-    global _process, _log_path
+    global _process, _log_path, _token, _address
     if running():
         return _process
     host, port = host_port(url)
     argv = command_line(command, host, port, device)
-    env = child_env(command)
+    token = secrets.token_urlsafe(32)
+    env = child_env(command, token)
     # The bundled engine runs in its own folder: `-m` puts the working folder first on
     # the path, and Blender's (or a temporary) one may hold anything.
     cwd = None if command.strip() else str(_bundled_engine())
+    _token, _address = token, (host, port)
     if _log_path is not None:  # the previous run's log; only the latest one is kept
         _log_path.unlink(missing_ok=True)
     fd, name = tempfile.mkstemp(prefix="scenesort-service-", suffix=".log")

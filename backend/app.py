@@ -1,32 +1,43 @@
 """The HTTP API under /v1: thin FastAPI routes over wire.py, store.py and jobs.py.
 
 Routes decode and validate (wire.py), look things up (store.py) and hand heavy work to
-the device worker (jobs.py); none of them runs Warp on the event loop. Every client
-mistake becomes a 4xx `ErrorBody` naming the parameter and the fix; anything else is a
-logged 500 and the process carries on. docs/api.md describes the API for people.
+the device worker (jobs.py); none of them runs Warp on the event loop. security.py's
+`Guard` checks Host, Origin, the token and the bodies before any route runs. Every
+client mistake becomes a 4xx problem document (problems.py) naming the parameter and the
+fix; running out of memory is a 507/503; anything else is a logged 500 and the process
+carries on. docs/api.md describes the API for people, docs/security.md its defences.
 """
 
 from __future__ import annotations
 
+import asyncio
 import importlib
 import logging
-import secrets
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from contextlib import asynccontextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Annotated, Any, Literal
 
 import numpy as np
 from fastapi import FastAPI, Path, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
+from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from backend import __version__, jobs, wire
-from backend.jobs import AoParams, DeviceWorker, JobManager, QueueFull
+from backend.jobs import (
+    TOO_LARGE,
+    AoParams,
+    DeviceWorker,
+    JobManager,
+    QueueFull,
+    Stopped,
+    StopSignal,
+)
 from backend.models import (
     OCTET,
     BvhInfo,
@@ -40,12 +51,16 @@ from backend.models import (
     binary_body,
     error_responses,
 )
+from backend.problems import ApiError, busy
+from backend.security import AUTHORIZED, Guard, Policy, escape
 from backend.store import Store
-from backend.wire import ApiError
 
+BEARER = "bearer"  # the OpenAPI security scheme of the token
 log = logging.getLogger("scenesort.app")
 
 MAX_JOB_PIXELS = 4096 * 4096
+DISCONNECT_POLL_S = 0.25  # how often a waiting request looks for its client having gone
+SHUTDOWN = "the service is shutting down"
 SceneId = Annotated[
     str, Path(pattern=r"^[0-9a-f]{32}$", description="32 hex characters (see docs/api.md)")
 ]
@@ -57,55 +72,37 @@ class Settings:
     """What `scenesort serve` configures."""
 
     device: str = "cpu"
-    token: str | None = None
-    max_body_bytes: int = 512 * 2**20
     cache_bytes: int = 2048 * 2**20
+    result_bytes: int = 512 * 2**20  # finished jobs' images
+    max_work: int = 2**32  # ray casts per request or job (rays x spp, pixels x spp)
+    max_seconds: float = 1800.0  # deadline of a request's or a job's work
+    max_streams_per_job: int = 4
+    policy: Policy = field(default_factory=Policy)  # Host, Origin, token, bodies
 
 
 # --- request helpers ----------------------------------------------------------------
 
 
-async def read_body(request: Request, limit: int, expected: int) -> bytes:
-    """The raw body, refused early (413) past `limit` and checked as octet-stream."""
-    ctype = request.headers.get("content-type", OCTET).split(";")[0].strip().lower()
-    if ctype != OCTET:
-        raise ApiError(
-            415,
-            "Content-Type",
-            f"body must be {OCTET}, got {ctype!r}",
-            f"send the raw little-endian arrays with Content-Type: {OCTET}",
-            "bad_content_type",
-        )
-    too_big = ApiError(
-        413,
-        "body",
-        f"body exceeds the service's limit of {limit} bytes",
-        "send a smaller scene/fewer rays, or start the service with a larger --max-body-mb",
-        "body_too_large",
-    )
+async def read_body(request: Request, expected: int) -> bytes:
+    """The raw body; Guard has checked its type and meters its size and pace."""
     declared = request.headers.get("content-length")
-    if declared is not None and declared.isdigit():
-        if int(declared) > limit:
-            raise too_big
-        if int(declared) != expected:  # fail before reading megabytes we would refuse
-            wire.expect_body_length("the counts", int(declared), expected, "see docs/api.md")
+    if declared is not None and declared.isdigit() and int(declared) != expected:
+        # fail before reading megabytes we would refuse
+        wire.expect_body_length("the counts", int(declared), expected, "see docs/api.md")
     chunks: list[bytes] = []
-    size = 0
     try:
         async for chunk in request.stream():
             chunks.append(chunk)
-            size += len(chunk)
-            if size > limit:
-                raise too_big
     except ClientDisconnect:  # nobody will read the answer; log a 4xx, not a traceback
-        raise ApiError(
-            400,
-            "body",
-            "the client disconnected during the upload",
-            "send the whole body",
-            "client_disconnected",
-        ) from None
+        raise _gone() from None
     return b"".join(chunks)  # one copy at the end, not one per chunk
+
+
+def _gone() -> ApiError:
+    return ApiError(
+        400, "body", "the client disconnected", "keep the connection open for the answer",
+        "client_disconnected",
+    )
 
 
 def _engine_error(parameter: str, exc: ValueError) -> ApiError:
@@ -120,13 +117,96 @@ def _engine_error(parameter: str, exc: ValueError) -> ApiError:
 
 
 def _queue_full(exc: QueueFull) -> ApiError:
-    return ApiError(
-        429,
-        "request",
-        f"the device queue is full ({exc})",
-        "retry after the running work finishes",
-        "busy",
+    return busy(
+        "request", f"the device queue is full ({exc})",
+        "retry after the Retry-After seconds, when the running work has moved on",
+        status=429,
     )
+
+
+def _out_of_memory(exc: BaseException) -> ApiError:
+    """MemoryError (507) or a Warp RuntimeError, which is how its allocations fail (503)."""
+    if isinstance(exc, MemoryError):
+        return ApiError(507, "body", TOO_LARGE, "send a smaller scene or fewer rays",
+                        "too_large")
+    return busy("body", f"{TOO_LARGE} (the engine said: {exc})",
+                "send a smaller scene or fewer rays, or retry when other work has finished",
+                code="engine_unavailable")
+
+
+def _shutting_down() -> ApiError:
+    return busy("request", SHUTDOWN, "retry when the service runs again", 5)
+
+
+def _stopped(exc: Stopped, signal: StopSignal) -> ApiError:
+    if not signal.stopped:  # the deadline
+        return ApiError(
+            422, "rays, spp", f"the work stopped {exc}",
+            "send fewer rays or samples, or start the service with a larger --max-seconds",
+            "deadline",
+        )
+    if signal.reason == SHUTDOWN:
+        return _shutting_down()
+    return _gone()
+
+
+def _log_stop(done: asyncio.Future) -> None:
+    """Say when work ended early (also after its client left: nobody else would know)."""
+    if not done.cancelled() and isinstance(done.exception(), Stopped):
+        log.info("work stopped early: %s", done.exception())
+
+
+async def run_on_worker(
+    request: Request, signal: StopSignal, parameter: str, fn: Callable[[], Any]
+) -> Any:
+    """`fn` on the device worker; its engine failures as problems. A client that hangs up
+    stops the work (queued: never starts; running: at the engine's next round)."""
+    worker, live = request.app.state.worker, request.app.state.live
+    live.add(signal)
+    try:
+        future = worker.submit(fn)
+        waiting = asyncio.wrap_future(future)
+        waiting.add_done_callback(_log_stop)
+        while not waiting.done():
+            await asyncio.wait({waiting}, timeout=DISCONNECT_POLL_S)
+            if waiting.done():
+                break
+            if await request.is_disconnected():
+                signal.stop("the client disconnected")
+                future.cancel()
+                raise _gone()
+            if signal.stopped and future.cancel():  # stopped while queued: never starts
+                raise Stopped(signal.reason)
+        if waiting.cancelled():  # the worker dropped it: the service is stopping
+            raise _shutting_down()
+        return waiting.result()
+    except QueueFull as exc:
+        raise _queue_full(exc) from None
+    except ValueError as exc:
+        raise _engine_error(parameter, exc) from None
+    except Stopped as exc:
+        raise _stopped(exc, signal) from None
+    except (MemoryError, RuntimeError) as exc:
+        raise _out_of_memory(exc) from None
+    finally:
+        live.discard(signal)
+
+
+def _check_work(settings: Settings, count: int, count_name: str, params: AoParams) -> None:
+    """Refuse a request whose ray casts (count x samples per ray) exceed --max-work."""
+    per_ray = jobs.adaptive_max_spp() if params.target_error is not None else params.spp
+    spp_name = "the adaptive cap of spp" if params.target_error is not None else "spp"
+    work = count * per_ray
+    if work > settings.max_work:
+        raise ApiError(
+            422, f"{count_name}, spp",
+            f"{count_name} x {spp_name} = {count} x {per_ray} = {work} ray casts, over this "
+            f"service's budget of {settings.max_work} (serve --max-work)",
+            f"lower {count_name} or spp so that their product is at most {settings.max_work}"
+            ", split the work into several requests, or start the service with a larger "
+            "--max-work",
+            "over_budget",
+        )
 
 
 def _check_ao(params: AoParams) -> None:
@@ -197,7 +277,7 @@ _FIXES = {
 
 
 def _validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
-    """FastAPI's 422 list -> one ErrorBody for the first problem, naming its parameter."""
+    """FastAPI's 422 list -> one problem for the first error, naming its parameter."""
     first = exc.errors()[0]
     kind = first.get("type", "")
     loc = [str(p) for p in first.get("loc", ())]
@@ -210,84 +290,45 @@ def _validation_error(_: Request, exc: RequestValidationError) -> JSONResponse:
     got = "" if kind in ("missing", "json_invalid") else f" (got {first.get('input')!r:.80})"
     message = f"{name}: {first.get('msg')}{got}"
     status = 400 if kind == "json_invalid" else 422
-    body = ApiError(status, name, message, fix, "invalid_parameter")
-    return JSONResponse(body.to_json(), status_code=status)
+    return ApiError(status, name, message, fix, "invalid_parameter").response()
 
 
 def _api_error(_: Request, exc: ApiError) -> JSONResponse:
-    return JSONResponse(exc.to_json(), status_code=exc.status)
+    return exc.response()
 
 
 def _http_error(_: Request, exc: StarletteHTTPException) -> JSONResponse:
     parameter = {404: "path", 405: "method"}.get(exc.status_code, "request")
     fix = "see /docs for the routes and methods this service has"
-    body = ApiError(exc.status_code, parameter, str(exc.detail), fix, "http_error")
-    return JSONResponse(body.to_json(), status_code=exc.status_code, headers=exc.headers)
+    error = ApiError(exc.status_code, parameter, str(exc.detail), fix, "http_error",
+                     dict(exc.headers or {}))
+    return error.response()
+
+
+def _memory_error(_: Request, exc: MemoryError) -> JSONResponse:
+    """Out of memory anywhere in a request (reading, hashing, decoding): 507, not 500."""
+    return _out_of_memory(exc).response()
 
 
 def _internal_error(request: Request, exc: Exception) -> JSONResponse:
-    log.error("internal error on %s %s", request.method, request.url.path, exc_info=exc)
+    log.error("internal error on %s %s", request.method, escape(request.url.path), exc_info=exc)
     fix = "this is a service bug; the log has the traceback"
-    body = ApiError(500, "request", f"internal error: {type(exc).__name__}", fix, "internal_error")
-    return JSONResponse(body.to_json(), status_code=500)
+    return ApiError(
+        500, "request", f"internal error: {type(exc).__name__}", fix, "internal_error"
+    ).response()
 
 
-class AccessMiddleware:
-    """Pure ASGI: bearer-token check and one log line per request with its duration.
+def _etag(scene_id: str) -> str:
+    return f'"{scene_id}"'
 
-    Pure ASGI (not BaseHTTPMiddleware) so that streamed responses and client
-    disconnects pass straight through.
-    """
 
-    OPEN_PATHS = frozenset({"/v1/health", "/docs", "/openapi.json"})
-
-    def __init__(self, app: Any, token: str | None) -> None:
-        self.app = app
-        self.expected = f"Bearer {token}".encode() if token else None
-
-    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
-        if scope["type"] != "http":
-            await self.app(scope, receive, send)
-            return
-        start = time.perf_counter()
-        status = [0]
-
-        async def send_logged(message: dict) -> None:
-            if message["type"] == "http.response.start":
-                status[0] = message["status"]
-            await send(message)
-
-        try:
-            if (
-                self.expected
-                and scope["path"] not in self.OPEN_PATHS
-                and not self._authorized(scope)
-            ):
-                error = ApiError(
-                    401,
-                    "Authorization",
-                    "missing or wrong bearer token",
-                    "send 'Authorization: Bearer <token given to serve --token>'",
-                    "unauthorized",
-                )
-                response = JSONResponse(error.to_json(), status_code=401)
-                await response(scope, receive, send_logged)
-            else:
-                await self.app(scope, receive, send_logged)
-        except BaseException:
-            status[0] = status[0] or 500  # ServerErrorMiddleware, outside us, answers 500
-            raise
-        finally:
-            query = scope.get("query_string", b"").decode("latin-1")
-            path = scope["path"] + (f"?{query}" if query else "")
-            ms = 1000.0 * (time.perf_counter() - start)
-            log.info("%s %s -> %s in %.1f ms", scope["method"], path, status[0] or "-", ms)
-
-    def _authorized(self, scope: dict) -> bool:
-        for key, value in scope.get("headers", []):
-            if key == b"authorization":
-                return secrets.compare_digest(value, self.expected or b"")
+def _not_modified(request: Request, scene_id: str) -> bool:
+    """Whether If-None-Match names this scene's ETag (or is *)."""
+    header = request.headers.get("if-none-match")
+    if header is None:
         return False
+    tags = {t.strip().removeprefix("W/") for t in header.split(",")}
+    return "*" in tags or _etag(scene_id) in tags
 
 
 # --- the application ----------------------------------------------------------------
@@ -298,7 +339,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     settings = settings or Settings()
     store = Store(settings.cache_bytes)
     worker = DeviceWorker(settings.device)
-    manager = JobManager(worker)
+    manager = JobManager(
+        worker, result_bytes=settings.result_bytes, max_seconds=settings.max_seconds
+    )
 
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
@@ -306,7 +349,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         await run_in_threadpool(importlib.import_module, "kernels")
         worker.submit(lambda: jobs.warm_up(settings.device))
         yield
-        await run_in_threadpool(worker.stop)  # let the running task end (bounded wait)
+        stop_work(app)
+        await run_in_threadpool(worker.stop, 3.0)  # the running task ends at its next round
 
     app = FastAPI(
         title="scenesort",
@@ -315,19 +359,26 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         lifespan=lifespan,
     )
     app.state.settings, app.state.store, app.state.worker = settings, store, worker
-    app.state.jobs = manager
+    app.state.jobs, app.state.live = manager, set()
     app.add_exception_handler(ApiError, _api_error)
     app.add_exception_handler(RequestValidationError, _validation_error)
     app.add_exception_handler(StarletteHTTPException, _http_error)
+    app.add_exception_handler(MemoryError, _memory_error)
     app.add_exception_handler(Exception, _internal_error)
-    app.add_middleware(AccessMiddleware, token=settings.token)
-    common = error_responses(400, 401, 422, 429)
+    app.add_middleware(Guard, policy=settings.policy)
+    common = error_responses(400, 401, 403, 408, 413, 415, 422, 429, 503, 507)
 
-    @app.get("/v1/health", response_model=Health)
-    async def health() -> Health:
-        """Liveness, versions, the device and the cache's use of its byte budget."""
+    def deadline() -> StopSignal:
+        return StopSignal(deadline=time.monotonic() + settings.max_seconds)
+
+    @app.get("/v1/health", response_model=Health, response_model_exclude_none=True,
+             openapi_extra={"security": [{}, {BEARER: []}]})  # the token is optional here
+    async def health(request: Request) -> Health:
+        """Liveness and versions; with the token also the device, cache and queue."""
         import warp
 
+        if not request.scope.get(AUTHORIZED):
+            return Health(version=__version__, warp_version=warp.config.version)
         return Health(
             version=__version__,
             warp_version=warp.config.version,
@@ -342,10 +393,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "/v1/scenes",
         response_model=SceneInfo,
         status_code=201,
-        responses={
-            200: {"model": SceneInfo, "description": "already known"},
-            **error_responses(400, 401, 413, 415, 422),
-        },
+        responses={200: {"model": SceneInfo, "description": "already known"}, **common},
         openapi_extra=binary_body(
             "V*3 little-endian float32 positions, then T*3 little-endian int32 indices "
             "(0-based), no header or padding: exactly 12*V + 12*T bytes."
@@ -360,13 +408,18 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         """Upload a triangle mesh; its content hash is its id (201 new, 200 known)."""
         t0 = time.perf_counter()
         expected = 12 * (vertices + triangles)
-        body = await read_body(request, settings.max_body_bytes, expected)
+        body = await read_body(request, expected)
         t1 = time.perf_counter()
         scene_id = await run_in_threadpool(wire.scene_hash, vertices, triangles, body)
         t2 = time.perf_counter()
         scene = store.get(scene_id)
         if scene is None:  # only new scenes pay for decoding and validation
-            scene = await run_in_threadpool(wire.decode_scene, body, vertices, triangles, scene_id)
+            try:
+                scene = await run_in_threadpool(
+                    wire.decode_scene, body, vertices, triangles, scene_id
+                )
+            except (MemoryError, RuntimeError) as exc:
+                raise _out_of_memory(exc) from None
             if scene.nbytes > settings.cache_bytes:
                 raise ApiError(
                     413,
@@ -382,36 +435,40 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         timings = {"read": t1 - t0, "hash": t2 - t1, "decode": time.perf_counter() - t2}
         timings["total"] = time.perf_counter() - t0
         response.headers["Server-Timing"] = _server_timing({k: 1e3 * v for k, v in timings.items()})
-        return SceneInfo(
-            scene_id=scene_id,
-            vertices=vertices,
-            triangles=triangles,
-            bounds=scene.bounds,
-            degenerate=scene.degenerate,
-            bytes=scene.nbytes,
-        )
+        response.headers["Location"] = f"/v1/scenes/{scene_id}"
+        response.headers["ETag"] = _etag(scene_id)
+        return _scene_info(scene_id, scene)
 
-    @app.head("/v1/scenes/{scene_id}", responses={404: {"description": "unknown scene"}})
-    async def has_scene(scene_id: SceneId) -> Response:
+    @app.head(
+        "/v1/scenes/{scene_id}",
+        responses={304: {"description": "If-None-Match matched"},
+                   404: {"description": "unknown scene"}},
+    )
+    async def has_scene(request: Request, scene_id: SceneId) -> Response:
         """200 if the service holds this scene, else 404: clients skip unchanged uploads."""
-        return Response(status_code=200 if store.get(scene_id) is not None else 404)
+        if store.get(scene_id) is None:
+            return Response(status_code=404)
+        status = 304 if _not_modified(request, scene_id) else 200
+        return Response(status_code=status, headers={"ETag": _etag(scene_id)})
 
-    @app.get("/v1/scenes/{scene_id}", response_model=SceneInfo, responses=error_responses(404, 422))
-    async def scene_info(scene_id: SceneId) -> SceneInfo:
+    @app.get(
+        "/v1/scenes/{scene_id}",
+        response_model=SceneInfo,
+        responses={304: {"description": "If-None-Match matched"}, **error_responses(404, 422)},
+    )
+    async def scene_info(request: Request, scene_id: SceneId, response: Response) -> Any:
         """What the service knows about a scene."""
         scene = _scene_or_404(store, scene_id)
-        return SceneInfo(
-            scene_id=scene_id,
-            vertices=len(scene.vertices),
-            triangles=len(scene.indices),
-            bounds=scene.bounds,
-            degenerate=scene.degenerate,
-            bytes=scene.nbytes,
-        )
+        if _not_modified(request, scene_id):
+            return Response(status_code=304, headers={"ETag": _etag(scene_id)})
+        response.headers["ETag"] = _etag(scene_id)
+        return _scene_info(scene_id, scene)
 
     @app.post("/v1/scenes/{scene_id}/bvh", response_model=BvhInfo,
               responses=error_responses(404, *common))
-    async def build_bvh(scene_id: SceneId, spec: BvhRequest, response: Response) -> BvhInfo:
+    async def build_bvh(
+        request: Request, scene_id: SceneId, spec: BvhRequest, response: Response
+    ) -> BvhInfo:
         """Build (or reuse) the scene's BVH with these parameters; per-phase timings.
 
         A Server-Timing header gives the wait in the device queue and the build's wall
@@ -419,17 +476,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         t0 = time.perf_counter()
         scene = _scene_or_404(store, scene_id)
         started: list[float] = []
+        signal = deadline()
 
         def work() -> tuple[Any, bool]:
+            signal.check()  # a build cannot stop half-way: only before it starts
             started.append(time.perf_counter())
             return jobs.get_or_build_bvh(store, scene, spec.method, spec.leaf_size, settings.device)
 
-        try:
-            bvh, cached = await worker.run(work)
-        except QueueFull as exc:
-            raise _queue_full(exc) from None
-        except ValueError as exc:
-            raise _engine_error("scene", exc) from None
+        bvh, cached = await run_on_worker(request, signal, "scene", work)
         t1 = time.perf_counter()
         timings = {"queue": started[0] - t0, "build": t1 - started[0], "total": t1 - t0}
         response.headers["Server-Timing"] = _server_timing({k: 1e3 * v for k, v in timings.items()})
@@ -444,7 +498,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "description": "R little-endian float32 AO values, one per ray, in order; "
                 "a Server-Timing header lists the phases in ms.",
             },
-            **error_responses(404, 413, 415, *common),
+            **error_responses(404, *common),
         },
         openapi_extra=binary_body(
             "R*6 little-endian float32: origin xyz then direction xyz per ray (directions "
@@ -466,7 +520,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         """AO per ray, identical to `kernels.ambient_occlusion` for the same inputs.
 
         Uses the BVH built with `method`/`leaf_size` when given, else the scene's most
-        recently used BVH, else builds one with the defaults (sah, 8).
+        recently used BVH, else builds one with the defaults (sah, 8). Stops when the
+        client disconnects or at the deadline (checked between the engine's rounds).
         """
         t0 = time.perf_counter()
         scene = _scene_or_404(store, scene_id)
@@ -474,28 +529,30 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             spp=spp, distance=distance, seed=seed, target_error=target_error, engine=engine
         )
         _check_ao(params)
-        body = await read_body(request, settings.max_body_bytes, 24 * rays)
+        _check_work(settings, rays, "rays", params)
+        body = await read_body(request, 24 * rays)
         t1 = time.perf_counter()
-        origins, directions = await run_in_threadpool(wire.decode_rays, body, rays)
+        try:
+            origins, directions = await run_in_threadpool(wire.decode_rays, body, rays)
+        except MemoryError as exc:
+            raise _out_of_memory(exc) from None
+        del body  # the decoded copies are what the work holds
         t2 = time.perf_counter()
         timings: dict[str, float] = {}
+        signal = deadline()
 
         def work() -> np.ndarray:
             # Runs on the worker: pick or build the BVH there, never on the event loop.
+            signal.check()
             w0 = time.perf_counter()
             bvh = jobs.bvh_for_ao(store, scene, method, leaf_size, settings.device)
             w1 = time.perf_counter()
-            ao, engine_ms = jobs.ambient_occlusion(bvh, origins, directions, params)
+            ao, engine_ms = jobs.ambient_occlusion(bvh, origins, directions, params, signal)
             timings.update(bvh=1000 * (w1 - w0), ao=1000 * (time.perf_counter() - w1))
             timings.update({f"ao.{k}": v for k, v in engine_ms.items() if k != "total"})
             return ao
 
-        try:
-            ao = await worker.run(work)
-        except QueueFull as exc:
-            raise _queue_full(exc) from None
-        except ValueError as exc:
-            raise _engine_error("rays", exc) from None
+        ao = await run_on_worker(request, signal, "rays", work)
         payload = await run_in_threadpool(wire.encode_f32, ao)
         total = 1000 * (time.perf_counter() - t0)
         all_timings = {
@@ -512,7 +569,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "/v1/jobs", response_model=JobStatus, status_code=202,
         responses=error_responses(404, *common),
     )
-    async def create_job(request: JobRequest) -> JobStatus:
+    async def create_job(request: JobRequest, response: Response) -> JobStatus:
         """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
         from kernels.camera import Camera
 
@@ -534,7 +591,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "render a smaller image or tiles",
                 "too_many_pixels",
             )
-        scene = _scene_or_404(store, request.scene_id)
         params = AoParams(
             spp=request.spp,
             distance=request.distance,
@@ -543,6 +599,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             engine=request.engine,
         )
         _check_ao(params)
+        _check_work(settings, camera.width * camera.height, "camera.width x camera.height",
+                    params)
+        scene = _scene_or_404(store, request.scene_id)
 
         def work(job: jobs.Job) -> None:
             jobs.render_camera(
@@ -560,6 +619,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             job = manager.create(request.scene_id, camera.width, camera.height, work)
         except QueueFull as exc:
             raise _queue_full(exc) from None
+        response.headers["Location"] = f"/v1/jobs/{job.job_id}"
         return JobStatus(**job.snapshot())
 
     def job_or_404(job_id: str) -> jobs.Job:
@@ -581,9 +641,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.delete("/v1/jobs/{job_id}", response_model=JobStatus, responses=error_responses(404, 422))
     async def cancel_job(job_id: JobId) -> JobStatus:
-        """Cancel a job: a queued one never starts, a running one stops at its next step."""
+        """Cancel a job: a queued one never starts (and frees its place in the queue), a
+        running one stops at its next step."""
+        job = job_or_404(job_id)
         manager.cancel(job_id)
-        return JobStatus(**job_or_404(job_id).snapshot())
+        return JobStatus(**job.snapshot())
 
     @app.get(
         "/v1/jobs/{job_id}/result",
@@ -603,7 +665,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def job_result(job_id: JobId, format: Literal["f32", "png"] = "f32") -> Response:
         """The finished image; 409 while the job is not done."""
         job = job_or_404(job_id)
-        if job.state != "done" or job.ao is None or job.png is None:
+        ao, png = job.ao, job.png  # one read: the manager may forget the job meanwhile
+        if job.state != "done" or ao is None or png is None:
             detail = f" ({job.error})" if job.error else ""
             raise ApiError(
                 409,
@@ -618,8 +681,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             "Server-Timing": _server_timing(job.snapshot()["timings_ms"]),
         }
         if format == "png":
-            return Response(job.png, media_type="image/png", headers=headers)
-        payload = await run_in_threadpool(wire.encode_f32, job.ao)
+            return Response(png, media_type="image/png", headers=headers)
+        payload = await run_in_threadpool(wire.encode_f32, ao)
         return Response(payload, media_type=OCTET, headers=headers)
 
     @app.get(
@@ -631,16 +694,74 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "description": "server-sent events: `progress` on each change (data "
                 "is a JobStatus), then one `end`",
             },
-            **error_responses(404, 422),
+            **error_responses(404, 422, 429),
         },
     )
     async def job_events(job_id: JobId, request: Request) -> StreamingResponse:
         """Progress as server-sent events until the job ends or the client leaves."""
         job = job_or_404(job_id)
+        if job.streams >= settings.max_streams_per_job:
+            raise busy(
+                "job_id", f"{job.streams} event streams are already open on job {job_id}",
+                "share one stream, or poll GET /v1/jobs/{job_id}", 2, status=429,
+            )
+        job.streams += 1
+        released = [False]
+
+        def release() -> None:  # once, from whichever of the two ends runs
+            if not released[0]:
+                released[0] = True
+                job.streams -= 1
+
+        async def events() -> AsyncIterator[str]:
+            try:
+                async for event in jobs.job_events(job, request.is_disconnected):
+                    yield event
+            finally:
+                release()
+
         return StreamingResponse(
-            jobs.job_events(job, request.is_disconnected),
+            events(),
             media_type="text/event-stream",
             headers={"Cache-Control": "no-cache"},
+            background=BackgroundTask(release),
         )
 
+    with_bearer_scheme(app)
     return app
+
+
+def with_bearer_scheme(app: FastAPI) -> None:
+    """Declare the token in the schema, so that /docs has an Authorize button for it."""
+    make = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            schema = make()
+            schema.setdefault("components", {})["securitySchemes"] = {
+                BEARER: {"type": "http", "scheme": "bearer",
+                         "description": "the token that `scenesort token` prints"}
+            }
+            schema["security"] = [{BEARER: []}]
+        return app.openapi_schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _scene_info(scene_id: str, scene: wire.SceneArrays) -> SceneInfo:
+    return SceneInfo(
+        scene_id=scene_id,
+        vertices=len(scene.vertices),
+        triangles=len(scene.indices),
+        bounds=scene.bounds,
+        degenerate=scene.degenerate,
+        bytes=scene.nbytes,
+    )
+
+
+def stop_work(app: FastAPI) -> None:
+    """Cancel every job and running request (SIGTERM/SIGINT): they end at their next
+    round, and queued ones never start."""
+    app.state.jobs.cancel_all(SHUTDOWN)
+    for signal in list(app.state.live):
+        signal.stop(SHUTDOWN)

@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench": ("backend.bench", "build and trace a scene with every engine and peer, print a table"),
     "serve": ("backend.serve", "run the local HTTP service (FastAPI + uvicorn)"),
     "addon-zip": ("backend.addon_zip", "build the installable Blender extension zip"),
+    "token": ("backend.token_file", "print the token `scenesort serve` uses (clients send it)"),
 }
 
 

@@ -12,11 +12,10 @@ import asyncio
 import concurrent.futures
 import json
 import logging
-import queue
 import threading
 import time
 import uuid
-from collections import OrderedDict
+from collections import OrderedDict, deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -27,54 +26,102 @@ log = logging.getLogger("scenesort.jobs")
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
 FINAL_STATES: frozenset[str] = frozenset({"done", "failed", "cancelled"})
+TOO_LARGE = "the scene or the render is too large for this machine's memory"
 
 
 class QueueFull(Exception):
     """The device queue is at capacity; the client should retry later (HTTP 429)."""
 
 
-class JobCancelled(Exception):
-    """Raised inside a job's work when its cancel flag is seen (at the next report)."""
+class Stopped(Exception):
+    """Work stopped before its end; the message says why (cancelled, past its deadline,
+    the service stopping). Raised inside the work at its next progress report."""
+
+
+@dataclass(eq=False)  # compared and hashed by identity: kept in a set of live work
+class StopSignal:
+    """How work learns it must stop: a flag with its reason, and a deadline."""
+
+    deadline: float = float("inf")  # time.monotonic() after which the work fails
+    reason: str | None = None
+    _flag: threading.Event = field(default_factory=threading.Event, repr=False)
+
+    def stop(self, reason: str) -> None:
+        if not self._flag.is_set():
+            self.reason = reason
+            self._flag.set()
+
+    @property
+    def stopped(self) -> bool:
+        return self._flag.is_set()
+
+    def check(self) -> None:
+        """Raise Stopped if the work should end now (called between the engine's rounds)."""
+        if self._flag.is_set():
+            raise Stopped(self.reason or "cancelled")
+        if time.monotonic() > self.deadline:
+            raise Stopped("past the deadline (serve --max-seconds)")
 
 
 class DeviceWorker:
-    """One thread that runs submitted callables in order on one device."""
+    """One thread that runs submitted callables in order on one device.
+
+    The queue holds at most `max_queue` live tasks: a task whose future was cancelled
+    before it started frees its slot at once."""
 
     def __init__(self, device: str, max_queue: int = 64) -> None:
         self.device = device
-        self._queue: queue.Queue[tuple[concurrent.futures.Future, Callable[[], Any]] | None]
-        self._queue = queue.Queue(maxsize=max_queue)
+        self.max_queue = max_queue
+        self._pending: deque[tuple[concurrent.futures.Future, Callable[[], Any]] | None]
+        self._pending = deque()
+        self._ready = threading.Condition()
         self._thread = threading.Thread(target=self._loop, name=f"worker-{device}", daemon=True)
         self._thread.start()
 
     def submit(self, fn: Callable[[], Any]) -> concurrent.futures.Future:
         """Queue `fn`; its future resolves with its result or exception. Raise QueueFull."""
         future: concurrent.futures.Future = concurrent.futures.Future()
-        try:
-            self._queue.put_nowait((future, fn))
-        except queue.Full:
-            raise QueueFull(f"{self._queue.maxsize} tasks already queued") from None
+        with self._ready:
+            if self._live() >= self.max_queue:
+                raise QueueFull(f"{self.max_queue} tasks already queued")
+            self._pending.append((future, fn))
+            self._ready.notify()
         return future
 
     async def run(self, fn: Callable[[], Any]) -> Any:
         """Submit `fn` and await its result from the event loop."""
         return await asyncio.wrap_future(self.submit(fn))
 
+    def _live(self) -> int:
+        """Queued tasks not cancelled (lock held); drops the cancelled ones."""
+        kept = [item for item in self._pending if item is None or not item[0].cancelled()]
+        if len(kept) != len(self._pending):
+            self._pending = deque(kept)
+        return len(kept)
+
     @property
     def queued(self) -> int:
-        return self._queue.qsize()
+        with self._ready:
+            return self._live()
 
-    def stop(self, timeout: float = 5.0) -> None:
-        """Let queued work finish, then end the thread (bounded wait; it is a daemon)."""
-        try:
-            self._queue.put(None, timeout=timeout)
-        except queue.Full:
-            return
+    def stop(self, timeout: float = 5.0) -> bool:
+        """Cancel what is queued, let the running task end, stop the thread (bounded
+        wait; it is a daemon). True if the thread ended within `timeout`."""
+        with self._ready:
+            for item in self._pending:
+                if item is not None:
+                    item[0].cancel()
+            self._pending = deque([None])
+            self._ready.notify()
         self._thread.join(timeout)
+        return not self._thread.is_alive()
 
     def _loop(self) -> None:
         while True:
-            item = self._queue.get()
+            with self._ready:
+                while not self._pending:
+                    self._ready.wait()
+                item = self._pending.popleft()
             if item is None:
                 return
             future, fn = item
@@ -88,7 +135,10 @@ class DeviceWorker:
 
 @dataclass
 class Job:
-    """A camera render: its state as clients see it, and its result once done."""
+    """A camera render: its state as clients see it, and its result once done.
+
+    Every change of `state` happens under `_lock`, so a cancel and the worker's start
+    cannot interleave: a job cancelled while queued never runs."""
 
     job_id: str
     scene_id: str
@@ -104,7 +154,10 @@ class Job:
     png: bytes | None = None
     spp_mean: float | None = None
     version: int = 0  # bumped on every change; server-sent events wait on it
-    cancel_requested: threading.Event = field(default_factory=threading.Event)
+    signal: StopSignal = field(default_factory=StopSignal)
+    max_seconds: float = float("inf")  # the deadline, counted from the start of the run
+    streams: int = 0  # event streams open on this job
+    future: concurrent.futures.Future | None = field(default=None, repr=False)
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
 
     @property
@@ -113,9 +166,8 @@ class Job:
         return (self.ao.nbytes if self.ao is not None else 0) + len(self.png or b"")
 
     def report(self, phase: str | None = None, progress: float | None = None) -> None:
-        """Update phase/progress from the worker; raise JobCancelled once cancel is asked."""
-        if self.cancel_requested.is_set():
-            raise JobCancelled(self.job_id)
+        """Update phase/progress from the worker; raise Stopped once it must stop."""
+        self.signal.check()
         with self._lock:
             if phase is not None:
                 self.phase = phase
@@ -128,14 +180,40 @@ class Job:
             self.timings_ms[name] = round(ms, 3)
             self.version += 1
 
-    def finish(self, state: JobState, error: str | None = None) -> None:
+    def start(self) -> bool:
+        """Queued -> running, unless it was cancelled first; whether it may run."""
         with self._lock:
-            self.state = state
-            self.error = error
-            if state == "done":
-                self.progress = 1.0
-            self.phase = state
+            if self.state != "queued" or self.signal.stopped:
+                return False
+            self.state = "running"
+            self.signal.deadline = time.monotonic() + self.max_seconds
             self.version += 1
+            return True
+
+    def cancel(self, reason: str) -> None:
+        """Stop the job: a queued one is final now, a running one at its next report."""
+        with self._lock:
+            if self.state in FINAL_STATES:
+                return
+            self.signal.stop(reason)
+            if self.state == "queued":
+                self._make_final("cancelled", reason)
+        if self.future is not None:
+            self.future.cancel()  # a queued task frees its worker slot
+
+    def finish(self, state: JobState, error: str | None = None) -> None:
+        """Make the job final (once: a final state is never changed)."""
+        with self._lock:
+            if self.state not in FINAL_STATES:
+                self._make_final(state, error)
+
+    def _make_final(self, state: JobState, error: str | None) -> None:
+        self.state = state
+        self.error = error
+        if state == "done":
+            self.progress = 1.0
+        self.phase = state
+        self.version += 1
 
     def snapshot(self) -> dict[str, Any]:
         """The JSON status of the job (the `JobStatus` model in app.py)."""
@@ -156,69 +234,84 @@ class Job:
 
 class JobManager:
     """Creates jobs on a worker, finds them by id, cancels them; keeps the newest few
-    finished ones, bounded in count and in the bytes of their images."""
+    finished ones, bounded in count and in the bytes of their images (counted as each
+    job finishes)."""
 
     def __init__(
-        self, worker: DeviceWorker, keep_finished: int = 32, result_bytes: int = 512 * 2**20
+        self,
+        worker: DeviceWorker,
+        keep_finished: int = 32,
+        result_bytes: int = 512 * 2**20,
+        max_seconds: float = float("inf"),
     ) -> None:
         self.worker = worker
         self.keep_finished = keep_finished
         self.result_bytes = result_bytes
+        self.max_seconds = max_seconds
         self._jobs: OrderedDict[str, Job] = OrderedDict()
         self._lock = threading.Lock()
 
     def create(self, scene_id: str, width: int, height: int, work: Callable[[Job], None]) -> Job:
         """Queue `work(job)`; it fills `job.ao`/`job.png` and reports progress."""
-        job = Job(job_id=uuid.uuid4().hex[:16], scene_id=scene_id, width=width, height=height)
-        self.worker.submit(lambda: self._run(job, work))  # QueueFull propagates: HTTP 429
-        with self._lock:
+        job = Job(job_id=uuid.uuid4().hex[:16], scene_id=scene_id, width=width, height=height,
+                  max_seconds=self.max_seconds)
+        with self._lock:  # before the worker can finish it, so _forget_old sees it
             self._jobs[job.job_id] = job
-            self._forget_old()
+        try:
+            job.future = self.worker.submit(lambda: self._run(job, work))
+        except QueueFull:
+            with self._lock:
+                del self._jobs[job.job_id]
+            raise  # HTTP 429
         return job
 
     def get(self, job_id: str) -> Job | None:
         with self._lock:
             return self._jobs.get(job_id)
 
-    def cancel(self, job_id: str) -> Job | None:
-        """Ask the job to stop; a queued job never starts, a running one stops at its next
-        progress report."""
+    def cancel(self, job_id: str, reason: str = "cancelled by the client") -> Job | None:
+        """Cancel one job (see `Job.cancel`)."""
         job = self.get(job_id)
-        if job is not None and job.state not in FINAL_STATES:
-            job.cancel_requested.set()
-            if job.state == "queued":
-                job.finish("cancelled")
+        if job is not None:
+            job.cancel(reason)
+            self._forget_old()
         return job
+
+    def cancel_all(self, reason: str) -> None:
+        """Cancel every job that has not finished (the service is stopping)."""
+        with self._lock:
+            jobs = list(self._jobs.values())
+        for job in jobs:
+            job.cancel(reason)
 
     def active(self) -> int:
         with self._lock:
             return sum(1 for j in self._jobs.values() if j.state not in FINAL_STATES)
 
     def _forget_old(self) -> None:
-        """Drop the oldest finished jobs past the count or byte bound (lock held)."""
-        finished = [j for j in self._jobs.values() if j.state in FINAL_STATES]
-        held = sum(j.result_nbytes for j in finished)
-        for job in finished:  # oldest first
-            if len(finished) <= self.keep_finished and held <= self.result_bytes:
-                break
-            del self._jobs[job.job_id]
-            finished = finished[1:]
-            held -= job.result_nbytes
+        """Drop the oldest finished jobs past the count or byte bound."""
+        with self._lock:
+            finished = [j for j in self._jobs.values() if j.state in FINAL_STATES]
+            held = sum(j.result_nbytes for j in finished)
+            for job in finished:  # oldest first
+                if len(finished) <= self.keep_finished and held <= self.result_bytes:
+                    break
+                del self._jobs[job.job_id]
+                finished = finished[1:]
+                held -= job.result_nbytes
 
-    @staticmethod
-    def _run(job: Job, work: Callable[[Job], None]) -> None:
-        if job.cancel_requested.is_set():
+    def _run(self, job: Job, work: Callable[[Job], None]) -> None:
+        if not job.start():
             return  # cancelled while queued: already final
-        with job._lock:
-            job.state = "running"
-            job.version += 1
         start = time.perf_counter()
         try:
             work(job)
-        except JobCancelled:
-            job.finish("cancelled")
+        except Stopped as exc:
+            job.finish("cancelled" if job.signal.stopped else "failed", str(exc))
         except ValueError as exc:  # the engine rejected the input: the client's to fix
             job.finish("failed", f"invalid input: {exc}")
+        except MemoryError:
+            job.finish("failed", TOO_LARGE)
         except Exception as exc:  # noqa: BLE001 - an engine fault fails this job, not the worker
             log.exception("job %s failed", job.job_id)
             job.finish("failed", f"internal error: {type(exc).__name__}: {exc}")
@@ -226,6 +319,7 @@ class JobManager:
             job.finish("done")
         finally:
             job.add_timing("total", 1000.0 * (time.perf_counter() - start))
+            self._forget_old()  # a finished image counts against the budget now
 
 
 async def job_events(
@@ -335,13 +429,16 @@ def adaptive_max_spp() -> int:
 
 
 def ambient_occlusion(
-    bvh: Any, origins: np.ndarray, directions: np.ndarray, params: AoParams
+    bvh: Any, origins: np.ndarray, directions: np.ndarray, params: AoParams, signal: StopSignal
 ) -> tuple[np.ndarray, dict[str, float]]:
     """AO for explicit rays, exactly `kernels.ambient_occlusion` (which is
-    `render_ao(...).ao`), with the engine's phase timings."""
+    `render_ao(...).ao`), with the engine's phase timings; `signal` is checked between
+    the engine's rounds (it raises Stopped there)."""
     import kernels
 
-    result = kernels.render_ao(bvh, origins, directions, **params.kwargs())
+    result = kernels.render_ao(
+        bvh, origins, directions, progress=lambda *_: signal.check(), **params.kwargs()
+    )
     return np.asarray(result.ao, dtype=np.float32), dict(result.timings_ms)
 
 
@@ -390,7 +487,7 @@ def _render_ao(
     import kernels
 
     def progress(fraction: float, phase: str) -> None:
-        job.report(f"ao.{phase}", fraction)  # raises JobCancelled inside the engine's loop
+        job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
 
     result = kernels.render_ao(
         bvh, origins, directions, tmin=tmin, tmax=tmax, progress=progress, **params.kwargs()

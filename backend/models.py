@@ -15,9 +15,13 @@ class Strict(BaseModel):
 
 
 class ErrorBody(Strict):
-    error: str = Field(description="machine-readable code, e.g. bad_body_length")
+    """An RFC 9457 problem document (media type application/problem+json)."""
+
+    type: str = Field(description="tag:scenesort,2026:<code>, e.g. ...:bad_body_length")
+    title: str = Field(description="the HTTP status's phrase")
+    status: int
+    detail: str = Field(description="what is wrong, in words")
     parameter: str = Field(description="the query/path/body parameter or header at fault")
-    message: str
     fix: str = Field(description="what the client should change")
 
 
@@ -30,14 +34,16 @@ class CacheUse(Strict):
 
 
 class Health(Strict):
+    """Without the token only status and versions; with it also the rest."""
+
     status: Literal["ok"] = "ok"
     version: str
     warp_version: str
-    device: str
-    devices: list[str]  # every Warp device on this machine ("cpu", "cuda:0", ...)
-    cache: CacheUse
-    queued: int
-    active_jobs: int
+    device: str | None = None
+    devices: list[str] | None = None  # every Warp device here ("cpu", "cuda:0", ...)
+    cache: CacheUse | None = None
+    queued: int | None = None
+    active_jobs: int | None = None
 
 
 class SceneInfo(Strict):
@@ -120,7 +126,8 @@ class JobStatus(Strict):
 
 def error_responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     """OpenAPI `responses` entries: each listed status returns an ErrorBody."""
-    return {code: {"model": ErrorBody} for code in codes}
+    problem = {"application/problem+json": {"schema": {"$ref": "#/components/schemas/ErrorBody"}}}
+    return {code: {"model": ErrorBody, "content": problem} for code in codes}
 
 
 def binary_body(description: str) -> dict[str, Any]:

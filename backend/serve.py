@@ -1,20 +1,27 @@
 """`scenesort serve`: run the HTTP service (backend/app.py) under uvicorn.
 
 Binds the socket itself so that `--port 0` works: the first line on stdout is
-`scenesort serving on http://HOST:PORT ...` with the port actually bound (tests and
-the add-on read it). Refuses to listen beyond loopback without a token.
+`scenesort serving on http://HOST:PORT (device D, token ...)` with the port actually bound
+(tests and the add-on read it) and where the token came from. There is always a token
+(backend/token_file.py) unless `--no-token`, which only loopback allows. SIGTERM and SIGINT
+cancel the running and queued work first, so the process exits within seconds even with
+a long render in flight.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import ipaddress
 import logging
 import os
 import socket
 import sys
+from typing import Any
 
-TOKEN_ENV = "SCENESORT_TOKEN"
+from backend.token_file import TOKEN_ENV, service_token
+
+log = logging.getLogger("scenesort.serve")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -23,12 +30,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--port", type=int, default=8765, help="TCP port; 0 picks a free one")
     parser.add_argument("--device", default="cpu", help="Warp device: cpu or cuda:0 (default cpu)")
     parser.add_argument(
-        "--token",
-        default=os.environ.get(TOKEN_ENV),
-        help=f"bearer token clients must send (default: ${TOKEN_ENV}); required off loopback",
+        "--no-token",
+        action="store_true",
+        help=f"accept requests without a token (loopback only; default: ${TOKEN_ENV}, else "
+        "a generated one in a user-only file, see `scenesort token`)",
     )
+    parser.add_argument("--allow-origin", action="append", default=[], metavar="ORIGIN",
+                        help="a web origin (scheme://host:port) whose pages may call the "
+                        "service; repeatable (default: none)")
+    parser.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                        help="a Host name besides loopback's that clients use; repeatable")
     parser.add_argument("--max-body-mb", type=float, default=512.0, help="largest request body")
+    parser.add_argument("--uploads-mb", type=float, default=1024.0,
+                        help="request-body bytes in flight over all uploads at once")
     parser.add_argument("--cache-mb", type=float, default=2048.0, help="scene+BVH cache budget")
+    parser.add_argument("--results-mb", type=float, default=512.0,
+                        help="finished jobs' images kept (oldest forgotten first)")
+    parser.add_argument("--max-work", type=int, default=2**32,
+                        help="ray casts per request or job (rays x spp; default 2^32)")
+    parser.add_argument("--max-seconds", type=float, default=1800.0,
+                        help="deadline of a request's or a job's work, in seconds")
+    parser.add_argument("--max-connections", type=int, default=64,
+                        help="requests in flight (more get 503); twice this many connections")
+    parser.add_argument("--body-timeout", type=float, default=30.0,
+                        help="seconds allowed for any body, plus 1 s per MiB of it (else 408)")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning"])
 
 
@@ -44,18 +69,28 @@ def is_loopback(host: str) -> bool:
 
 def _problem(args: argparse.Namespace) -> str | None:
     """Why these options cannot start a service, or None."""
-    if not is_loopback(args.host) and not args.token:
+    if not is_loopback(args.host) and args.no_token:
         return (
-            f"refusing to listen on {args.host}: it is reachable from other machines and "
-            f"there is no --token (or ${TOKEN_ENV}), so anyone could use this service. "
-            "Pass --token SECRET (clients then send 'Authorization: Bearer SECRET') "
-            "or keep the default --host 127.0.0.1."
+            f"refusing --no-token on {args.host}: it is reachable from other machines, so "
+            "anyone could use this service. Drop --no-token (clients then send the token "
+            "`scenesort token` prints) or keep the default --host 127.0.0.1."
         )
     if not 0 <= args.port <= 65535:
         return f"--port must be in 0..65535, got {args.port}"
-    if args.max_body_mb <= 0 or args.cache_mb <= 0:
-        return "--max-body-mb and --cache-mb must be > 0"
+    positive = ("max_body_mb", "uploads_mb", "cache_mb", "results_mb", "max_work", "max_seconds",
+                "max_connections", "body_timeout")
+    bad = [f"--{name.replace('_', '-')}" for name in positive if not getattr(args, name) > 0]
+    if bad:
+        return f"{', '.join(bad)} must be > 0"
     return None
+
+
+def _token(args: argparse.Namespace) -> tuple[str | None, str]:
+    """The token and how the first line describes it."""
+    if args.no_token:
+        return None, "no token"
+    token, source = service_token()
+    return token, f"token {'from' if source.startswith('$') else 'in'} {source}"
 
 
 def _check_device(device: str) -> str | None:
@@ -90,6 +125,12 @@ def _listen(family: socket.AddressFamily, host: str, port: int) -> socket.socket
 def run(args: argparse.Namespace) -> int:
     """Start uvicorn; return its exit status (2 for refused options)."""
     problem = _problem(args) or _check_device(args.device)
+    token, described = None, ""
+    if problem is None:
+        try:
+            token, described = _token(args)
+        except (ValueError, OSError) as exc:
+            problem = f"no token: {exc}"
     if problem:
         print(f"scenesort serve: {problem}", file=sys.stderr)
         return 2
@@ -97,16 +138,6 @@ def run(args: argparse.Namespace) -> int:
         level=args.log_level.upper(),
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
         stream=sys.stderr,
-    )
-    import uvicorn
-
-    from backend.app import Settings, create_app
-
-    settings = Settings(
-        device=args.device,
-        token=args.token,
-        max_body_bytes=int(args.max_body_mb * 2**20),
-        cache_bytes=int(args.cache_mb * 2**20),
     )
     family = socket.AF_INET6 if ":" in args.host else socket.AF_INET
     try:
@@ -116,12 +147,61 @@ def run(args: argparse.Namespace) -> int:
         return 2
     host, port = sock.getsockname()[:2]
     shown = f"[{host}]" if family == socket.AF_INET6 else host
-    print(f"scenesort serving on http://{shown}:{port} (device {args.device})", flush=True)
-    config = uvicorn.Config(
-        create_app(settings),
-        log_level=args.log_level,
-        access_log=False,  # AccessMiddleware logs one line per request with its duration
-        timeout_graceful_shutdown=5,
-    )
-    uvicorn.Server(config).run(sockets=[sock])
+    app = _app(args, token, port, shown)
+    print(f"scenesort serving on http://{shown}:{port} (device {args.device}, {described})",
+          flush=True)
+    with contextlib.suppress(KeyboardInterrupt):  # uvicorn re-raises the SIGINT it handled
+        _server(app, args).run(sockets=[sock])
+    if not app.state.worker.stop(0.0):  # a launch that ignored the cancel: do not wait on it
+        log.warning("the device worker is still in a kernel launch; exiting without it")
+        logging.shutdown()
+        os._exit(0)
     return 0
+
+
+def _app(args: argparse.Namespace, token: str | None, port: int, shown: str) -> Any:
+    from backend.app import Settings, create_app
+    from backend.security import Policy
+
+    hosts = {name.lower() for name in args.allow_host}
+    if not is_loopback(args.host) and not ipaddress.ip_address(shown.strip("[]")).is_unspecified:
+        hosts.add(shown.lower())
+    policy = Policy(
+        token=token,
+        port=port,
+        hosts=frozenset(hosts),
+        origins=frozenset(args.allow_origin),
+        max_body_bytes=int(args.max_body_mb * 2**20),
+        upload_bytes=int(args.uploads_mb * 2**20),
+        body_timeout_s=args.body_timeout,
+        max_requests=args.max_connections,
+    )
+    return create_app(Settings(
+        device=args.device,
+        cache_bytes=int(args.cache_mb * 2**20),
+        result_bytes=int(args.results_mb * 2**20),
+        max_work=args.max_work,
+        max_seconds=args.max_seconds,
+        policy=policy,
+    ))
+
+
+def _server(app: Any, args: argparse.Namespace) -> Any:
+    """uvicorn's server, told to stop the work before it waits for connections to close."""
+    import uvicorn
+
+    from backend.app import stop_work
+
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            stop_work(app)  # in-flight renders end at their next round, answering 503
+            super().handle_exit(sig, frame)
+
+    config = uvicorn.Config(
+        app,
+        log_level=args.log_level,
+        access_log=False,  # Guard logs one line per request with its duration
+        timeout_graceful_shutdown=3,
+        limit_concurrency=2 * args.max_connections,  # idle keep-alive connections too
+    )
+    return Server(config)

@@ -1,8 +1,8 @@
 """Binary wire format of the service: decode, validate and encode little-endian arrays.
 
-Everything here is plain numpy and raises `ApiError` (a 4xx naming the parameter and
-the fix) for client mistakes, so the routes stay thin and the rules are testable
-without a server. Layouts (also in docs/api.md):
+Everything here is plain numpy and raises `ApiError` (backend/problems.py: a 4xx naming
+the parameter and the fix) for client mistakes, so the routes stay thin and the rules are
+testable without a server. Layouts (also in docs/api.md):
 
 - scene body: V*3 float32 positions, then T*3 int32 indices, little-endian, no padding.
 - ray body: R*6 float32 (origin xyz, direction xyz per ray), little-endian.
@@ -17,33 +17,12 @@ from functools import cached_property
 
 import numpy as np
 
+from backend.problems import ApiError
+
 F32 = np.dtype("<f4")
 I32 = np.dtype("<i4")
 SCENE_HASH_CHARS = 32  # hex characters kept from the sha256 digest (128 bits)
 MAX_INDEXABLE_VERTICES = 2**31 - 1  # indices are int32
-
-
-class ApiError(Exception):
-    """A client mistake: HTTP `status`, the offending `parameter` and what would fix it."""
-
-    def __init__(
-        self, status: int, parameter: str, message: str, fix: str, code: str = "invalid_request"
-    ) -> None:
-        super().__init__(message)
-        self.status = status
-        self.parameter = parameter
-        self.message = message
-        self.fix = fix
-        self.code = code
-
-    def to_json(self) -> dict[str, str]:
-        """The error body every 4xx shares (see `ErrorBody` in app.py)."""
-        return {
-            "error": self.code,
-            "parameter": self.parameter,
-            "message": self.message,
-            "fix": self.fix,
-        }
 
 
 @dataclass(frozen=True)

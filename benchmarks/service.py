@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import secrets
 import socket
 import statistics
 import subprocess
@@ -57,7 +58,10 @@ def framing_camera(vertices: np.ndarray, width: int, height: int) -> Camera:
     return Camera.look_at(position, centre, (0, 1, 0), fov, width, height)
 
 
-def start_service() -> tuple[subprocess.Popen, str]:
+def start_service(*extra: str) -> tuple[subprocess.Popen, str, dict[str, str]]:
+    """A `scenesort serve` child with a fresh token in its environment (as the add-on
+    starts it) and `extra` options; (process, base URL, the Authorization header)."""
+    token = secrets.token_urlsafe(32)
     proc = subprocess.Popen(
         [
             sys.executable,
@@ -72,10 +76,12 @@ def start_service() -> tuple[subprocess.Popen, str]:
             "2048",
             "--cache-mb",
             "8192",
+            *extra,  # later options win
         ],
         cwd=REPO,
         stdout=subprocess.PIPE,
         text=True,
+        env={**os.environ, "SCENESORT_TOKEN": token},
     )
     assert proc.stdout is not None
     line = proc.stdout.readline()  # blocks until the service binds (or exits)
@@ -86,7 +92,7 @@ def start_service() -> tuple[subprocess.Popen, str]:
     for _ in range(300):
         try:
             if httpx.get(f"{url}/v1/health", timeout=2).status_code == 200:
-                return proc, url
+                return proc, url, {"Authorization": f"Bearer {token}"}
         except httpx.TransportError:
             time.sleep(0.1)
     proc.kill()
@@ -154,9 +160,9 @@ def main() -> int:
     direct: dict[str, list[float]] = {"build": [], "render": []}
     http: dict[str, list[float]] = {k: [] for k in ("upload", "bvh", "ao", "total")}
     server: dict[str, list[float]] = {}
-    proc, url = start_service()
+    proc, url, auth = start_service("--uploads-mb", "4096")
     try:
-        client = httpx.Client(base_url=url, timeout=3600)
+        client = httpx.Client(base_url=url, timeout=3600, headers=auth)
         expected: list[np.ndarray] = []
         got: list[np.ndarray] = []
 

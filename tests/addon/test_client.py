@@ -40,10 +40,11 @@ class _Handler(BaseHTTPRequestHandler):
         length = int(self.headers.get("Content-Length", 0))
         self.rfile.read(length)
         if self.path.startswith("/v1/scenes?"):
-            error = {"error": "not_finite", "parameter": "body (vertices)",
-                     "message": "vertex 3 is not finite ([nan, 0.0, 0.0])",
+            error = {"type": "tag:scenesort,2026:not_finite", "title": "Bad Request",
+                     "status": 400, "parameter": "body (vertices)",
+                     "detail": "vertex 3 is not finite ([nan, 0.0, 0.0])",
                      "fix": "replace NaN/Inf values in vertex 3"}  # fmt: skip
-            self._send(400, json.dumps(error).encode())
+            self._send(400, json.dumps(error).encode(), "application/problem+json")
         elif "/ao?" in self.path:
             self._send(200, b"\0" * 12, "application/octet-stream")  # 3 values, not 2
         else:

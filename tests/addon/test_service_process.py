@@ -8,11 +8,12 @@ import shlex
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 from conftest import REPO
 
-from addon import service
+from addon import client, service
 
 # Stands in for `scenesort serve`: sleeps (bounded) whatever arguments it gets.
 SLEEPER = shlex.join([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -55,6 +56,26 @@ def test_stop_ends_the_child() -> None:
         assert service.stop()
     assert proc.poll() is not None and not service.running()
     assert not service.stop()  # nothing left to stop
+
+
+def test_each_start_hands_a_fresh_token_over_in_the_environment() -> None:
+    """The token is in the child's environment and never in its argv (which `ps` shows);
+    the client sends it only to the address the child serves."""
+    tokens = []
+    for _ in range(2):
+        proc = service.start(SLEEPER, "http://127.0.0.1:1")
+        try:
+            token = service.token_for("http://localhost:1/")
+            environ = Path(f"/proc/{proc.pid}/environ").read_bytes().split(b"\0")
+            cmdline = Path(f"/proc/{proc.pid}/cmdline").read_bytes()
+            assert token and f"SCENESORT_TOKEN={token}".encode() in environ
+            assert token.encode() not in cmdline
+            assert client.Client("http://127.0.0.1:1").token == token
+            assert client.Client("http://127.0.0.1:2").token is None  # another service
+            tokens.append(token)
+        finally:
+            service.stop()
+    assert tokens[0] != tokens[1] and service.token_for("http://127.0.0.1:1") is None
 
 
 @pytest.mark.parametrize("ending", ["normal_exit", "killed"])
@@ -107,9 +128,11 @@ def test_default_launch_is_this_python_running_the_engine_on_its_path() -> None:
     assert argv[:4] == [sys.executable, "-s", "-m", "backend.cli"]
     assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--device", "cpu"]
     assert service.engine_root() == REPO  # here the checkout; in Blender the wheels' folder
-    env = service.child_env("")
+    env = service.child_env("", "secret")
     assert env["PYTHONPATH"] == str(REPO) and "PYTHONHOME" not in env
-    assert "PYTHONPATH" not in service.child_env(SLEEPER) or os.environ.get("PYTHONPATH")
+    assert env["SCENESORT_TOKEN"] == "secret"
+    # An override of the user's own runs in the user's environment, path included.
+    assert service.child_env(SLEEPER, "t").get("PYTHONPATH") == os.environ.get("PYTHONPATH")
 
 
 def test_default_launch_without_the_engine_explains(monkeypatch) -> None:

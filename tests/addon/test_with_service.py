@@ -125,7 +125,9 @@ def _direct_ao(scene: bpy.types.Scene, scene_id: str) -> np.ndarray:
     url = bpy.context.window_manager.scenesort.url
     resp = httpx.post(
         f"{url}/v1/scenes/{scene_id}/ao", params=params, content=body,
-        headers={"Content-Type": "application/octet-stream"}, timeout=600.0,
+        headers={"Content-Type": "application/octet-stream",
+                 "Authorization": f"Bearer {service.token_for(url)}"},
+        timeout=600.0,
     )  # fmt: skip
     assert resp.status_code == 200, resp.text
     return np.frombuffer(resp.content, dtype="<f4")

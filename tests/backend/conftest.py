@@ -1,14 +1,16 @@
 """A real `scenesort serve` process on 127.0.0.1 with an ephemeral port, and helpers.
 
-`start_service(*args)` launches `python -m backend.cli serve --port 0 ...`, reads the
-port it bound from its first stdout line, waits for /v1/health (bounded) and stops it
-at teardown. `service` is one shared instance; `api` wraps an httpx client around it.
+`start_service(*args)` launches `python -m backend.cli serve --port 0 ...` with a fresh
+token in $SCENESORT_TOKEN (the way the add-on starts it), reads the port it bound from its
+first stdout line, waits for /v1/health (bounded) and stops it at teardown. `service` is
+one shared instance; `api` wraps an httpx client, sending the token, around it.
 """
 
 from __future__ import annotations
 
 import os
 import queue
+import secrets
 import subprocess
 import sys
 import threading
@@ -31,13 +33,26 @@ class Service:
     url: str
     proc: subprocess.Popen
     log_path: Path
+    token: str | None = None
+    first_line: str = ""
+
+    @property
+    def auth(self) -> dict[str, str]:
+        """The Authorization header this service wants."""
+        return {"Authorization": f"Bearer {self.token}"} if self.token else {}
 
     def log(self) -> str:
         """Everything the service wrote to stderr so far (its request log)."""
         return self.log_path.read_text(errors="replace")
 
 
-def _launch(args: tuple[str, ...], log_path: Path, env: dict[str, str] | None) -> Service:
+def _launch(
+    args: tuple[str, ...], log_path: Path, env: dict[str, str | None] | None,
+    preexec_fn: Callable[[], None] | None = None,
+) -> Service:
+    env = {"SCENESORT_TOKEN": secrets.token_urlsafe(24), **(env or {})}
+    if "--no-token" in args:
+        env.pop("SCENESORT_TOKEN")
     log_file = log_path.open("wb")
     proc = subprocess.Popen(
         [sys.executable, "-m", "backend.cli", "serve", "--port", "0", *args],
@@ -45,7 +60,8 @@ def _launch(args: tuple[str, ...], log_path: Path, env: dict[str, str] | None) -
         stdout=subprocess.PIPE,
         stderr=log_file,
         text=True,
-        env={**os.environ, **(env or {})},
+        env={k: v for k, v in {**os.environ, **env}.items() if v is not None},
+        preexec_fn=preexec_fn,
     )
     log_file.close()
     lines: queue.Queue[str] = queue.Queue()
@@ -57,15 +73,15 @@ def _launch(args: tuple[str, ...], log_path: Path, env: dict[str, str] | None) -
 
     threading.Thread(target=pump, daemon=True).start()
     deadline = time.monotonic() + START_TIMEOUT_S
-    url = None
+    url, first = None, ""
     while url is None and time.monotonic() < deadline and proc.poll() is None:
         try:
             line = lines.get(timeout=0.5)
         except queue.Empty:
             continue
         if line.startswith(READY_LINE):
-            url = line[len(READY_LINE) :].split()[0]
-    service = Service(url or "", proc, log_path)
+            url, first = line[len(READY_LINE) :].split()[0], line
+    service = Service(url or "", proc, log_path, env.get("SCENESORT_TOKEN"), first)
     if url is None:
         _stop(service)
         raise RuntimeError(f"service did not start:\n{service.log()[-3000:]}")
@@ -92,12 +108,16 @@ def _stop(service: Service) -> None:
 
 @pytest.fixture(scope="session")
 def start_service(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Callable[..., Service]]:
-    """Start a service with extra `serve` arguments; every one is stopped at session end."""
+    """Start a service with extra `serve` arguments (and, for the child, environment
+    changes and a function run before exec); every one is stopped at session end."""
     started: list[Service] = []
 
-    def start(*args: str, env: dict[str, str] | None = None) -> Service:
+    def start(
+        *args: str, env: dict[str, str | None] | None = None,
+        preexec_fn: Callable[[], None] | None = None,
+    ) -> Service:
         log_path = tmp_path_factory.mktemp("service") / "stderr.log"
-        service = _launch(args, log_path, env)
+        service = _launch(args, log_path, env, preexec_fn)
         started.append(service)
         return service
 
@@ -171,9 +191,9 @@ OCTET = {"Content-Type": "application/octet-stream"}
 class Api:
     """httpx against one service, with the binary encodings done once here."""
 
-    def __init__(self, url: str, timeout: float = 120.0, headers: dict | None = None) -> None:
-        self.url = url
-        self.client = httpx.Client(base_url=url, timeout=timeout, headers=headers or {})
+    def __init__(self, service: Service, timeout: float = 120.0) -> None:
+        self.url = service.url
+        self.client = httpx.Client(base_url=self.url, timeout=timeout, headers=service.auth)
 
     def upload(self, vertices: np.ndarray, indices: np.ndarray) -> httpx.Response:
         return self.client.post(
@@ -200,7 +220,7 @@ class Api:
 @pytest.fixture(scope="session")
 def api(service: Service) -> Iterator[Api]:
     """A client of the shared service."""
-    client = Api(service.url)
+    client = Api(service)
     yield client
     client.client.close()
 

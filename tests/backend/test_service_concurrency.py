@@ -31,7 +31,7 @@ def test_eight_concurrent_clients_all_get_their_own_answer(
     def client_session(k: int) -> np.ndarray:
         origins, directions = make_rays(64 + 16 * k, seed=100 + k)
         body = np.concatenate([origins, directions], axis=1).astype("<f4").tobytes()
-        with httpx.Client(base_url=service.url, timeout=120) as client:
+        with httpx.Client(base_url=service.url, timeout=120, headers=service.auth) as client:
             upload = client.post(
                 "/v1/scenes",
                 params={"vertices": len(box_scene[0]), "triangles": len(box_scene[1])},

@@ -328,10 +328,12 @@ def test_bad_request_is_a_clear_4xx(
         kwargs["json"] = _fill(body, scene_id)
     response = api.client.request(method, _fill(path, scene_id), **kwargs)
     assert response.status_code == status, response.text
+    assert response.headers["content-type"] == "application/problem+json"
     error = response.json()
-    assert set(error) == {"error", "parameter", "message", "fix"}
+    assert set(error) == {"type", "title", "status", "detail", "parameter", "fix"}
+    assert error["status"] == status and error["type"].startswith("tag:scenesort,2026:")
     assert parameter in error["parameter"], error
-    assert error["message"] and error["fix"], error
+    assert error["detail"] and error["fix"] and error["title"], error
 
 
 def test_body_over_the_limit_is_413(start_service) -> None:
@@ -345,7 +347,7 @@ def test_body_over_the_limit_is_413(start_service) -> None:
         f"{small.url}/v1/scenes",
         params={"vertices": 1000, "triangles": 10},
         content=scene(v, i),
-        headers=OCTET,
+        headers={**OCTET, **small.auth},
         timeout=30,
     )
     assert response.status_code == 413, response.text

@@ -45,8 +45,8 @@ def test_unexpected_error_is_a_logged_500_and_health_stays_200(failing_service, 
     with caplog.at_level(logging.ERROR, logger="scenesort.app"):
         response = httpx.get(f"{failing_service}/v1/boom", timeout=10)
     assert response.status_code == 500
-    assert response.json()["error"] == "internal_error"
-    assert "RuntimeError" in response.json()["message"]
+    assert response.json()["type"].endswith(":internal_error")
+    assert "RuntimeError" in response.json()["detail"]
     assert "engine exploded" not in response.text  # details go to the log, not the client
     assert any("internal error on GET /v1/boom" in r.getMessage() for r in caplog.records)
     assert httpx.get(f"{failing_service}/v1/health", timeout=10).status_code == 200

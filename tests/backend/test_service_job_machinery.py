@@ -103,9 +103,43 @@ def test_finished_jobs_are_bounded_in_count_and_bytes(worker) -> None:
     jobs = [manager.create("s", 1000, 1, image) for _ in range(4)]
     for job in jobs:
         wait_final(job)
-    manager.create("s", 1, 1, lambda job: None)  # forgetting happens on create
     kept = [j for j in jobs if manager.get(j.job_id) is not None]
     assert kept == jobs[-2:]  # 3 by count, but only 2 images fit in 8000 bytes
+
+
+def test_cancelled_queued_jobs_free_their_slots(worker) -> None:
+    """The queue holds 4: with the thread busy, 20 jobs created and cancelled in turn all
+    fit, and none of them runs."""
+    manager = JobManager(worker)
+    gate, busy, ran = threading.Event(), threading.Event(), []
+    worker.submit(lambda: busy.set() or gate.wait(WAIT_S))
+    assert busy.wait(WAIT_S)
+    try:
+        for k in range(20):
+            job = manager.create("s", 1, 1, lambda job, k=k: ran.append(k))  # no QueueFull
+            manager.cancel(job.job_id)
+            assert job.state == "cancelled"
+        assert worker.queued == 0
+    finally:
+        gate.set()
+    worker.submit(lambda: None).result(timeout=WAIT_S)
+    assert ran == []
+
+
+def test_a_cancel_racing_the_start_never_ends_running(worker) -> None:
+    """Cancel at every moment around the worker's start: each job ends cancelled or
+    done, and a cancelled job never reports progress afterwards."""
+    manager = JobManager(worker)
+    finals = []
+    for k in range(200):
+        reported: list[None] = []
+        job = manager.create("s", 1, 1, lambda job, r=reported: r.append(job.report("ao", 0.5)))
+        threading.Event().wait(k % 5 * 1e-4)  # cancel before, around and after the start
+        manager.cancel(job.job_id)
+        finals.append(wait_final(job))
+        assert reported == ([] if finals[-1] == "cancelled" else [None])
+        assert job.snapshot()["state"] == finals[-1]  # final states stay final
+    assert set(finals) <= {"cancelled", "done"} and "cancelled" in finals
 
 
 def test_events_end_with_the_final_state(worker) -> None:
@@ -129,3 +163,21 @@ def test_events_end_with_the_final_state(worker) -> None:
     assert names[-1] == "event: end" and set(names[:-1]) == {"event: progress"}
     last = json.loads(events[-1].split("data: ")[1])
     assert last["state"] == "done" and last["progress"] == 1.0
+
+
+def test_explicit_ray_ao_stops_between_the_engines_rounds() -> None:
+    """The signal reaches the engine's progress calls: stopped (the client hung up) or past
+    its deadline, `jobs.ambient_occlusion` raises Stopped instead of rendering on."""
+    import kernels
+    from backend.jobs import AoParams, Stopped, StopSignal, ambient_occlusion
+
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    bvh = kernels.build_bvh(vertices, np.array([[0, 1, 2]], np.int32))
+    rays = np.full((8, 3), [0.2, 0.2, 1.0], np.float32), np.tile(np.float32([0, 0, -1]), (8, 1))
+    assert ambient_occlusion(bvh, *rays, AoParams(spp=4), StopSignal())[0].shape == (8,)
+    hung_up = StopSignal()
+    hung_up.stop("the client disconnected")
+    with pytest.raises(Stopped, match="the client disconnected"):
+        ambient_occlusion(bvh, *rays, AoParams(spp=4), hung_up)
+    with pytest.raises(Stopped, match="deadline"):
+        ambient_occlusion(bvh, *rays, AoParams(spp=4), StopSignal(deadline=0.0))

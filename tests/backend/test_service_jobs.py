@@ -73,7 +73,8 @@ def test_events_stream_progress_until_the_end(api, service, scene_id) -> None:
     job = create(api, scene_id, 64, 48, spp=16, seed=1)
     events: list[tuple[str, dict]] = []
     with httpx.stream(
-        "GET", f"{service.url}/v1/jobs/{job['job_id']}/events", timeout=POLL_LIMIT_S
+        "GET", f"{service.url}/v1/jobs/{job['job_id']}/events", timeout=POLL_LIMIT_S,
+        headers=service.auth,
     ) as stream:
         assert stream.headers["content-type"].startswith("text/event-stream")
         name = None

@@ -57,7 +57,7 @@ def test_health_reports_versions_device_and_cache(api) -> None:
 def test_cache_evicts_least_recently_used_scene(start_service) -> None:
     """With a 1 KiB cache, three 480-byte scenes cannot all stay: the oldest goes."""
     small = start_service("--cache-mb", str(1024 / 2**20))
-    client = httpx.Client(base_url=small.url, timeout=30)
+    client = httpx.Client(base_url=small.url, timeout=30, headers=small.auth)
     ids = []
     for k in range(3):
         vertices = np.full((20, 3), k, np.float32)  # 240 bytes

@@ -1,4 +1,5 @@
-"""Property-based requests generated from /openapi.json (schemathesis): never a 5xx.
+"""Property-based requests generated from /openapi.json (schemathesis), sent with the
+service's token (the authenticated API): never a 5xx.
 
 Bounded in count (max_examples per operation and generation mode) and time (a per-request timeout
 and a total budget after which no more requests are sent). Half of the generated
@@ -44,7 +45,7 @@ def aim_at_scene(case, use_known: bool, scene_id: str, rng_seed: int):
 
 @pytest.mark.parametrize("mode", ["positive", "negative"])
 def test_generated_requests_never_get_a_5xx(service, scene_id, mode) -> None:
-    schema = schemathesis.openapi.from_url(f"{service.url}/openapi.json")
+    schema = schemathesis.openapi.from_url(f"{service.url}/openapi.json", headers=service.auth)
     deadline = time.monotonic() + BUDGET_S
     seen: set[tuple[str, str, int]] = set()
     operations = [result.ok() for result in schema.get_all_operations()]
@@ -64,7 +65,7 @@ def test_generated_requests_never_get_a_5xx(service, scene_id, mode) -> None:
             if time.monotonic() > deadline:
                 return  # budget spent: stop sending, keep what was checked
             case = aim_at_scene(case, use_known, scene_id, seed)
-            response = case.call(base_url=service.url, timeout=60)
+            response = case.call(base_url=service.url, headers=service.auth, timeout=60)
             seen.add((case.method, case.path, response.status_code))
             assert response.status_code < 500, (case.method, case.path, response.text[:500])
 

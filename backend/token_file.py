@@ -1,0 +1,101 @@
+"""The service's bearer token: from $SCENESORT_TOKEN, else a file only the user can read.
+
+Like Jupyter's server, `scenesort serve` always has a token unless told `--no-token`
+(loopback only). The generated one is kept in `token` under the user's runtime
+directory ($XDG_RUNTIME_DIR, a per-user tmpfs on Linux), else the config directory
+($XDG_CONFIG_HOME or ~/.config), in a folder of mode 0700 and a file of mode 0600, so
+other local users cannot read it; `scenesort token` prints it for clients. A token never
+goes on a command line, where `ps` shows it to everyone.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import secrets
+import stat
+import sys
+from pathlib import Path
+
+TOKEN_ENV = "SCENESORT_TOKEN"
+MIN_TOKEN_CHARS = 16  # a shorter $SCENESORT_TOKEN is guessable; refuse it
+
+
+def token_dir() -> Path:
+    """Where the generated token lives: the runtime directory if there is one, else config."""
+    runtime = os.environ.get("XDG_RUNTIME_DIR")
+    if runtime and Path(runtime).is_dir():
+        return Path(runtime) / "scenesort"
+    config = os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(config) / "scenesort"
+
+
+def token_path() -> Path:
+    return token_dir() / "token"
+
+
+def _private(path: Path) -> bool:
+    """Whether `path` is a regular file of ours that nobody else can read or write."""
+    try:
+        info = path.lstat()
+    except FileNotFoundError:
+        return False
+    mine = not hasattr(os, "getuid") or info.st_uid == os.getuid()
+    return stat.S_ISREG(info.st_mode) and mine and not info.st_mode & 0o077
+
+
+def stored_token() -> str:
+    """The token in the user's token file, made (0600, in a 0700 folder) if there is none.
+
+    A file that others could read, or that is not a plain file of this user, is replaced:
+    its token may have leaked."""
+    path = token_path()
+    if _private(path):
+        token = path.read_text().strip()
+        if len(token) >= MIN_TOKEN_CHARS:
+            return token
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    os.chmod(path.parent, 0o700)  # mkdir's mode is masked, and the folder may be older
+    token = secrets.token_urlsafe(32)
+    fresh = path.with_name(f".token-{secrets.token_hex(8)}")
+    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as out:
+        out.write(token + "\n")
+    os.replace(fresh, path)  # atomic: a reader sees the old token or the new, whole
+    return token
+
+
+def service_token() -> tuple[str, str]:
+    """(token, where it came from) for `scenesort serve`; ValueError for a weak env token."""
+    env = os.environ.get(TOKEN_ENV)
+    if env is not None:
+        if len(env) < MIN_TOKEN_CHARS:
+            raise ValueError(
+                f"${TOKEN_ENV} is {len(env)} characters; use at least {MIN_TOKEN_CHARS} "
+                "(e.g. python -c 'import secrets; print(secrets.token_urlsafe(32))')"
+            )
+        return env, f"${TOKEN_ENV}"
+    return stored_token(), str(token_path())
+
+
+# --- `scenesort token` -----------------------------------------------------------------
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--path", action="store_true", help="print where the token file is, not the token"
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    """Print the token a client should send (the one `scenesort serve` uses)."""
+    if args.path:
+        print(token_path())
+        return 0
+    try:
+        token, _ = service_token()
+    except ValueError as exc:
+        print(f"scenesort token: {exc}", file=sys.stderr)
+        return 2
+    print(token)
+    return 0
