@@ -36,6 +36,7 @@ class Target:
     """Where requests go, from the add-on preferences; safe to read off the main thread."""
 
     url: str = ""  # a service of the user's own; "" = the local one Blender starts
+    token: str = ""  # the token of the service at `url` (the local one's is known)
     command: str = ""  # "Service command" override; "" = Blender's Python + bundled engine
     port: int = 0  # the local service's port; 0 = a free one at each start
     device: str = "cpu"  # the local service's Warp device
@@ -84,10 +85,11 @@ def check_version(health: dict, url: str) -> None:
     )
 
 
-def _checked(url: str) -> Connection:
+def _checked(url: str, token: str = "") -> Connection:
     """A client of `url` whose health answer has the add-on's version (the one place
-    where the add-on's clients are made)."""
-    client = Client(url)
+    where the add-on's clients are made; without `token`, the client sends the token
+    of the service this add-on started, if it serves `url`)."""
+    client = Client(url, token or None)
     health = client.health()
     check_version(health, url)
     return Connection(client, health, started=False)
@@ -139,7 +141,7 @@ def connect(task: Task, target: Target) -> Connection:
     url = target.url or (f"http://{LOCAL_HOST}:{target.port}" if target.port else None)
     if url is not None:
         try:
-            return _checked(url)
+            return _checked(url, target.token)
         except VersionMismatch:
             raise
         except ServiceError:

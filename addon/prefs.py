@@ -87,6 +87,15 @@ class SCENESORT_AP_preferences(bpy.types.AddonPreferences):
         ),
         default="",
     )
+    server_token: StringProperty(  # type: ignore[valid-type]
+        name="Service token",
+        description=(
+            "The token of the service at Service URL ('scenesort token' prints it there); "
+            "kept in Blender's preferences file. The local service needs none"
+        ),
+        default="",
+        subtype="PASSWORD",
+    )
     allow_remote: BoolProperty(  # type: ignore[valid-type]
         name="Allow a remote service",
         description=(
@@ -115,6 +124,7 @@ class SCENESORT_AP_preferences(bpy.types.AddonPreferences):
         col.operator("scenesort.open_log", icon="TEXT")
         col = layout.column(heading="Own service")
         col.prop(self, "server_url")
+        col.prop(self, "server_token")
         col.prop(self, "allow_remote")
 
 
@@ -141,6 +151,7 @@ def target(context: bpy.types.Context, start: bool | None = None) -> Target:
         check_remote(url, prefs.allow_remote, bool(bpy.app.online_access))
     return Target(
         url=url,
+        token=prefs.server_token.strip() if url else "",
         command=server_command(prefs),
         port=prefs.port,
         device=prefs.device_name,

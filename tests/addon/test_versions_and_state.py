@@ -46,11 +46,14 @@ def _prefs() -> prefs.SCENESORT_AP_preferences:
     return prefs.preferences(bpy.context)
 
 
-def _health_server(answer: dict) -> Iterator[str]:
+def _health_server(answer: dict, seen: list | None = None) -> Iterator[str]:
+    """A health endpoint; `seen` collects the Authorization header of each request."""
     body = json.dumps(answer).encode()
 
     class Handler(BaseHTTPRequestHandler):
         def do_GET(self) -> None:  # noqa: N802 - http.server's naming
+            if seen is not None:
+                seen.append(self.headers.get("Authorization"))
             self.send_response(200)
             self.send_header("Content-Type", "application/json")
             self.send_header("Content-Length", str(len(body)))
@@ -124,6 +127,24 @@ def test_device_menu_lists_the_devices_the_service_reports(registered, gpu_servi
     p.server_url = ""
     argv = service.command_line("", "127.0.0.1", 0, prefs.target(bpy.context).device)
     assert argv[-2:] == ["--device", "cuda:1"]
+
+
+def test_a_service_of_your_own_gets_its_token(registered) -> None:
+    seen: list = []
+    server = _health_server({"version": ADDON_VERSION, "device": "cpu"}, seen)
+    url = next(server)
+    try:
+        p = _prefs()
+        p.server_url, p.server_token = url, "own-secret"
+        assert bpy.ops.scenesort.server_status() == {"FINISHED"}
+        p.server_token = ""
+        assert bpy.ops.scenesort.server_status() == {"FINISHED"}
+    finally:
+        server.close()
+    assert seen == ["Bearer own-secret", None]
+    assert prefs.target(bpy.context).token == ""
+    p.server_url, p.server_token = "", "own-secret"
+    assert prefs.target(bpy.context).token == ""  # never sent to the local service
 
 
 class _Probe(operators._TaskOperator):
