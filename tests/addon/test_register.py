@@ -78,8 +78,10 @@ def test_preferences_round_trip_through_blenders_userpref(tmp_path) -> None:
     """Saved with Blender's preferences (never a .blend) and read back by a new session."""
     env = {**os.environ, **{f"BLENDER_USER_{d.upper()}": str(tmp_path / d)
                             for d in ("config", "scripts", "datafiles", "extensions")}}  # fmt: skip
-    values = [8777, False, True, "http://127.0.0.1:8777", r"C:\Tools\scenesort.exe", "cuda:0"]
-    names = ["port", "start_on_render", "allow_remote", "server_url", "server_command"]
+    values = [8777, False, True, "http://127.0.0.1:8777", "tok", r"C:\Tools\scenesort.exe",
+              "cuda:0"]  # fmt: skip
+    names = ["port", "start_on_render", "allow_remote", "server_url", "server_token",
+             "server_command"]  # fmt: skip
     save = (
         "import bpy, addon; addon.register();"
         "p = bpy.context.preferences.addons['addon'].preferences;"
