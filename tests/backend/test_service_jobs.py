@@ -69,6 +69,32 @@ def test_job_renders_what_the_direct_call_renders(api, box_scene, scene_id) -> N
     np.testing.assert_array_equal(np.asarray(image), expected_png)
 
 
+def test_coverage_and_depth_layers_follow_the_primary_hits(api, box_scene, scene_id) -> None:
+    """coverage is 1 exactly where AO sampled (a hit), depth is Cycles' Z pass: the
+    closest hit's camera-space depth, 1e10 on background."""
+    job = create(api, scene_id, 40, 30, spp=2, seed=5)
+    assert wait(api, job["job_id"], {"done", "failed", "cancelled"})["state"] == "done"
+
+    def layer(name: str) -> np.ndarray:
+        raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
+        assert raw.status_code == 200, raw.text
+        return np.frombuffer(raw.content, "<f4")
+
+    coverage, depth = layer("coverage"), layer("depth")
+    cam = Camera.from_dict(camera(40, 30))
+    origins, directions, tmin, tmax = cam.rays()
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    used = kernels.render_ao(bvh, origins, directions, spp=2, seed=5, tmin=tmin, tmax=tmax)
+    np.testing.assert_array_equal(coverage, (used.spp_used > 0).astype(np.float32))
+    assert 0 < coverage.mean() < 1  # the box fills part of the view
+    assert np.all(depth[coverage == 0] == 1e10)
+    # Each hit point's distance from the camera along its view axis.
+    hits = kernels.trace(bvh, origins, directions, tmin, tmax)
+    hit = coverage == 1
+    points = origins[hit] + hits.t[hit, None] * directions[hit]
+    np.testing.assert_allclose(depth[hit], (points - cam.position) @ cam.forward, rtol=1e-5)
+
+
 def test_events_stream_progress_until_the_end(api, service, scene_id) -> None:
     job = create(api, scene_id, 64, 48, spp=16, seed=1)
     events: list[tuple[str, dict]] = []
