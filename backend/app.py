@@ -571,10 +571,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     async def create_job(request: JobRequest, response: Response) -> JobStatus:
         """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
-        from kernels.camera import Camera
+        from backend.framing import framed
 
         try:
-            camera = Camera.from_dict(request.camera.model_dump())
+            window = None if request.window is None else request.window.model_dump()
+            camera = framed(request.camera.model_dump(), window, request.pixel_aspect)
         except ValueError as exc:
             raise ApiError(
                 422,
