@@ -9,9 +9,9 @@ a plain package.
 
 from __future__ import annotations
 
-from . import operators, panel, prefs, props, service
+from . import engine, operators, panel, prefs, props, service
 
-_MODULES = (prefs, props, operators, panel)
+_MODULES = (prefs, props, operators, engine, panel)
 
 
 def register() -> None:

@@ -23,15 +23,18 @@ def resolution(scene: bpy.types.Scene) -> tuple[int, int]:
 
 
 def camera_dict(
-    scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph | None = None
+    scene: bpy.types.Scene,
+    depsgraph: bpy.types.Depsgraph | None = None,
+    obj: bpy.types.Object | None = None,
 ) -> dict[str, Any]:
-    """The camera description of the service's jobs API (`kernels.Camera.to_dict()` form).
+    """The camera description of the service's jobs API (`kernels.Camera.to_dict()` form)
+    of `obj` (default: the scene's camera).
 
     With a depsgraph the evaluated camera is used (animation, constraints and moves
     made by a script just before). Raises ValueError, in words for the user, when the
     scene has no camera object.
     """
-    obj = scene.camera
+    obj = obj or scene.camera
     if obj is None or obj.type != "CAMERA":
         raise ValueError("The scene has no active camera: add one and make it active")
     if depsgraph is not None:
@@ -56,6 +59,37 @@ def camera_dict(
         "shift_y": float(cam.shift_y),
         "clip_start": float(cam.clip_start),
         "clip_end": float(cam.clip_end),
+    }
+
+
+def window(scene: bpy.types.Scene) -> dict[str, int] | None:
+    """The border's pixels as the jobs API's `window` (from the frame's top-left), None
+    without a border. Blender's own rounding (render_init_from_main): float32 border
+    times the final size, truncated; its y counts from the bottom."""
+    r = scene.render
+    if not r.use_border:
+        return None
+    w, h = resolution(scene)
+
+    def edge(fraction: float, size: int) -> int:
+        return int(np.float32(fraction) * np.float32(size))
+
+    x0, x1 = edge(r.border_min_x, w), edge(r.border_max_x, w)
+    y0, y1 = edge(r.border_min_y, h), edge(r.border_max_y, h)
+    if x1 <= x0 or y1 <= y0:
+        raise ValueError("The render border has no pixels: draw a larger one (Ctrl-B)")
+    return {"x": x0, "y": h - y1, "width": x1 - x0, "height": y1 - y0}
+
+
+def view(
+    scene: bpy.types.Scene, depsgraph: bpy.types.Depsgraph, obj: bpy.types.Object | None = None
+) -> dict[str, Any]:
+    """What a render job sees: the camera, the border's window and the pixel aspect."""
+    r = scene.render
+    return {
+        "camera": camera_dict(scene, depsgraph, obj),
+        "window": window(scene),
+        "pixel_aspect": [float(r.pixel_aspect_x), float(r.pixel_aspect_y)],
     }
 
 

@@ -214,9 +214,10 @@ class Client:
         """`DELETE /v1/jobs/{id}`: the service stops the job at its next step."""
         return self._json("DELETE", f"/v1/jobs/{job_id}", timeout=UPLOAD_TIMEOUT_S)
 
-    def job_result(self, job_id: str) -> np.ndarray:
-        """`GET /v1/jobs/{id}/result?format=f32`: height*width float32, row 0 at the top."""
+    def job_result(self, job_id: str, layer: str = "f32") -> np.ndarray:
+        """`GET /v1/jobs/{id}/result?format=f32|coverage|depth`: height*width float32 (AO,
+        coverage or depth), row 0 at the top."""
         _, _, data = self._request(
-            "GET", f"/v1/jobs/{job_id}/result?format=f32", timeout=UPLOAD_TIMEOUT_S
+            "GET", f"/v1/jobs/{job_id}/result?format={layer}", timeout=UPLOAD_TIMEOUT_S
         )
         return np.frombuffer(data, dtype="<f4").astype(np.float32)

@@ -133,12 +133,17 @@ def _direct_ao(scene: bpy.types.Scene, scene_id: str) -> np.ndarray:
     return np.frombuffer(resp.content, dtype="<f4")
 
 
-def _image_ao() -> np.ndarray:
+def _image_rgba() -> np.ndarray:
+    """`scenesort AO`'s pixels, (W*H, 4), the top row first."""
     img = bpy.data.images[image.IMAGE_NAME]
     pixels = np.empty(len(img.pixels), dtype=np.float32)
     img.pixels.foreach_get(pixels)
     rgba = pixels.reshape(img.size[1], img.size[0], 4)
-    return rgba[::-1, :, 0].ravel()  # bottom row first in Blender; top row first here
+    return rgba[::-1].reshape(-1, 4)  # bottom row first in Blender; top row first here
+
+
+def _image_ao() -> np.ndarray:
+    return _image_rgba()[:, 0]
 
 
 def test_render_matches_the_services_direct_result(live) -> None:
@@ -146,15 +151,20 @@ def test_render_matches_the_services_direct_result(live) -> None:
     assert bpy.ops.scenesort.render_ao() == {"FINISHED"}
     img = bpy.data.images[image.IMAGE_NAME]
     assert tuple(img.size) == (WIDTH, HEIGHT)
-    ours = _image_ao()
+    assert img.colorspace_settings.name == "Non-Color"
+    rgba = _image_rgba()
+    ours, hit = rgba[:, 0], rgba[:, 3] == 1.0
+    assert np.all((rgba[:, 3] == 0.0) | hit)  # coverage alpha: one ray per pixel
     mesh = export.export_scene(bpy.context.evaluated_depsgraph_get())
     from addon.client import scene_id
 
     direct = _direct_ao(live, scene_id(len(mesh.vertices), mesh.triangles, mesh.body()))
-    np.testing.assert_array_equal(ours, direct)
-    assert ours.min() >= 0.0 and ours.max() <= 1.0
-    assert (ours > 0).mean() > 0.3  # the floor fills most of the view
-    assert ours.std() > 0.05  # shading varies: not a constant image
+    # The direct answer is 1.0 for a ray that misses; the image is 0 with alpha 0 there.
+    np.testing.assert_array_equal(ours, np.where(hit, direct, 0.0))
+    assert np.all(direct[~hit] == 1.0)
+    np.testing.assert_array_equal(rgba[:, 1], ours)
+    assert 0.3 < hit.mean() < 1.0  # the floor fills most of the view, sky above it
+    assert ours[hit].std() > 0.05  # shading varies: not a constant image
 
 
 def test_second_render_uploads_nothing(live) -> None:
@@ -180,19 +190,19 @@ def test_changed_scene_is_uploaded_again(live) -> None:
 
 
 def test_interactive_job_path_gives_the_same_image(live) -> None:
-    """invoke() renders through the jobs API (progress, cancel); same pixels as execute()."""
+    """The render job the operator's invoke() runs on a thread gives execute()'s pixels."""
     assert bpy.ops.scenesort.render_ao() == {"FINISHED"}
     scripted = _image_ao()
     depsgraph = bpy.context.evaluated_depsgraph_get()
     settings = pipeline.Settings.from_scene(live.scenesort)
     target = prefs.target(bpy.context)
     mesh = export.export_scene(depsgraph)
-    desc = camera.camera_dict(live, depsgraph)
-    task = Task(lambda t: pipeline.render_job(t, target, settings, mesh, desc))
+    view = camera.view(live, depsgraph)
+    task = Task(lambda t: pipeline.render_job(t, target, settings, mesh, view))
     outcome = task.run()
     assert outcome.uploaded_bytes == 0  # the scene was already there
     assert any("%" in step for step in task.steps), task.steps  # progress was reported
-    np.testing.assert_array_equal(outcome.ao, scripted)
+    np.testing.assert_array_equal(np.where(outcome.coverage == 1, outcome.ao, 0), scripted)
 
 
 def test_stop_ends_the_service(live) -> None:

@@ -1,0 +1,193 @@
+"""The `scenesort AO` render engine, headless: F12 and Ctrl-F12 through Blender's own
+render operator, against a real service that the first render starts by itself.
+
+Images come back through the files Blender writes (32-bit EXR: linear, no view
+transform); the passes, the status-bar lines and Esc through a subclass of the engine
+(`Probe`) that keeps what Blender holds after the engine filled the result.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import ClassVar
+
+import bpy
+import numpy as np
+import pytest
+from conftest import add_camera, add_object, box_mesh
+
+import addon
+from addon import camera, engine, export, prefs, service
+
+WIDTH, HEIGHT = 40, 30
+FLOOR_TRIANGLES, BOX_TRIANGLES = 2 * 8 * 8, 12
+
+
+class Probe(engine.AoEngine, bpy.types.RenderEngine):
+    """The engine, keeping its passes and status lines; `stop_when(engine)` plays Esc."""
+
+    bl_idname = "SCENESORT_PROBE"
+    bl_label = "scenesort AO (probe)"
+    bl_use_preview = False
+    passes: ClassVar[dict[str, np.ndarray]] = {}
+    stats: ClassVar[list[str]] = []
+    steps: ClassVar[list[str]] = []
+    stop_when: ClassVar[Callable[[engine.AoEngine], bool] | None] = None
+
+    def fill(self, result, passes) -> None:  # noqa: ANN001 - what Blender then holds
+        super().fill(result, passes)
+        size = (result.resolution_y, result.resolution_x)
+        for p in result.layers[0].passes:
+            Probe.passes[p.name] = np.array(p.rect, np.float32).reshape(*size, p.channels)
+
+    def show(self, text: str) -> None:
+        Probe.stats.append(text)
+        super().show(text)
+
+    def stopped(self) -> bool:
+        if self.task is not None:
+            Probe.steps[:] = self.task.steps
+        return bool(Probe.stop_when and Probe.stop_when(self)) or super().stopped()
+
+
+def _grid_mesh(name: str, n: int, size: float) -> bpy.types.Mesh:
+    """An n x n grid of quads in the z=0 plane: a floor with 2*n*n triangles."""
+    xs = np.linspace(-size / 2, size / 2, n + 1)
+    verts = [(x, y, 0.0) for y in xs for x in xs]
+    faces = [
+        (j * (n + 1) + i, j * (n + 1) + i + 1, (j + 1) * (n + 1) + i + 1, (j + 1) * (n + 1) + i)
+        for j in range(n)
+        for i in range(n)
+    ]
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(verts, [], faces)
+    return mesh
+
+
+@pytest.fixture(scope="module")
+def live() -> Iterator[bpy.types.Scene]:
+    """A floor with a box on it and a camera; the engine picked in Render Properties."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    addon.register()
+    bpy.utils.register_class(Probe)
+    scene = bpy.context.scene
+    add_object(scene, "Floor", _grid_mesh("Floor", 8, 8.0))
+    add_object(scene, "Box", box_mesh("Box", size=1.5), (0.0, 0.0, 0.75))
+    add_camera(scene, (0.0, -7.0, 4.0), (math.radians(60), 0.0, 0.0), WIDTH, HEIGHT)
+    scene.scenesort.ao_distance, scene.scenesort.spp, scene.scenesort.seed = 2.0, 4, 1
+    scene.render.engine = "SCENESORT"
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    try:
+        yield scene
+    finally:
+        proc = service._process
+        bpy.utils.unregister_class(Probe)
+        addon.unregister()
+        assert proc is None or proc.poll() is not None, "unregister left the service running"
+
+
+@pytest.fixture
+def probe(live) -> Iterator[bpy.types.Scene]:
+    """The scene rendered by `Probe`, with a fresh record."""
+    Probe.passes.clear(), Probe.stats.clear(), Probe.steps.clear()
+    Probe.stop_when = None
+    live.render.engine = Probe.bl_idname
+    try:
+        yield live
+    finally:
+        live.render.engine = "SCENESORT"
+        Probe.stop_when = None
+
+
+def _read(path: Path) -> np.ndarray:
+    """An image file's RGBA, (height, width, 4), row 0 at the top."""
+    img = bpy.data.images.load(str(path))
+    try:
+        pixels = np.empty(len(img.pixels), np.float32)
+        img.pixels.foreach_get(pixels)
+        return pixels.reshape(img.size[1], img.size[0], 4)[::-1]
+    finally:
+        bpy.data.images.remove(img)
+
+
+def f12(scene: bpy.types.Scene, path: Path) -> np.ndarray:
+    """F12 and save: the written image's RGBA (row 0 at the top)."""
+    scene.render.filepath = str(path)
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    return _read(path.with_suffix(".exr"))
+
+
+def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
+    """AO and coverage of the scene's camera rays from the engine itself (no add-on, no
+    service): `kernels.render_ao` on the exported triangles."""
+    import kernels
+    from kernels.camera import Camera
+
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    mesh = export.export_scene(depsgraph)
+    origins, directions, tmin, tmax = Camera.from_dict(camera.camera_dict(scene, depsgraph)).rays()
+    props = scene.scenesort
+    bvh = kernels.build_bvh(mesh.vertices, mesh.indices, method=props.method,
+                            leaf_size=props.leaf_size, device="cpu")  # fmt: skip
+    result = kernels.render_ao(bvh, origins, directions, spp=props.spp, seed=props.seed,
+                               distance=props.ao_distance, tmin=tmin, tmax=tmax)  # fmt: skip
+    shape = (scene.render.resolution_y, scene.render.resolution_x)
+    return result.ao.reshape(shape), (result.spp_used > 0).reshape(shape)
+
+
+def test_engine_is_selectable_with_its_passes(live) -> None:
+    assert engine.SCENESORT_RE_ao.bl_label == "scenesort AO"
+    assert live.render.engine == "SCENESORT"  # Blender accepts only registered engines
+    assert "SCENESORT" in bpy.types.RENDER_PT_format.COMPAT_ENGINES  # output settings shown
+
+
+def test_f12_combined_is_the_engines_ao_with_zero_background(live, tmp_path) -> None:
+    """F12 starts the service itself; Combined RGB equals a direct engine call's AO on the
+    same rays, 0 where the ray missed (Cycles' AO pass); alpha 1 without Film Transparent."""
+    prefs.preferences(bpy.context).start_on_render = True
+    live.render.film_transparent = False
+    rgba = f12(live, tmp_path / "still")
+    assert service.running()
+    ao, hit = _direct(live)
+    assert rgba.shape == (HEIGHT, WIDTH, 4)
+    assert 0.3 < hit.mean() < 1.0  # some sky above the floor
+    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+    np.testing.assert_array_equal(rgba[..., 1], rgba[..., 0])
+    np.testing.assert_array_equal(rgba[..., 2], rgba[..., 0])
+    assert np.all(rgba[..., 3] == 1.0)
+    assert rgba[hit, 0].std() > 0.05  # shaded, not flat
+
+
+def test_film_transparent_background_alpha_is_exactly_zero(live, tmp_path) -> None:
+    live.render.film_transparent = True
+    try:
+        rgba = f12(live, tmp_path / "transparent")
+    finally:
+        live.render.film_transparent = False
+    _, hit = _direct(live)
+    np.testing.assert_array_equal(rgba[..., 3], hit.astype(np.float32))
+    assert np.all(rgba[~hit] == 0.0)
+
+
+def test_passes_ao_and_depth(probe, tmp_path) -> None:
+    """AO is Combined's grey; Depth is camera-space Z (1e10 on background): the floor
+    right below the view's centre lies about |camera - floor point| * cos away."""
+    f12(probe, tmp_path / "passes")
+    passes = Probe.passes
+    assert set(passes) == {"Combined", "AO", "Depth"}
+    combined, ao, depth = passes["Combined"], passes["AO"][..., 0], passes["Depth"][..., 0]
+    np.testing.assert_array_equal(ao, combined[..., 0])
+    hit = combined[..., 3] > 0 if probe.render.film_transparent else depth < 1e10
+    assert np.all(depth[~hit] == 1e10) and (~hit).any() and hit.any()
+    assert np.all(ao[~hit] == 0.0)
+    # The centre pixel's ray (60 degrees from straight down) meets the floor (z = 0) at
+    # ray length 4 / cos(60) = 8; its camera-space depth is that length (it is the axis).
+    centre = depth[HEIGHT // 2 - 1 : HEIGHT // 2 + 1, WIDTH // 2 - 1 : WIDTH // 2 + 1]
+    assert np.all((centre > 6.0) & (centre < 8.0 + 1e-3))  # the box (nearer) or the floor
+    stats = " ".join(Probe.stats)
+    assert f"{FLOOR_TRIANGLES + BOX_TRIANGLES:,} triangles" in stats
+    assert re.search(r"build [\d.]+ ms", stats) and re.search(r"trace [\d.]+ ms", stats)
