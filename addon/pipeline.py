@@ -148,9 +148,10 @@ def render_job(
         )
     outcome.size = (int(job["width"]), int(job["height"]))
     outcome.timings_ms = dict(job["timings_ms"])
-    outcome.ao = client.job_result(job["job_id"])
-    outcome.coverage = client.job_result(job["job_id"], "coverage")
-    outcome.depth = client.job_result(job["job_id"], "depth")
+    pixels = outcome.size[0] * outcome.size[1]
+    outcome.ao = client.job_result(job["job_id"], pixels)
+    outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")
+    outcome.depth = client.job_result(job["job_id"], pixels, "depth")
     outcome.render_ms = (time.perf_counter() - start) * 1e3
     outcome.requests = client.requests
     return outcome
