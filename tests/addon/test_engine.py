@@ -10,14 +10,16 @@ from __future__ import annotations
 
 import math
 import re
+import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import ClassVar
 
 import bpy
+import httpx
 import numpy as np
 import pytest
-from conftest import add_camera, add_object, box_mesh
+from conftest import add_camera, add_object, box_mesh, free_port
 
 import addon
 from addon import camera, engine, export, prefs, service
@@ -191,3 +193,188 @@ def test_passes_ao_and_depth(probe, tmp_path) -> None:
     stats = " ".join(Probe.stats)
     assert f"{FLOOR_TRIANGLES + BOX_TRIANGLES:,} triangles" in stats
     assert re.search(r"build [\d.]+ ms", stats) and re.search(r"trace [\d.]+ ms", stats)
+
+
+def test_animation_writes_each_frame_through_blenders_output(live, tmp_path) -> None:
+    """Ctrl-F12: Blender numbers and writes the files itself; the box moves per frame."""
+    from PIL import Image
+
+    box = bpy.data.objects["Box"]
+    settings = live.render.image_settings
+    box.location.x = -1.0
+    box.keyframe_insert("location", frame=1)
+    box.location.x = 1.0
+    box.keyframe_insert("location", frame=3)
+    live.frame_start, live.frame_end = 1, 3
+    live.render.filepath = str(tmp_path / "frame_")
+    settings.file_format = "PNG"
+    try:
+        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+    finally:
+        settings.file_format, settings.color_depth = "OPEN_EXR", "32"
+        box.animation_data_clear()
+        box.location.x = 0.0
+        live.frame_set(1)
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert files == ["frame_0001.png", "frame_0002.png", "frame_0003.png"]
+    frames = [np.asarray(Image.open(tmp_path / name)) for name in files]
+    assert all(f.shape[:2] == (HEIGHT, WIDTH) for f in frames)
+    assert not np.array_equal(frames[0], frames[2])  # each frame's own depsgraph
+
+
+def test_render_visibility_and_render_levels_decide_what_renders(probe, tmp_path) -> None:
+    """Hidden in the viewport but enabled for rendering: rendered. Disabled for rendering
+    (object, collection) or excluded: not. Subdivision at its render level (2: 16 quads per
+    face) though the viewport shows level 0. The panel's viewport export differs."""
+    scene = probe
+    hidden = add_object(scene, "Hidden", box_mesh("Hidden", 0.5), (2.0, 0.0, 0.25))
+    hidden.hide_viewport = True
+    hidden.hide_set(True)
+    off = add_object(scene, "NoRender", box_mesh("NoRender", 0.5), (-2.0, 0.0, 0.25))
+    off.hide_render = True
+    subd = add_object(scene, "Subd", box_mesh("Subd", 0.5), (0.0, 2.0, 0.25))
+    modifier = subd.modifiers.new("Subdivision", "SUBSURF")
+    modifier.levels, modifier.render_levels = 0, 2
+    collections = []
+    for name in ("RenderOff", "Excluded"):
+        coll = bpy.data.collections.new(name)
+        scene.collection.children.link(coll)
+        coll.objects.link(bpy.data.objects.new(name, box_mesh(name, 0.5)))
+        collections.append(coll)
+    collections[0].hide_render = True
+    bpy.context.view_layer.layer_collection.children["Excluded"].exclude = True
+    try:
+        f12(scene, tmp_path / "visibility")
+        viewport = export.export_scene(bpy.context.evaluated_depsgraph_get()).triangles
+    finally:
+        for obj in (hidden, off, subd, *(c.objects[0] for c in collections)):
+            bpy.data.objects.remove(obj)
+        for coll in collections:
+            bpy.data.collections.remove(coll)
+    base = FLOOR_TRIANGLES + BOX_TRIANGLES
+    expected = base + BOX_TRIANGLES + 6 * 16 * 2  # + Hidden + Subd at level 2
+    assert f"{expected:,} triangles" in " ".join(Probe.stats), Probe.stats[-1]
+    assert viewport == base + BOX_TRIANGLES  # viewport levels, viewport visibility
+
+
+def _depth_top_first() -> np.ndarray:
+    return Probe.passes["Depth"][::-1, :, 0]
+
+
+def test_border_renders_that_part_of_the_frame(probe, tmp_path) -> None:
+    """With a border the result is the border's rectangle; its Depth equals the whole
+    frame's there. Crop to Border writes that rectangle, without crop the whole frame
+    with nothing (alpha 0) outside it."""
+    r = probe.render
+    f12(probe, tmp_path / "whole")
+    whole = _depth_top_first()
+    r.use_border, r.film_transparent = True, True
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.25, 0.75, 0.2, 0.9
+    window = camera.window(probe)
+    x, y, w, h = window["x"], window["y"], window["width"], window["height"]
+    try:
+        r.use_crop_to_border = True
+        cropped = f12(probe, tmp_path / "cropped")
+        part = _depth_top_first()
+        r.use_crop_to_border = False
+        framed = f12(probe, tmp_path / "framed")
+    finally:
+        r.use_border, r.use_crop_to_border, r.film_transparent = False, False, False
+    assert (w, h) == (20, 21) and part.shape == (h, w)
+    np.testing.assert_array_equal(part, whole[y : y + h, x : x + w])
+    assert cropped.shape == (h, w, 4) and framed.shape == (HEIGHT, WIDTH, 4)
+    np.testing.assert_array_equal(framed[y : y + h, x : x + w], cropped)
+    outside = np.ones((HEIGHT, WIDTH), bool)
+    outside[y : y + h, x : x + w] = False
+    assert np.all(framed[outside] == 0.0)
+
+
+def test_pixel_aspect_two_to_one(probe, tmp_path) -> None:
+    """Pixels twice as wide as tall see what every other column of a frame twice as wide
+    sees, shifted half of its pixel (Blender's viewplane; the width is fitted)."""
+    r, cam = probe.render, probe.camera.data
+    r.pixel_aspect_x = 2.0
+    try:
+        f12(probe, tmp_path / "aspect")
+    finally:
+        r.pixel_aspect_x = 1.0
+    wide = _depth_top_first()
+    r.resolution_x, cam.shift_x = 2 * WIDTH, 1.0 / (4 * WIDTH)
+    try:
+        f12(probe, tmp_path / "fine")
+    finally:
+        r.resolution_x, cam.shift_x = WIDTH, 0.0
+    fine = _depth_top_first()
+    assert wide.shape == (HEIGHT, WIDTH) and fine.shape == (HEIGHT, 2 * WIDTH)
+    np.testing.assert_allclose(wide, fine[:, ::2], rtol=1e-5)
+
+
+def test_esc_cancels_the_services_job(probe, tmp_path) -> None:
+    """test_break() turning true while the job runs cancels it on the service."""
+    props = probe.scenesort
+    Probe.stop_when = lambda eng: any(s.startswith("running: ao") for s in eng.task.steps)
+    props.spp = 4096  # long enough to be caught running
+    try:
+        probe.render.filepath = str(tmp_path / "cancelled")
+        bpy.ops.render.render()
+    finally:
+        props.spp = 4
+    assert any("cancelled" in line for line in Probe.stats), Probe.stats[-3:]
+    job_id = re.findall(r"DELETE /v1/jobs/([0-9a-f]+)", service.log_path().read_text())[-1]
+    url = bpy.context.window_manager.scenesort.url or service.served_url()
+    headers = {"Authorization": f"Bearer {service.token_for(url)}"}
+    state = None
+    for _ in range(600):  # the job stops at the engine's next round
+        state = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers).json()["state"]
+        if state not in {"queued", "running"}:
+            break
+        time.sleep(0.1)
+    assert state == "cancelled"
+
+
+def test_empty_scene_gives_a_transparent_image_and_says_so(probe, tmp_path) -> None:
+    objects = [bpy.data.objects["Floor"], bpy.data.objects["Box"]]
+    for obj in objects:
+        obj.hide_render = True
+    probe.render.film_transparent = True
+    try:
+        rgba = f12(probe, tmp_path / "empty")
+    finally:
+        for obj in objects:
+            obj.hide_render = False
+        probe.render.film_transparent = False
+    assert rgba.shape == (HEIGHT, WIDTH, 4) and np.all(rgba == 0.0)
+    assert np.all(Probe.passes["Depth"] == 1e10)
+    assert "Nothing to render" in Probe.stats[-1]
+
+
+def test_no_camera_and_a_panoramic_camera_are_clear_errors(live, tmp_path) -> None:
+    live.render.filepath = str(tmp_path / "none")
+    cam = live.camera
+    live.camera = None
+    try:
+        with pytest.raises(RuntimeError, match="(?i)no camera"):
+            bpy.ops.render.render()
+    finally:
+        live.camera = cam
+    cam.data.type = "PANO"
+    try:
+        with pytest.raises(RuntimeError, match="only Perspective and Orthographic"):
+            bpy.ops.render.render()
+    finally:
+        cam.data.type = "PERSP"
+
+
+def test_a_stopped_or_unreachable_service_is_a_clear_error(live, tmp_path) -> None:
+    live.render.filepath = str(tmp_path / "offline")
+    preferences = prefs.preferences(bpy.context)
+    assert bpy.ops.scenesort.server_stop() == {"FINISHED"}
+    preferences.start_on_render = False
+    try:
+        with pytest.raises(RuntimeError, match="No scenesort service is running"):
+            bpy.ops.render.render()
+        preferences.server_url = f"http://127.0.0.1:{free_port()}"
+        with pytest.raises(RuntimeError, match="No scenesort service is running at http"):
+            bpy.ops.render.render()
+    finally:
+        preferences.start_on_render, preferences.server_url = True, ""
