@@ -1,4 +1,5 @@
-"""The scenesort panel, in Properties > Render and in the 3D Viewport sidebar."""
+"""The scenesort panel, in Properties > Render and in the 3D Viewport sidebar, and the
+SCENESORT engine's own Sampling and Film panels in Properties > Render."""
 
 from __future__ import annotations
 
@@ -123,7 +124,50 @@ class SCENESORT_PT_view3d(bpy.types.Panel):
         draw(self.layout, context)
 
 
-CLASSES = (SCENESORT_PT_render, SCENESORT_PT_view3d)
+class _EnginePanel:
+    """A Render Properties panel of the SCENESORT engine only, as Cycles' panels are."""
+
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "render"
+    COMPAT_ENGINES = {"SCENESORT"}
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return context.engine in cls.COMPAT_ENGINES
+
+
+class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
+    """Samples and the error target of F12 and animation renders."""
+
+    bl_label = "Sampling"
+    bl_order = 0
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        layout.use_property_split = True
+        props = context.scene.scenesort
+        col = layout.column(align=True)
+        col.prop(props, "spp")
+        col.prop(props, "target_error")
+        col = layout.column(align=True)
+        col.prop(props, "ao_distance")
+        col.prop(props, "seed")
+
+
+class SCENESORT_PT_film(_EnginePanel, bpy.types.Panel):
+    """Film > Transparent: alpha is the pixel's coverage (0 on background) when on."""
+
+    bl_label = "Film"
+    bl_order = 1
+
+    def draw(self, context: bpy.types.Context) -> None:
+        layout = self.layout
+        layout.use_property_split = True
+        layout.prop(context.scene.render, "film_transparent", text="Transparent")
+
+
+CLASSES = (SCENESORT_PT_sampling, SCENESORT_PT_film, SCENESORT_PT_render, SCENESORT_PT_view3d)
 
 
 def register() -> None:

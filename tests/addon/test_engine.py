@@ -152,8 +152,11 @@ def test_f12_combined_is_the_engines_ao_with_zero_background(live, tmp_path) -> 
     same rays, 0 where the ray missed (Cycles' AO pass); alpha 1 without Film Transparent."""
     prefs.preferences(bpy.context).start_on_render = True
     live.render.film_transparent = False
+    assert not service.running()
     rgba = f12(live, tmp_path / "still")
     assert service.running()
+    props = live.scenesort  # the build's timings reach the panel's table
+    assert props.has_build and props.build_triangles == FLOOR_TRIANGLES + BOX_TRIANGLES
     ao, hit = _direct(live)
     assert rgba.shape == (HEIGHT, WIDTH, 4)
     assert 0.3 < hit.mean() < 1.0  # some sky above the floor
@@ -378,3 +381,19 @@ def test_a_stopped_or_unreachable_service_is_a_clear_error(live, tmp_path) -> No
             bpy.ops.render.render()
     finally:
         preferences.start_on_render, preferences.server_url = True, ""
+
+
+def test_engine_panels_show_for_the_engine_only(live) -> None:
+    """Sampling and Film are the engine's own Render Properties panels (poll on the
+    engine); the scenesort panel with its build timings stays in Render Properties."""
+    from addon import panel
+
+    for cls in (panel.SCENESORT_PT_sampling, panel.SCENESORT_PT_film):
+        assert cls.bl_context == "render" and {"SCENESORT"} == cls.COMPAT_ENGINES
+        assert cls.poll(bpy.context)
+        live.render.engine = "CYCLES"
+        try:
+            assert not cls.poll(bpy.context)
+        finally:
+            live.render.engine = "SCENESORT"
+    assert panel.SCENESORT_PT_render.bl_context == "render"
