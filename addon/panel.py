@@ -125,16 +125,27 @@ class SCENESORT_PT_view3d(bpy.types.Panel):
 
 
 class _EnginePanel:
-    """A Render Properties panel of the SCENESORT engine only, as Cycles' panels are."""
+    """A Render Properties panel of the SCENESORT engine only, as Cycles' panels are:
+    `props` (an attribute path from the scene) drawn one column per group."""
 
     bl_space_type = "PROPERTIES"
     bl_region_type = "WINDOW"
     bl_context = "render"
     COMPAT_ENGINES = {"SCENESORT"}
+    source = ""
+    groups: tuple[tuple[tuple[str, str], ...], ...] = ()  # ((property, label), ...) per column
 
     @classmethod
     def poll(cls, context: bpy.types.Context) -> bool:
         return context.engine in cls.COMPAT_ENGINES
+
+    def draw(self, context: bpy.types.Context) -> None:
+        self.layout.use_property_split = True
+        owner = context.scene.path_resolve(self.source)
+        for group in self.groups:
+            col = self.layout.column(align=True)
+            for name, label in group:
+                col.prop(owner, name, text=label)
 
 
 class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
@@ -142,17 +153,11 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
 
     bl_label = "Sampling"
     bl_order = 0
-
-    def draw(self, context: bpy.types.Context) -> None:
-        layout = self.layout
-        layout.use_property_split = True
-        props = context.scene.scenesort
-        col = layout.column(align=True)
-        col.prop(props, "spp")
-        col.prop(props, "target_error")
-        col = layout.column(align=True)
-        col.prop(props, "ao_distance")
-        col.prop(props, "seed")
+    source = "scenesort"
+    groups = (
+        (("spp", "Samples"), ("target_error", "Target Error")),
+        (("ao_distance", "AO Distance"), ("seed", "Seed")),
+    )
 
 
 class SCENESORT_PT_film(_EnginePanel, bpy.types.Panel):
@@ -160,11 +165,8 @@ class SCENESORT_PT_film(_EnginePanel, bpy.types.Panel):
 
     bl_label = "Film"
     bl_order = 1
-
-    def draw(self, context: bpy.types.Context) -> None:
-        layout = self.layout
-        layout.use_property_split = True
-        layout.prop(context.scene.render, "film_transparent", text="Transparent")
+    source = "render"
+    groups = ((("film_transparent", "Transparent"),),)
 
 
 CLASSES = (SCENESORT_PT_sampling, SCENESORT_PT_film, SCENESORT_PT_render, SCENESORT_PT_view3d)

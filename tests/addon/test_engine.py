@@ -13,13 +13,14 @@ import re
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
+from types import SimpleNamespace
 from typing import ClassVar
 
 import bpy
 import httpx
 import numpy as np
 import pytest
-from conftest import add_camera, add_object, box_mesh, free_port
+from conftest import add_camera, add_object, box_mesh, free_port, grid_mesh
 
 import addon
 from addon import camera, engine, export, prefs, service
@@ -55,20 +56,6 @@ class Probe(engine.AoEngine, bpy.types.RenderEngine):
         return bool(Probe.stop_when and Probe.stop_when(self)) or super().stopped()
 
 
-def _grid_mesh(name: str, n: int, size: float) -> bpy.types.Mesh:
-    """An n x n grid of quads in the z=0 plane: a floor with 2*n*n triangles."""
-    xs = np.linspace(-size / 2, size / 2, n + 1)
-    verts = [(x, y, 0.0) for y in xs for x in xs]
-    faces = [
-        (j * (n + 1) + i, j * (n + 1) + i + 1, (j + 1) * (n + 1) + i + 1, (j + 1) * (n + 1) + i)
-        for j in range(n)
-        for i in range(n)
-    ]
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata(verts, [], faces)
-    return mesh
-
-
 @pytest.fixture(scope="module")
 def live() -> Iterator[bpy.types.Scene]:
     """A floor with a box on it and a camera; the engine picked in Render Properties."""
@@ -76,7 +63,7 @@ def live() -> Iterator[bpy.types.Scene]:
     addon.register()
     bpy.utils.register_class(Probe)
     scene = bpy.context.scene
-    add_object(scene, "Floor", _grid_mesh("Floor", 8, 8.0))
+    add_object(scene, "Floor", grid_mesh("Floor", 8, 8.0))
     add_object(scene, "Box", box_mesh("Box", size=1.5), (0.0, 0.0, 0.75))
     add_camera(scene, (0.0, -7.0, 4.0), (math.radians(60), 0.0, 0.0), WIDTH, HEIGHT)
     scene.scenesort.ao_distance, scene.scenesort.spp, scene.scenesort.seed = 2.0, 4, 1
@@ -316,14 +303,17 @@ def test_esc_cancels_the_services_job(probe, tmp_path) -> None:
     """test_break() turning true while the job runs cancels it on the service."""
     props = probe.scenesort
     Probe.stop_when = lambda eng: any(s.startswith("running: ao") for s in eng.task.steps)
-    props.spp = 4096  # long enough to be caught running
+    # 78M occlusion rays: many of the engine's rounds, so the job is caught running.
+    props.spp, probe.render.resolution_percentage = 4096, 400
     try:
         probe.render.filepath = str(tmp_path / "cancelled")
         bpy.ops.render.render()
     finally:
-        props.spp = 4
+        props.spp, probe.render.resolution_percentage = 4, 100
     assert any("cancelled" in line for line in Probe.stats), Probe.stats[-3:]
-    job_id = re.findall(r"DELETE /v1/jobs/([0-9a-f]+)", service.log_path().read_text())[-1]
+    deleted = re.findall(r"DELETE /v1/jobs/([0-9a-f]+)", service.log_path().read_text())
+    assert deleted, "the engine never cancelled the job"
+    job_id = deleted[-1]
     url = bpy.context.window_manager.scenesort.url or service.served_url()
     headers = {"Authorization": f"Bearer {service.token_for(url)}"}
     state = None
@@ -397,3 +387,32 @@ def test_engine_panels_show_for_the_engine_only(live) -> None:
         finally:
             live.render.engine = "SCENESORT"
     assert panel.SCENESORT_PT_render.bl_context == "render"
+
+
+class _Layout:
+    """Takes the UILayout calls of a panel's draw (Blender only draws with a window)."""
+
+    use_property_split = False
+
+    def __init__(self) -> None:
+        self.props: list[tuple[object, str, str]] = []
+
+    def column(self, align: bool = False) -> _Layout:
+        return self
+
+    def prop(self, owner: object, name: str, text: str = "") -> None:
+        self.props.append((owner, name, text))
+
+
+def test_engine_panels_draw_the_scenes_settings(live) -> None:
+    from addon import panel
+
+    drawn = {}
+    for cls in (panel.SCENESORT_PT_sampling, panel.SCENESORT_PT_film):
+        layout = _Layout()
+        cls.draw(SimpleNamespace(layout=layout, source=cls.source, groups=cls.groups),
+                 bpy.context)  # fmt: skip
+        drawn.update({name: owner for owner, name, _ in layout.props})
+    assert drawn == {"spp": live.scenesort, "target_error": live.scenesort,
+                     "ao_distance": live.scenesort, "seed": live.scenesort,
+                     "film_transparent": live.render}  # fmt: skip

@@ -19,27 +19,13 @@ import bpy
 import httpx
 import numpy as np
 import pytest
-from conftest import add_camera, add_object, box_mesh
+from conftest import add_camera, add_object, box_mesh, grid_mesh
 
 import addon
 from addon import camera, connection, export, image, pipeline, prefs, service
 from addon.tasks import Task
 
 WIDTH, HEIGHT = 40, 30
-
-
-def _grid_mesh(name: str, n: int, size: float) -> bpy.types.Mesh:
-    """An n x n grid of quads in the z=0 plane: a floor with 2*n*n triangles."""
-    xs = np.linspace(-size / 2, size / 2, n + 1)
-    verts = [(x, y, 0.0) for y in xs for x in xs]
-    faces = [
-        (j * (n + 1) + i, j * (n + 1) + i + 1, (j + 1) * (n + 1) + i + 1, (j + 1) * (n + 1) + i)
-        for j in range(n)
-        for i in range(n)
-    ]
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata(verts, [], faces)
-    return mesh
 
 
 def _uploads() -> int:
@@ -55,7 +41,7 @@ def live() -> Iterator[bpy.types.Scene]:
     addon.register()
     assert not prefs.server_command(prefs.preferences(bpy.context))
     scene = bpy.context.scene
-    add_object(scene, "Floor", _grid_mesh("Floor", 8, 8.0))
+    add_object(scene, "Floor", grid_mesh("Floor", 8, 8.0))
     add_object(scene, "Box", box_mesh("Box", size=1.5), (0.0, 0.0, 0.75))
     add_camera(scene, (0.0, -7.0, 4.0), (math.radians(60), 0.0, 0.0), WIDTH, HEIGHT)
     scene.scenesort.ao_distance = 2.0
