@@ -124,7 +124,7 @@ def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
                             leaf_size=props.leaf_size, device="cpu")  # fmt: skip
     result = kernels.render_ao(bvh, origins, directions, spp=props.spp, seed=props.seed,
                                distance=props.ao_distance, tmin=tmin, tmax=tmax)  # fmt: skip
-    shape = (scene.render.resolution_y, scene.render.resolution_x)
+    shape = camera.resolution(scene)[::-1]
     return result.ao.reshape(shape), (result.spp_used > 0).reshape(shape)
 
 
@@ -152,6 +152,17 @@ def test_f12_combined_is_the_engines_ao_with_zero_background(live, tmp_path) -> 
     np.testing.assert_array_equal(rgba[..., 2], rgba[..., 0])
     assert np.all(rgba[..., 3] == 1.0)
     assert rgba[hit, 0].std() > 0.05  # shaded, not flat
+
+
+def test_resolution_percentage_renders_fewer_pixels_of_the_same_view(live, tmp_path) -> None:
+    live.render.resolution_percentage = 50
+    try:
+        rgba = f12(live, tmp_path / "half")
+        ao, hit = _direct(live)
+    finally:
+        live.render.resolution_percentage = 100
+    assert rgba.shape == (HEIGHT // 2, WIDTH // 2, 4) == (*ao.shape, 4)
+    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
 
 
 def test_film_transparent_background_alpha_is_exactly_zero(live, tmp_path) -> None:
@@ -214,8 +225,9 @@ def test_animation_writes_each_frame_through_blenders_output(live, tmp_path) -> 
 
 def test_render_visibility_and_render_levels_decide_what_renders(probe, tmp_path) -> None:
     """Hidden in the viewport but enabled for rendering: rendered. Disabled for rendering
-    (object, collection) or excluded: not. Subdivision at its render level (2: 16 quads per
-    face) though the viewport shows level 0. The panel's viewport export differs."""
+    (object, collection) or excluded: not. A collection instance: rendered. Subdivision at
+    its render level (2: 16 quads per face) though the viewport shows level 0. The panel's
+    viewport export differs."""
     scene = probe
     hidden = add_object(scene, "Hidden", box_mesh("Hidden", 0.5), (2.0, 0.0, 0.25))
     hidden.hide_viewport = True
@@ -233,15 +245,20 @@ def test_render_visibility_and_render_levels_decide_what_renders(probe, tmp_path
         collections.append(coll)
     collections[0].hide_render = True
     bpy.context.view_layer.layer_collection.children["Excluded"].exclude = True
+    source = bpy.data.collections.new("Source")  # in no scene: only its instance renders
+    source.objects.link(bpy.data.objects.new("Instanced", box_mesh("Instanced", 0.5)))
+    instancer = add_object(scene, "Instancer", None, (0.0, -2.0, 0.25))
+    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
     try:
         f12(scene, tmp_path / "visibility")
         viewport = export.export_scene(bpy.context.evaluated_depsgraph_get()).triangles
     finally:
-        for obj in (hidden, off, subd, *(c.objects[0] for c in collections)):
+        for obj in (hidden, off, subd, instancer, *(c.objects[0] for c in collections),
+                    source.objects[0]):  # fmt: skip
             bpy.data.objects.remove(obj)
-        for coll in collections:
+        for coll in (*collections, source):
             bpy.data.collections.remove(coll)
-    base = FLOOR_TRIANGLES + BOX_TRIANGLES
+    base = FLOOR_TRIANGLES + 2 * BOX_TRIANGLES  # the box and the instance
     expected = base + BOX_TRIANGLES + 6 * 16 * 2  # + Hidden + Subd at level 2
     assert f"{expected:,} triangles" in " ".join(Probe.stats), Probe.stats[-1]
     assert viewport == base + BOX_TRIANGLES  # viewport levels, viewport visibility
