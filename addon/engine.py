@@ -142,9 +142,9 @@ class AoEngine:
                 f"the service rendered {width}x{height}"
             )
         self.fill(result, passes)
-        if note:
-            result.stamp_data_add_field("scenesort", note)
         self.end_result(result)
+        if note:  # on the whole render's result, as Cycles does: files carry it
+            self.get_result().stamp_data_add_field("scenesort", note)
 
     def _keep_build(self, scene: bpy.types.Scene, outcome: pipeline.Outcome) -> None:
         """The build's timings into the panel's table, on the main thread."""

@@ -197,7 +197,8 @@ def test_passes_ao_and_depth(probe, tmp_path) -> None:
 
 
 def test_animation_writes_each_frame_through_blenders_output(live, tmp_path) -> None:
-    """Ctrl-F12: Blender numbers and writes the files itself; the box moves per frame."""
+    """Ctrl-F12: Blender numbers and writes the files itself, with the render's build and
+    trace times in their metadata; the box moves per frame."""
     from PIL import Image
 
     box = bpy.data.objects["Box"]
@@ -218,9 +219,14 @@ def test_animation_writes_each_frame_through_blenders_output(live, tmp_path) -> 
         live.frame_set(1)
     files = sorted(p.name for p in tmp_path.iterdir())
     assert files == ["frame_0001.png", "frame_0002.png", "frame_0003.png"]
-    frames = [np.asarray(Image.open(tmp_path / name)) for name in files]
+    images = [Image.open(tmp_path / name) for name in files]
+    frames = [np.asarray(img) for img in images]
     assert all(f.shape[:2] == (HEIGHT, WIDTH) for f in frames)
     assert not np.array_equal(frames[0], frames[2])  # each frame's own depsgraph
+    note = images[0].text["scenesort"]  # the render's metadata, in the file
+    triangles = FLOOR_TRIANGLES + BOX_TRIANGLES
+    pattern = rf"{triangles} triangles \| build [\d.]+ ms.* \| trace [\d.]+ ms \| total .*"
+    assert re.fullmatch(pattern, note), note
 
 
 def test_render_visibility_and_render_levels_decide_what_renders(probe, tmp_path) -> None:
