@@ -77,6 +77,7 @@ def live() -> Iterator[bpy.types.Scene]:
         bpy.utils.unregister_class(Probe)
         addon.unregister()
         assert proc is None or proc.poll() is not None, "unregister left the service running"
+        assert "SCENESORT" not in bpy.types.RENDER_PT_format.COMPAT_ENGINES  # given back
 
 
 @pytest.fixture
