@@ -1,17 +1,18 @@
 """scenesort: ambient-occlusion renders and BVH build timings from a local Warp service.
 
-A Blender extension (4.2+; settings in blender_manifest.toml, no bl_info). In Blender's
-process it uses only the standard library and numpy, and talks HTTP to `scenesort
-serve`, which it starts as a child of Blender's own Python from the engine wheels the
-extension zip installed. Relative imports only, so it also registers when imported as
-a plain package.
+The render engine `scenesort AO` (engine.py) renders F12 and animations; the panel
+shows the build timings and a quick-look Render AO. A Blender extension (4.2+;
+settings in blender_manifest.toml, no bl_info). In Blender's process it uses only the
+standard library and numpy, and talks HTTP to `scenesort serve`, which it starts as a
+child of Blender's own Python from the engine wheels the extension zip installed.
+Relative imports only, so it also registers when imported as a plain package.
 """
 
 from __future__ import annotations
 
-from . import operators, panel, prefs, props, service
+from . import engine, operators, panel, prefs, props, service
 
-_MODULES = (prefs, props, operators, panel)
+_MODULES = (prefs, props, operators, engine, panel)
 
 
 def register() -> None:

@@ -158,48 +158,6 @@ class Client:
             timeout=WORK_TIMEOUT_S,
         )
 
-    def ambient_occlusion(
-        self,
-        scene_id: str,
-        ray_body: bytes,
-        spp: int,
-        distance: float,
-        seed: int = 0,
-        target_error: float | None = None,
-        engine: str = "bvh",
-        method: str | None = None,
-        leaf_size: int | None = None,
-    ) -> tuple[np.ndarray, dict[str, str]]:
-        """`POST /v1/scenes/{id}/ao`: one float32 AO value per ray, and the headers.
-
-        `distance` None lets the service choose; `method`/`leaf_size` pick the BVH.
-        """
-        params: dict[str, Any] = {"rays": len(ray_body) // 24, "spp": int(spp), "seed": int(seed)}
-        if distance:
-            params["distance"] = repr(float(distance))
-        if target_error:
-            params["target_error"] = repr(float(target_error))
-        if engine != "bvh":
-            params["engine"] = engine
-        if method is not None:
-            params["method"] = method
-        if leaf_size is not None:
-            params["leaf_size"] = int(leaf_size)
-        query = urllib.parse.urlencode(params)
-        _, headers, data = self._request(
-            "POST",
-            f"/v1/scenes/{scene_id}/ao?{query}",
-            ray_body,
-            "application/octet-stream",
-            WORK_TIMEOUT_S,
-        )
-        if len(data) != 4 * params["rays"]:
-            raise ServiceError(
-                f"The service sent {len(data)} bytes for {params['rays']} rays; expected "
-                f"{4 * params['rays']}"
-            )
-        return np.frombuffer(data, dtype="<f4").astype(np.float32), headers
-
     # --- jobs: long renders from a camera description, with progress and cancel ---
 
     def create_job(self, payload: dict[str, Any]) -> dict:
@@ -214,9 +172,14 @@ class Client:
         """`DELETE /v1/jobs/{id}`: the service stops the job at its next step."""
         return self._json("DELETE", f"/v1/jobs/{job_id}", timeout=UPLOAD_TIMEOUT_S)
 
-    def job_result(self, job_id: str) -> np.ndarray:
-        """`GET /v1/jobs/{id}/result?format=f32`: height*width float32, row 0 at the top."""
+    def job_result(self, job_id: str, pixels: int, layer: str = "f32") -> np.ndarray:
+        """`GET /v1/jobs/{id}/result?format=f32|coverage|depth`: `pixels` float32 (AO,
+        coverage or depth), row 0 at the top."""
         _, _, data = self._request(
-            "GET", f"/v1/jobs/{job_id}/result?format=f32", timeout=UPLOAD_TIMEOUT_S
+            "GET", f"/v1/jobs/{job_id}/result?format={layer}", timeout=UPLOAD_TIMEOUT_S
         )
+        if len(data) != 4 * pixels:
+            raise ServiceError(
+                f"The service sent {len(data)} bytes for {pixels} pixels; expected {4 * pixels}"
+            )
         return np.frombuffer(data, dtype="<f4").astype(np.float32)

@@ -1,4 +1,5 @@
-"""Evaluated scene -> world-space triangles (float32 vertices, int32 indices).
+"""Evaluated scene (a render or viewport depsgraph) -> world-space triangles (float32
+vertices, int32 indices).
 
 Reads whole arrays with `foreach_get`; Python only loops over objects and instances,
 never over vertices. Each mesh is read once and transformed per instance.
@@ -78,7 +79,18 @@ def _object_shown(
 
 
 def _instances(depsgraph: bpy.types.Depsgraph) -> Iterator[bpy.types.DepsgraphObjectInstance]:
-    """Depsgraph instances that render: shown objects and their instances."""
+    """Depsgraph instances that render: shown objects and their instances.
+
+    A render depsgraph (the engine's, what F12 renders) already holds only what renders:
+    objects and collections enabled for rendering, excluded collections left out,
+    modifiers at their render levels, whatever the viewport shows. A viewport depsgraph
+    (the panel's quick look) holds the render-disabled ones too, so they are filtered here.
+    """
+    if depsgraph.mode == "RENDER":
+        for inst in depsgraph.object_instances:
+            if inst.show_self and not (inst.is_instance and inst.object.original.hide_render):
+                yield inst
+        return
     view_layer = depsgraph.view_layer  # the original view layer, with the user's switches
     collections = _renderable_collections(view_layer)
     shown: dict[str, bool] = {}

@@ -1,24 +1,47 @@
-"""Put an AO result into the image datablock `scenesort AO` and show it."""
+"""A job's outcome as Blender pixels: the render engine's passes, and the image
+datablock `scenesort AO` of the panel's Render AO."""
 
 from __future__ import annotations
 
 import bpy
 import numpy as np
 
+from .pipeline import Outcome
+
 IMAGE_NAME = "scenesort AO"
+BACKGROUND_DEPTH = 1e10  # Cycles' Z pass where nothing was hit
 
 
-def write_ao_image(ao: np.ndarray, width: int, height: int) -> bpy.types.Image:
-    """Grey, linear float image of `ao` (row 0 = top row), created or resized as needed."""
+def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
+    """The passes' pixels (bottom row first, as Blender stores them) of a job's outcome."""
+    width, height = outcome.size
+    coverage = outcome.coverage.reshape(height, width)[::-1].reshape(-1, 1)
+    ao = outcome.ao.reshape(height, width)[::-1].reshape(-1, 1) * coverage
+    depth = outcome.depth.reshape(height, width)[::-1].reshape(-1, 1)
+    alpha = coverage if transparent else np.ones_like(coverage)
+    return {"Combined": np.hstack([ao, ao, ao, alpha]), "AO": ao, "Depth": depth}
+
+
+def empty_passes(width: int, height: int, transparent: bool) -> dict[str, np.ndarray]:
+    """The passes of a frame where every camera ray misses (nothing to render)."""
+    combined = np.zeros((width * height, 4), np.float32)
+    combined[:, 3] = 0.0 if transparent else 1.0
+    depth = np.full((width * height, 1), BACKGROUND_DEPTH, np.float32)
+    return {"Combined": combined, "AO": combined[:, :1].copy(), "Depth": depth}
+
+
+def write_ao_image(outcome: Outcome) -> bpy.types.Image:
+    """The engine's Combined pass with Film > Transparent as a linear float image:
+    grey AO, 0 and alpha 0 where the camera ray missed. Non-Color: AO is data, shown
+    without a view transform. Created or resized as needed."""
+    width, height = outcome.size
     image = bpy.data.images.get(IMAGE_NAME)
     if image is None:
         image = bpy.data.images.new(IMAGE_NAME, width, height, alpha=True, float_buffer=True)
     elif tuple(image.size) != (width, height):
         image.scale(width, height)
-    rgba = np.ones((height, width, 4), dtype=np.float32)
-    # Image.pixels store the bottom row first; the service's rows start at the top.
-    rgba[..., :3] = ao.reshape(height, width)[::-1, :, None]
-    image.pixels.foreach_set(rgba.ravel())
+    image.colorspace_settings.name = "Non-Color"
+    image.pixels.foreach_set(result_passes(outcome, transparent=True)["Combined"].ravel())
     image.update()
     return image
 

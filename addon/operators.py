@@ -79,7 +79,6 @@ class _TaskOperator:
     _task: Task | None = None
     _timer = None
     _started_at = 0.0
-    _interactive = False  # invoke(): work on a thread, shown in the status bar
 
     def prepare(self, context: bpy.types.Context) -> Task:
         raise NotImplementedError
@@ -122,7 +121,6 @@ class _TaskOperator:
         return self._finish(context, task)
 
     def invoke(self, context: bpy.types.Context, event: bpy.types.Event) -> set[str]:
-        self._interactive = True
         try:
             self._task = self._begin(context)
         except Exception as exc:  # noqa: BLE001
@@ -296,19 +294,15 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
         target = prefs.target(context)
         settings = pipeline.Settings.from_scene(scene.scenesort)
         depsgraph = context.evaluated_depsgraph_get()
-        cam = camera.camera_dict(scene, depsgraph)
+        view = camera.view(scene, depsgraph)
         mesh = export.export_scene(depsgraph)
-        self._settings, self._size = settings, (cam["width"], cam["height"])
-        if self._interactive:  # a service job: progress in the status bar, Esc cancels it
-            return Task(lambda task: pipeline.render_job(task, target, settings, mesh, cam))
-        # Scripts: the camera's rays in one request, the same ones the engine would trace.
-        origins, directions, _, _ = camera.rays(cam)
-        body = camera.ray_body(origins, directions)
-        return Task(lambda task: pipeline.render(task, target, settings, mesh, body))
+        self._settings = settings
+        # The engine's one path, for scripts (execute) and the UI (invoke) alike.
+        return Task(lambda task: pipeline.render_job(task, target, settings, mesh, view))
 
     def apply(self, context: bpy.types.Context, outcome: pipeline.Outcome) -> str:
         _remember(context, outcome.connection)
-        width, height = self._size
+        width, height = outcome.size
         build = ""
         if outcome.build is not None:
             build = "; " + _apply_build(context, outcome, self._settings)
@@ -316,7 +310,7 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
         status.last_upload_bytes = outcome.uploaded_bytes
         status.last_render_ms = outcome.render_ms
         status.renders += 1
-        img = image.write_ao_image(outcome.ao, width, height)
+        img = image.write_ao_image(outcome)
         image.show_in_image_editors(context.window_manager, img)
         return f"AO {width}x{height} in {outcome.render_ms / 1e3:.1f} s{build}"
 

@@ -1,4 +1,5 @@
-"""The scenesort panel, in Properties > Render and in the 3D Viewport sidebar."""
+"""The scenesort panel, in Properties > Render and in the 3D Viewport sidebar, and the
+SCENESORT engine's own Sampling and Film panels in Properties > Render."""
 
 from __future__ import annotations
 
@@ -123,7 +124,52 @@ class SCENESORT_PT_view3d(bpy.types.Panel):
         draw(self.layout, context)
 
 
-CLASSES = (SCENESORT_PT_render, SCENESORT_PT_view3d)
+class _EnginePanel:
+    """A Render Properties panel of the SCENESORT engine only, as Cycles' panels are:
+    `props` (an attribute path from the scene) drawn one column per group."""
+
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "render"
+    COMPAT_ENGINES = {"SCENESORT"}
+    source = ""
+    groups: tuple[tuple[tuple[str, str], ...], ...] = ()  # ((property, label), ...) per column
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        return context.engine in cls.COMPAT_ENGINES
+
+    def draw(self, context: bpy.types.Context) -> None:
+        self.layout.use_property_split = True
+        owner = context.scene.path_resolve(self.source)
+        for group in self.groups:
+            col = self.layout.column(align=True)
+            for name, label in group:
+                col.prop(owner, name, text=label)
+
+
+class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
+    """Samples and the error target of F12 and animation renders."""
+
+    bl_label = "Sampling"
+    bl_order = 0
+    source = "scenesort"
+    groups = (
+        (("spp", "Samples"), ("target_error", "Target Error")),
+        (("ao_distance", "AO Distance"), ("seed", "Seed")),
+    )
+
+
+class SCENESORT_PT_film(_EnginePanel, bpy.types.Panel):
+    """Film > Transparent: alpha is the pixel's coverage (0 on background) when on."""
+
+    bl_label = "Film"
+    bl_order = 1
+    source = "render"
+    groups = ((("film_transparent", "Transparent"),),)
+
+
+CLASSES = (SCENESORT_PT_sampling, SCENESORT_PT_film, SCENESORT_PT_render, SCENESORT_PT_view3d)
 
 
 def register() -> None:

@@ -1,4 +1,4 @@
-"""The steps of Build BVH and Render AO: upload only when needed, build, render.
+"""The steps of Build BVH and of every render: upload only when needed, build, render.
 
 Runs inside a `Task` (main thread or worker): inputs are plain snapshots taken from
 Blender beforehand, outputs are plain dicts and arrays applied afterwards.
@@ -52,7 +52,12 @@ class Outcome:
     scene_id: str = ""
     uploaded_bytes: int = 0
     build: dict | None = None
-    ao: np.ndarray | None = None
+    job_id: str = ""
+    size: tuple[int, int] = (0, 0)  # the image's width and height
+    ao: np.ndarray | None = None  # height*width float32, row 0 at the top (1 on a miss)
+    coverage: np.ndarray | None = None  # 1 where the camera ray hit, 0 where it missed
+    depth: np.ndarray | None = None  # camera-space Z, 1e10 on a miss
+    timings_ms: dict[str, float] = field(default_factory=dict)  # the job's phases
     render_ms: float = 0.0
     requests: list[str] = field(default_factory=list)
 
@@ -104,17 +109,19 @@ def prepare(
     return client, outcome, scene_id
 
 
-JOB_POLL_S = 0.25
+JOB_POLL_S = 0.1
 
 
 def render_job(
-    task: Task, target: Target, settings: Settings, mesh: SceneMesh, camera: dict
+    task: Task, target: Target, settings: Settings, mesh: SceneMesh, view: dict
 ) -> Outcome:
-    """Like `render`, as a service job: real progress, and Esc cancels it on the service."""
+    """The one render path (F12, animations, the panel's Render AO, scripts): scene, BVH,
+    then a service job for `view` (`camera.view()`: camera, window, pixel aspect) with
+    progress; cancelling the task cancels the job on the service."""
     client, outcome, scene_id = prepare(task, target, settings, mesh)
     payload = {
+        **view,
         "scene_id": scene_id,
-        "camera": camera,
         "spp": settings.spp,
         "seed": settings.seed,
         "engine": settings.engine,
@@ -127,40 +134,24 @@ def render_job(
         payload["target_error"] = settings.target_error
     start = time.perf_counter()
     job = client.create_job(payload)
+    outcome.job_id = job["job_id"]
     while job["state"] in {"queued", "running"}:
         if task.cancelled:
-            client.cancel_job(job["job_id"])
-        task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * job['progress']:.0f}%")
+            client.cancel_job(job["job_id"])  # then set_step raises Cancelled
+        progress = float(job["progress"])
+        task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * progress:.0f}%", progress)
         time.sleep(JOB_POLL_S)
         job = client.job_status(job["job_id"])
     if job["state"] != "done":
         raise ServiceError(
             f"The render job {job['state']}: {job.get('error') or 'no reason given'}"
         )
-    outcome.ao = client.job_result(job["job_id"])
-    outcome.render_ms = (time.perf_counter() - start) * 1e3
-    outcome.requests = client.requests
-    return outcome
-
-
-def render(
-    task: Task, target: Target, settings: Settings, mesh: SceneMesh, ray_body: bytes
-) -> Outcome:
-    """Scene, BVH (for the BVH engine), then one AO value per camera ray."""
-    client, outcome, scene_id = prepare(task, target, settings, mesh)
-    task.set_step(f"rendering AO ({len(ray_body) // 24:,} rays, {settings.spp} spp)")
-    start = time.perf_counter()
-    outcome.ao, _ = client.ambient_occlusion(
-        scene_id,
-        ray_body,
-        spp=settings.spp,
-        distance=settings.ao_distance,
-        seed=settings.seed,
-        target_error=settings.target_error or None,
-        engine=settings.engine,
-        method=settings.method if settings.engine == "bvh" else None,
-        leaf_size=settings.leaf_size if settings.engine == "bvh" else None,
-    )
+    outcome.size = (int(job["width"]), int(job["height"]))
+    outcome.timings_ms = dict(job["timings_ms"])
+    pixels = outcome.size[0] * outcome.size[1]
+    outcome.ao = client.job_result(job["job_id"], pixels)
+    outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")
+    outcome.depth = client.job_result(job["job_id"], pixels, "depth")
     outcome.render_ms = (time.perf_counter() - start) * 1e3
     outcome.requests = client.requests
     return outcome

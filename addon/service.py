@@ -14,6 +14,7 @@ the process started here is stopped.
 from __future__ import annotations
 
 import atexit
+import concurrent.futures
 import contextlib
 import ctypes
 import importlib.util
@@ -188,6 +189,10 @@ def _load_prctl():  # noqa: ANN202 - a ctypes function or None
 
 
 _prctl = _load_prctl()
+# Linux sends the parent-death signal when the THREAD that forked the child ends, not the
+# process: a render's or an operator's worker thread would take the service with it. So
+# every child is forked by this one thread, which lives as long as Blender's Python.
+_launcher = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="scenesort-launch")
 
 
 def _die_with_parent(parent_pid: int) -> None:
@@ -230,7 +235,8 @@ def start(command: str, url: str, device: str = "cpu") -> subprocess.Popen:
     preexec = (lambda: _die_with_parent(parent)) if _prctl is not None else None
     try:
         with os.fdopen(fd, "wb") as log:
-            _process = subprocess.Popen(
+            _process = _launcher.submit(
+                subprocess.Popen,
                 argv,
                 stdin=subprocess.DEVNULL,
                 stdout=log,
@@ -239,7 +245,7 @@ def start(command: str, url: str, device: str = "cpu") -> subprocess.Popen:
                 cwd=cwd,
                 preexec_fn=preexec,  # only prctl: it must run in the child before exec
                 close_fds=True,
-            )
+            ).result()
     except OSError as exc:
         raise LaunchError(f"Could not run {argv[0]}: {exc.strerror or exc}") from None
     return _process

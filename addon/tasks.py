@@ -24,15 +24,19 @@ class Task:
         self._thread: threading.Thread | None = None
         self.step = "starting"
         self.steps: list[str] = []  # every step so far, oldest first
+        self.fraction = 0.0  # how far the work is, 0..1, where a step says
         self.result: Any = None
         self.error: BaseException | None = None
 
-    def set_step(self, text: str) -> None:
-        """Name the current step (shown in the status bar); stop here if cancelled."""
+    def set_step(self, text: str, fraction: float | None = None) -> None:
+        """Name the current step (shown in the status bar), and how far the work is if
+        known; stop here if cancelled."""
         if self._cancel.is_set():
             raise Cancelled()
         self.step = text
         self.steps.append(text)
+        if fraction is not None:
+            self.fraction = fraction
 
     def cancel(self) -> None:
         self._cancel.set()

@@ -571,10 +571,11 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     async def create_job(request: JobRequest, response: Response) -> JobStatus:
         """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
-        from kernels.camera import Camera
+        from backend.framing import framed
 
         try:
-            camera = Camera.from_dict(request.camera.model_dump())
+            window = None if request.window is None else request.window.model_dump()
+            camera = framed(request.camera.model_dump(), window, request.pixel_aspect)
         except ValueError as exc:
             raise ApiError(
                 422,
@@ -656,17 +657,24 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                     OCTET: {"schema": {"type": "string", "format": "binary"}},
                     "image/png": {"schema": {"type": "string", "format": "binary"}},
                 },
-                "description": "format=f32: height*width little-endian float32, row 0 at "
-                "the top; format=png: 8-bit grayscale PNG. X-Width/X-Height headers.",
+                "description": "format=f32: height*width little-endian float32 AO, row 0 "
+                "at the top; format=coverage: the same layout, 1.0 where the camera ray "
+                "hit and 0.0 where it missed; format=depth: the same layout, the hit's "
+                "camera-space depth (Cycles' Z pass), 1e10 where it missed; format=png: "
+                "8-bit grayscale PNG of the AO. X-Width/X-Height headers.",
             },
             **error_responses(404, 409, 422),
         },
     )
-    async def job_result(job_id: JobId, format: Literal["f32", "png"] = "f32") -> Response:
-        """The finished image; 409 while the job is not done."""
+    async def job_result(
+        job_id: JobId, format: Literal["f32", "coverage", "depth", "png"] = "f32"
+    ) -> Response:
+        """The finished image (AO, coverage or depth); 409 while the job is not done."""
         job = job_or_404(job_id)
-        ao, png = job.ao, job.png  # one read: the manager may forget the job meanwhile
-        if job.state != "done" or ao is None or png is None:
+        # One read: the manager may forget the job meanwhile.
+        layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth}.get(format)
+        png = job.png
+        if job.state != "done" or png is None or (format != "png" and layer is None):
             detail = f" ({job.error})" if job.error else ""
             raise ApiError(
                 409,
@@ -682,7 +690,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         }
         if format == "png":
             return Response(png, media_type="image/png", headers=headers)
-        payload = await run_in_threadpool(wire.encode_f32, ao)
+        payload = await run_in_threadpool(wire.encode_f32, layer)
         return Response(payload, media_type=OCTET, headers=headers)
 
     @app.get(

@@ -151,6 +151,8 @@ class Job:
     error: str | None = None
     created: float = field(default_factory=time.time)
     ao: np.ndarray | None = None  # (height, width) float32 once done
+    coverage: np.ndarray | None = None  # (height, width) float32: 1 where the camera ray hit
+    depth: np.ndarray | None = None  # (height, width) float32 camera-space Z, 1e10 on a miss
     png: bytes | None = None
     spp_mean: float | None = None
     version: int = 0  # bumped on every change; server-sent events wait on it
@@ -162,8 +164,9 @@ class Job:
 
     @property
     def result_nbytes(self) -> int:
-        """Bytes held by the finished image (float32 and PNG)."""
-        return (self.ao.nbytes if self.ao is not None else 0) + len(self.png or b"")
+        """Bytes held by the finished images (float32 layers and PNG)."""
+        layers = (self.ao, self.coverage, self.depth)
+        return sum(a.nbytes for a in layers if a is not None) + len(self.png or b"")
 
     def report(self, phase: str | None = None, progress: float | None = None) -> None:
         """Update phase/progress from the worker; raise Stopped once it must stop."""
@@ -452,7 +455,8 @@ def render_camera(
     leaf_size: int,
     device: str,
 ) -> None:
-    """A camera job: BVH (cached or built), primary rays, AO with progress, PNG."""
+    """A camera job: BVH (cached or built), primary rays, AO with progress, the primary
+    hits' depth and coverage, PNG."""
     from backend.wire import encode_png
 
     def timed(phase: str, fn: Callable[[], Any]) -> Any:
@@ -467,10 +471,30 @@ def render_camera(
     ao, spp_used = timed(
         "ao", lambda: _render_ao(job, bvh, origins, directions, tmin, tmax, params)
     )
-    job.ao = ao.reshape(camera.height, camera.width)
+    shape = (camera.height, camera.width)
+    job.ao = ao.reshape(shape)
     hit = spp_used > 0  # rays that missed take no samples
+    job.coverage = hit.astype(np.float32).reshape(shape)
     job.spp_mean = float(spp_used[hit].mean()) if hit.any() else 0.0
+    depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
+    job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
+
+
+BACKGROUND_DEPTH = 1e10  # Cycles' Z pass on background pixels
+
+
+def camera_depth(
+    bvh: Any, camera: Any, origins: np.ndarray, directions: np.ndarray,
+    tmin: np.ndarray, tmax: np.ndarray,
+) -> np.ndarray:
+    """Cycles' Z pass: the closest hit's camera-space depth `t * dot(d, forward)` per ray,
+    BACKGROUND_DEPTH where the ray misses (the same closest-hit query as AO's primary rays)."""
+    import kernels
+
+    hits = kernels.trace(bvh, origins, directions, tmin, tmax)
+    z = hits.t.astype(np.float64) * (directions.astype(np.float64) @ camera.forward)
+    return np.where(hits.hit, z, BACKGROUND_DEPTH).astype(np.float32)
 
 
 def _render_ao(

@@ -99,9 +99,27 @@ class CameraModel(Strict):
     clip_end: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1000.0
 
 
+class Window(Strict):
+    """A rectangle of the frame in pixels, from its left and top edges (a border render)."""
+
+    x: Annotated[int, Field(ge=0, le=65535)]
+    y: Annotated[int, Field(ge=0, le=65535)]
+    width: Annotated[int, Field(ge=1, le=65536)]
+    height: Annotated[int, Field(ge=1, le=65536)]
+
+
+PixelAspect = Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]
+
+
 class JobRequest(Strict):
     scene_id: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
     camera: CameraModel
+    window: Window | None = Field(
+        default=None, description="render only this part of the camera's frame (null: all)"
+    )
+    pixel_aspect: tuple[PixelAspect, PixelAspect] = Field(
+        default=(1.0, 1.0), description="Blender's pixel aspect (x, y): a pixel's shape"
+    )
     spp: Annotated[int, Field(ge=1, le=4096)] = 16
     distance: Annotated[float | None, Field(gt=0, allow_inf_nan=False)] = None
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0

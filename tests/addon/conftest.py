@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import bpy
+import numpy as np
 import pytest
 
 REPO = Path(__file__).resolve().parents[2]
@@ -51,6 +52,20 @@ def box_mesh(name: str, size: float = 2.0) -> bpy.types.Mesh:
     bmesh.ops.create_cube(bm, size=size)
     bm.to_mesh(mesh)
     bm.free()
+    return mesh
+
+
+def grid_mesh(name: str, n: int, size: float) -> bpy.types.Mesh:
+    """An n x n grid of quads in the z=0 plane: a floor with 2*n*n triangles."""
+    xs = np.linspace(-size / 2, size / 2, n + 1)
+    verts = [(x, y, 0.0) for y in xs for x in xs]
+    faces = [
+        (j * (n + 1) + i, j * (n + 1) + i + 1, (j + 1) * (n + 1) + i + 1, (j + 1) * (n + 1) + i)
+        for j in range(n)
+        for i in range(n)
+    ]
+    mesh = bpy.data.meshes.new(name)
+    mesh.from_pydata(verts, [], faces)
     return mesh
 
 

@@ -64,7 +64,7 @@ def main(zip_path: str, out_dir: str) -> None:
         img = bpy.data.images["scenesort AO"]
         pixels = np.empty(len(img.pixels), dtype=np.float32)
         img.pixels.foreach_get(pixels)
-        ao = pixels.reshape(HEIGHT, WIDTH, 4)[::-1, :, 0].ravel()  # top row first
+        rgba = pixels.reshape(HEIGHT, WIDTH, 4)[::-1].reshape(-1, 4)  # top row first
         depsgraph = bpy.context.evaluated_depsgraph_get()
         mesh = ext.export.export_scene(depsgraph)
         proc = ext.service._process
@@ -80,7 +80,8 @@ def main(zip_path: str, out_dir: str) -> None:
             "version": status.version,
             "python": sys.executable,
         }  # fmt: skip
-        np.savez(out / "render.npz", ao=ao, vertices=mesh.vertices, indices=mesh.indices)
+        np.savez(out / "render.npz", ao=rgba[:, 0], alpha=rgba[:, 3], vertices=mesh.vertices,
+                 indices=mesh.indices)  # fmt: skip
     finally:
         addon_utils.disable(MODULE)  # unregister: stops the service it started
     info["service_exit"] = proc.poll()

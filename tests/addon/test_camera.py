@@ -1,4 +1,5 @@
-"""The add-on's camera rays equal the engine's camera model and Blender's own camera frame."""
+"""The add-on's camera description, rendered by the engine's camera model, matches
+Blender's own camera frame; the border's window follows Blender's rounding."""
 
 from __future__ import annotations
 
@@ -10,6 +11,14 @@ import pytest
 from conftest import add_camera, add_object
 
 from addon import camera
+
+
+def _rays(desc: dict) -> tuple[np.ndarray, ...]:
+    """The service's rays for a camera description (the engine's model)."""
+    from kernels.camera import Camera
+
+    return Camera.from_dict(desc).rays()
+
 
 # (name, settings of the camera data, resolution x, y, percentage, object scale)
 CAMERAS = [
@@ -37,21 +46,13 @@ def _setup(
 
 
 @pytest.mark.parametrize("name,settings,w,h,pct,scale", CAMERAS, ids=[c[0] for c in CAMERAS])
-def test_rays_equal_the_engine_camera_model(registered, name, settings, w, h, pct, scale) -> None:
+def test_description_is_the_engines_wire_form(registered, name, settings, w, h, pct, scale) -> None:
     from kernels.camera import Camera
 
     _setup(registered, settings, w, h, pct, scale)
     desc = camera.camera_dict(registered)
     assert (desc["width"], desc["height"]) == (w * pct // 100, h * pct // 100)
-    engine = Camera.from_dict(desc)  # the description is valid wire form for the service
-    assert engine.to_dict() == desc
-    ours = camera.rays(desc)
-    theirs = engine.rays()
-    for label, a, b in zip(("origins", "directions", "tmin", "tmax"), ours, theirs, strict=True):
-        assert a.dtype == b.dtype == np.float32, label
-        assert a.shape == b.shape, label
-        np.testing.assert_array_equal(a, b, err_msg=f"{name}: {label}")  # same float64 steps
-    np.testing.assert_allclose(np.linalg.norm(ours[1], axis=1), 1.0, atol=1e-6)
+    assert Camera.from_dict(desc).to_dict() == desc  # valid, and nothing lost
 
 
 @pytest.mark.parametrize("name,settings,w,h,pct,scale", CAMERAS, ids=[c[0] for c in CAMERAS])
@@ -62,7 +63,7 @@ def test_image_corners_match_blenders_view_frame(
     cam = _setup(registered, settings, w, h, pct, scale)
     desc = camera.camera_dict(registered)
     width, height = desc["width"], desc["height"]
-    origins, directions, _, _ = camera.rays(desc)
+    origins, directions, _, _ = _rays(desc)
     m = np.asarray(desc["matrix_world"])
     rot = m[:3, :3] / np.linalg.norm(m[:3, :3], axis=0)
 
@@ -91,7 +92,7 @@ def test_image_corners_match_blenders_view_frame(
 def test_row_zero_is_the_top_of_the_image(registered) -> None:
     add_camera(registered, (0.0, 0.0, 5.0), (0.0, 0.0, 0.0), 8, 6)  # looks down -Z, +Y up
     depsgraph = bpy.context.evaluated_depsgraph_get()  # places the camera just moved
-    origins, directions, _, _ = camera.rays(camera.camera_dict(registered, depsgraph))
+    origins, directions, _, _ = _rays(camera.camera_dict(registered, depsgraph))
     grid = directions.reshape(6, 8, 3)
     assert grid[0, 0, 1] > 0 > grid[-1, 0, 1]  # first row points up (+Y), last row down
     assert grid[0, 0, 0] < 0 < grid[0, -1, 0]  # first column left, last column right
@@ -107,7 +108,7 @@ def test_odd_percentage_truncates_like_blender(registered) -> None:
 def test_perspective_clip_range_is_depth(registered) -> None:
     cam = add_camera(registered, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 16, 16)
     cam.data.clip_start, cam.data.clip_end = 2.0, 10.0
-    _, directions, tmin, tmax = camera.rays(camera.camera_dict(registered))
+    _, directions, tmin, tmax = _rays(camera.camera_dict(registered))
     depth_per_t = -directions[:, 2]  # camera looks down -Z
     np.testing.assert_allclose(tmin * depth_per_t, 2.0, rtol=1e-6)
     np.testing.assert_allclose(tmax * depth_per_t, 10.0, rtol=1e-6)
@@ -122,11 +123,20 @@ def test_no_camera_is_a_clear_error(registered) -> None:
         camera.camera_dict(registered)
 
 
-def test_ray_body_layout(registered) -> None:
-    add_camera(registered, (1.0, 2.0, 3.0), (0.4, 0.0, 0.2), 5, 4)
-    origins, directions, _, _ = camera.rays(camera.camera_dict(registered))
-    body = camera.ray_body(origins, directions)
-    assert len(body) == 20 * 24
-    decoded = np.frombuffer(body, dtype="<f4").reshape(20, 6)
-    np.testing.assert_array_equal(decoded[:, :3], origins)
-    np.testing.assert_array_equal(decoded[:, 3:], directions)
+def test_border_window_uses_blenders_rounding(registered) -> None:
+    """float32 border times the final size, truncated; y counted from the bottom."""
+    add_camera(registered, (0.0, 0.0, 0.0), (0.0, 0.0, 0.0), 101, 67)
+    r = registered.render
+    assert camera.window(registered) is None
+    r.use_border = True
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.1, 0.7, 0.25, 0.9
+    x0, x1 = int(np.float32(0.1) * 101), int(np.float32(0.7) * 101)
+    y0, y1 = int(np.float32(0.25) * 67), int(np.float32(0.9) * 67)
+    assert (x0, x1, y0, y1) == (10, 70, 16, 60)
+    assert camera.window(registered) == {"x": 10, "y": 67 - 60, "width": 60, "height": 44}
+    r.border_max_x = r.border_min_x
+    with pytest.raises(ValueError, match="border has no pixels"):
+        camera.window(registered)
+    r.use_border, r.pixel_aspect_x = False, 2.0
+    view = camera.view(registered, bpy.context.evaluated_depsgraph_get())
+    assert view["window"] is None and view["pixel_aspect"] == [2.0, 1.0]

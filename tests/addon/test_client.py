@@ -29,6 +29,9 @@ class _Handler(BaseHTTPRequestHandler):
     def do_GET(self) -> None:  # noqa: N802 - http.server's naming
         if self.path == "/v1/health":
             time.sleep(client.HEALTH_TIMEOUT_S + 1.0)  # slower than the client waits
+        if "/result?" in self.path:
+            self._send(200, b"\0" * 12, "application/octet-stream")  # 3 values, not 2
+            return
         self._send(200, b"{}")
 
     def do_HEAD(self) -> None:  # noqa: N802
@@ -45,8 +48,6 @@ class _Handler(BaseHTTPRequestHandler):
                      "detail": "vertex 3 is not finite ([nan, 0.0, 0.0])",
                      "fix": "replace NaN/Inf values in vertex 3"}  # fmt: skip
             self._send(400, json.dumps(error).encode(), "application/problem+json")
-        elif "/ao?" in self.path:
-            self._send(200, b"\0" * 12, "application/octet-stream")  # 3 values, not 2
         else:
             self._send(500, b"not json")
 
@@ -89,8 +90,8 @@ def test_slow_service_times_out_with_a_message(server: str) -> None:
 
 
 def test_wrong_result_length_is_caught(server: str) -> None:
-    with pytest.raises(client.ServiceError, match="sent 12 bytes for 2 rays"):
-        client.Client(server).ambient_occlusion("0" * 32, b"\0" * 48, spp=1, distance=1.0)
+    with pytest.raises(client.ServiceError, match="sent 12 bytes for 2 pixels"):
+        client.Client(server).job_result("0" * 16, 2, "depth")
 
 
 def test_proxies_are_ignored(server: str, monkeypatch: pytest.MonkeyPatch) -> None:

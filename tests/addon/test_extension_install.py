@@ -158,6 +158,8 @@ def test_install_from_zip_then_render_with_no_other_step(
     origins, directions, _, _ = Camera.from_dict(info["camera"]).rays()
     direct = kernels.render_ao(
         bvh, origins, directions, spp=s["spp"], distance=s["distance"], seed=s["seed"]
-    ).ao
-    np.testing.assert_array_equal(data["ao"], np.asarray(direct, dtype=np.float32))
-    assert (data["ao"] > 0).mean() > 0.3 and data["ao"].std() > 0.05  # a shaded floor
+    )
+    hit = direct.spp_used > 0  # the image is 0 with alpha 0 where the camera ray missed
+    np.testing.assert_array_equal(data["ao"], np.where(hit, direct.ao, 0.0).astype(np.float32))
+    np.testing.assert_array_equal(data["alpha"], hit.astype(np.float32))
+    assert hit.mean() > 0.3 and data["ao"][hit].std() > 0.05  # a shaded floor

@@ -7,6 +7,7 @@ import re
 import shlex
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -56,6 +57,22 @@ def test_stop_ends_the_child() -> None:
         assert service.stop()
     assert proc.poll() is not None and not service.running()
     assert not service.stop()  # nothing left to stop
+
+
+def test_a_child_started_from_a_finished_thread_lives_on() -> None:
+    """Renders and operators start the service from worker threads, which end; Linux's
+    parent-death signal follows the forking thread, so the child must not die with it."""
+    started: list[subprocess.Popen] = []
+    thread = threading.Thread(
+        target=lambda: started.append(service.start(SLEEPER, "http://127.0.0.1:1"))
+    )
+    thread.start()
+    thread.join()
+    try:
+        time.sleep(0.5)  # the signal, were it sent, arrives at once
+        assert started and _alive(started[0].pid) and service.running()
+    finally:
+        assert service.stop()
 
 
 def test_each_start_hands_a_fresh_token_over_in_the_environment() -> None:

@@ -19,27 +19,13 @@ import bpy
 import httpx
 import numpy as np
 import pytest
-from conftest import add_camera, add_object, box_mesh
+from conftest import add_camera, add_object, box_mesh, grid_mesh
 
 import addon
 from addon import camera, connection, export, image, pipeline, prefs, service
 from addon.tasks import Task
 
 WIDTH, HEIGHT = 40, 30
-
-
-def _grid_mesh(name: str, n: int, size: float) -> bpy.types.Mesh:
-    """An n x n grid of quads in the z=0 plane: a floor with 2*n*n triangles."""
-    xs = np.linspace(-size / 2, size / 2, n + 1)
-    verts = [(x, y, 0.0) for y in xs for x in xs]
-    faces = [
-        (j * (n + 1) + i, j * (n + 1) + i + 1, (j + 1) * (n + 1) + i + 1, (j + 1) * (n + 1) + i)
-        for j in range(n)
-        for i in range(n)
-    ]
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata(verts, [], faces)
-    return mesh
 
 
 def _uploads() -> int:
@@ -55,7 +41,7 @@ def live() -> Iterator[bpy.types.Scene]:
     addon.register()
     assert not prefs.server_command(prefs.preferences(bpy.context))
     scene = bpy.context.scene
-    add_object(scene, "Floor", _grid_mesh("Floor", 8, 8.0))
+    add_object(scene, "Floor", grid_mesh("Floor", 8, 8.0))
     add_object(scene, "Box", box_mesh("Box", size=1.5), (0.0, 0.0, 0.75))
     add_camera(scene, (0.0, -7.0, 4.0), (math.radians(60), 0.0, 0.0), WIDTH, HEIGHT)
     scene.scenesort.ao_distance = 2.0
@@ -133,12 +119,17 @@ def _direct_ao(scene: bpy.types.Scene, scene_id: str) -> np.ndarray:
     return np.frombuffer(resp.content, dtype="<f4")
 
 
-def _image_ao() -> np.ndarray:
+def _image_rgba() -> np.ndarray:
+    """`scenesort AO`'s pixels, (W*H, 4), the top row first."""
     img = bpy.data.images[image.IMAGE_NAME]
     pixels = np.empty(len(img.pixels), dtype=np.float32)
     img.pixels.foreach_get(pixels)
     rgba = pixels.reshape(img.size[1], img.size[0], 4)
-    return rgba[::-1, :, 0].ravel()  # bottom row first in Blender; top row first here
+    return rgba[::-1].reshape(-1, 4)  # bottom row first in Blender; top row first here
+
+
+def _image_ao() -> np.ndarray:
+    return _image_rgba()[:, 0]
 
 
 def test_render_matches_the_services_direct_result(live) -> None:
@@ -146,15 +137,20 @@ def test_render_matches_the_services_direct_result(live) -> None:
     assert bpy.ops.scenesort.render_ao() == {"FINISHED"}
     img = bpy.data.images[image.IMAGE_NAME]
     assert tuple(img.size) == (WIDTH, HEIGHT)
-    ours = _image_ao()
+    assert img.colorspace_settings.name == "Non-Color"
+    rgba = _image_rgba()
+    ours, hit = rgba[:, 0], rgba[:, 3] == 1.0
+    assert np.all((rgba[:, 3] == 0.0) | hit)  # coverage alpha: one ray per pixel
     mesh = export.export_scene(bpy.context.evaluated_depsgraph_get())
     from addon.client import scene_id
 
     direct = _direct_ao(live, scene_id(len(mesh.vertices), mesh.triangles, mesh.body()))
-    np.testing.assert_array_equal(ours, direct)
-    assert ours.min() >= 0.0 and ours.max() <= 1.0
-    assert (ours > 0).mean() > 0.3  # the floor fills most of the view
-    assert ours.std() > 0.05  # shading varies: not a constant image
+    # The direct answer is 1.0 for a ray that misses; the image is 0 with alpha 0 there.
+    np.testing.assert_array_equal(ours, np.where(hit, direct, 0.0))
+    assert np.all(direct[~hit] == 1.0)
+    np.testing.assert_array_equal(rgba[:, 1], ours)
+    assert 0.3 < hit.mean() < 1.0  # the floor fills most of the view, sky above it
+    assert ours[hit].std() > 0.05  # shading varies: not a constant image
 
 
 def test_second_render_uploads_nothing(live) -> None:
@@ -180,19 +176,19 @@ def test_changed_scene_is_uploaded_again(live) -> None:
 
 
 def test_interactive_job_path_gives_the_same_image(live) -> None:
-    """invoke() renders through the jobs API (progress, cancel); same pixels as execute()."""
+    """The render job the operator's invoke() runs on a thread gives execute()'s pixels."""
     assert bpy.ops.scenesort.render_ao() == {"FINISHED"}
     scripted = _image_ao()
     depsgraph = bpy.context.evaluated_depsgraph_get()
     settings = pipeline.Settings.from_scene(live.scenesort)
     target = prefs.target(bpy.context)
     mesh = export.export_scene(depsgraph)
-    desc = camera.camera_dict(live, depsgraph)
-    task = Task(lambda t: pipeline.render_job(t, target, settings, mesh, desc))
+    view = camera.view(live, depsgraph)
+    task = Task(lambda t: pipeline.render_job(t, target, settings, mesh, view))
     outcome = task.run()
     assert outcome.uploaded_bytes == 0  # the scene was already there
     assert any("%" in step for step in task.steps), task.steps  # progress was reported
-    np.testing.assert_array_equal(outcome.ao, scripted)
+    np.testing.assert_array_equal(np.where(outcome.coverage == 1, outcome.ao, 0), scripted)
 
 
 def test_stop_ends_the_service(live) -> None:

@@ -69,6 +69,80 @@ def test_job_renders_what_the_direct_call_renders(api, box_scene, scene_id) -> N
     np.testing.assert_array_equal(np.asarray(image), expected_png)
 
 
+def test_coverage_and_depth_layers_follow_the_primary_hits(api, box_scene, scene_id) -> None:
+    """coverage is 1 exactly where AO sampled (a hit), depth is Cycles' Z pass: the
+    closest hit's camera-space depth, 1e10 on background."""
+    job = create(api, scene_id, 40, 30, spp=2, seed=5)
+    assert wait(api, job["job_id"], {"done", "failed", "cancelled"})["state"] == "done"
+
+    def layer(name: str) -> np.ndarray:
+        raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
+        assert raw.status_code == 200, raw.text
+        return np.frombuffer(raw.content, "<f4")
+
+    coverage, depth = layer("coverage"), layer("depth")
+    cam = Camera.from_dict(camera(40, 30))
+    origins, directions, tmin, tmax = cam.rays()
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    used = kernels.render_ao(bvh, origins, directions, spp=2, seed=5, tmin=tmin, tmax=tmax)
+    np.testing.assert_array_equal(coverage, (used.spp_used > 0).astype(np.float32))
+    assert 0 < coverage.mean() < 1  # the box fills part of the view
+    assert np.all(depth[coverage == 0] == 1e10)
+    # Each hit point's distance from the camera along its view axis.
+    hits = kernels.trace(bvh, origins, directions, tmin, tmax)
+    hit = coverage == 1
+    points = origins[hit] + hits.t[hit, None] * directions[hit]
+    np.testing.assert_allclose(depth[hit], (points - cam.position) @ cam.forward, rtol=1e-5)
+
+
+def _layer(api, scene_id: str, name: str, cam: dict, **params) -> np.ndarray:
+    """One result layer of a finished job on `cam`, as (height, width)."""
+    response = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": cam,
+                                                 "spp": 1, **params})  # fmt: skip
+    assert response.status_code == 202, response.text
+    job = response.json()
+    assert wait(api, job["job_id"], {"done", "failed", "cancelled"})["state"] == "done"
+    raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
+    return np.frombuffer(raw.content, "<f4").reshape(job["height"], job["width"])
+
+
+def test_a_window_is_that_part_of_the_whole_frame(api, scene_id) -> None:
+    """A border render: the window's pixels are the frame's pixels there, exactly."""
+    full = _layer(api, scene_id, "depth", camera(40, 30))
+    window = {"x": 7, "y": 11, "width": 20, "height": 9}
+    part = _layer(api, scene_id, "depth", camera(40, 30), window=window)
+    assert part.shape == (9, 20)
+    np.testing.assert_array_equal(part, full[11:20, 7:27])
+    assert (part < 1e10).any() and (part == 1e10).any()  # box edge inside the window
+
+
+@pytest.mark.parametrize(
+    ("fit", "half_fine_pixel"), [("HORIZONTAL", 1 / 160), ("VERTICAL", 1 / 60)]
+)
+def test_pixel_aspect_two_to_one_is_every_other_column_of_a_finer_frame(
+    api, scene_id, fit: str, half_fine_pixel: float
+) -> None:
+    """Pixels twice as wide as tall (aspect 2:1) lie on every other column of a square-
+    pixel camera twice as wide, shifted half of its pixel (Blender's viewplane): with the
+    width fitted a fine pixel is s/80, with the height fitted s/30 (s: the fitted side)."""
+    coarse = {**camera(40, 30), "sensor_fit": fit}
+    wide = _layer(api, scene_id, "depth", coarse, pixel_aspect=[2.0, 1.0])
+    finer = {**camera(80, 30), "sensor_fit": fit}
+    finer["shift_x"] += half_fine_pixel  # in units of s
+    fine = _layer(api, scene_id, "depth", finer)
+    assert wide.shape == (30, 40)
+    np.testing.assert_allclose(wide, fine[:, ::2], rtol=1e-5)
+    square = _layer(api, scene_id, "depth", coarse)
+    assert not np.allclose(wide, square)  # the aspect changed what the pixels see
+
+
+def test_a_window_outside_the_frame_is_refused(api, scene_id) -> None:
+    body = {"scene_id": scene_id, "camera": camera(40, 30),
+            "window": {"x": 30, "y": 0, "width": 20, "height": 10}}  # fmt: skip
+    response = api.client.post("/v1/jobs", json=body)
+    assert response.status_code == 422 and "does not fit" in response.text
+
+
 def test_events_stream_progress_until_the_end(api, service, scene_id) -> None:
     job = create(api, scene_id, 64, 48, spp=16, seed=1)
     events: list[tuple[str, dict]] = []

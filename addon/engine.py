@@ -1,0 +1,201 @@
+"""The `scenesort AO` render engine: F12 and animation renders through the service.
+
+Blender calls `render(depsgraph)` once per frame and view layer with the RENDER
+depsgraph (render visibility, modifiers at render levels), on its render thread (the
+main thread when headless). The work is the one render path, `pipeline.render_job`, on
+a worker thread, while this thread polls `test_break()` (Esc cancels the service's job)
+and shows the step in the status bar. Blender writes the files of Ctrl-F12 itself.
+
+Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
+alpha = coverage with Film > Transparent and 1 without; `AO` (one channel, 0 on
+background); `Depth` (camera-space Z, 1e10 on background).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+import traceback
+from typing import Any
+
+import bpy
+import numpy as np
+
+from . import camera, export, image, pipeline, prefs, service, timings
+from .client import ServiceError
+from .tasks import Cancelled, Task
+
+POLL_S = 0.05
+PASSES = (("Combined", 4, "RGBA", "COLOR"), ("AO", 1, "X", "VALUE"), ("Depth", 1, "Z", "VALUE"))
+_EXPECTED = (ServiceError, service.LaunchError, ValueError)
+
+
+def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
+    """Build and trace times and the scene's size, for the status bar and metadata."""
+    build = outcome.build or {}
+    build_ms = float((build.get("timings_ms") or {}).get("total", 0.0))
+    cached = " (cached)" if build.get("cached") else ""
+    trace_ms = outcome.timings_ms.get("ao", 0.0)
+    return (
+        f"{triangles:,} triangles | build {build_ms:.1f} ms{cached} | "
+        f"trace {trace_ms:.1f} ms | total {outcome.render_ms:.0f} ms"
+    )
+
+
+class AoEngine:
+    """What the engine does; a mixin, so that a subclass can register as an engine of
+    its own (Blender maps one registered class to one RNA type).
+
+    Blender's own methods (test_break, update_stats, end_result) cannot be overridden
+    from Python, so the engine reaches them through `stopped`, `show` and `fill`.
+    """
+
+    task: Task | None = None  # the running render's work
+
+    def stopped(self) -> bool:
+        """Whether the user pressed Esc."""
+        return self.test_break()
+
+    def show(self, text: str) -> None:
+        """A line in the status bar (and the render window's header)."""
+        self.update_stats("", f"scenesort: {text}")
+
+    def fill(self, result: bpy.types.RenderResult, passes: dict[str, np.ndarray]) -> None:
+        """Write `passes` into the Render Result's layer."""
+        layer = result.layers[0]
+        for name, pixels in passes.items():
+            layer.passes[name].rect = pixels
+
+    def update_render_passes(self, scene: Any = None, renderlayer: Any = None) -> None:
+        for name, channels, chan_id, kind in PASSES:
+            self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
+
+    def render(self, depsgraph: bpy.types.Depsgraph) -> None:
+        try:
+            self._render(depsgraph)
+        except Cancelled:
+            self._say("INFO", "Render cancelled; the service's job was cancelled")
+        except Exception as exc:  # noqa: BLE001 - reported in words, never a traceback
+            message = str(exc)
+            if not isinstance(exc, _EXPECTED):  # a bug: the console gets the traceback
+                traceback.print_exception(exc)
+                message = f"Unexpected error ({type(exc).__name__}: {exc}); see the console"
+            self._say("ERROR", message)
+
+    def _render(self, depsgraph: bpy.types.Depsgraph) -> None:
+        scene = depsgraph.scene
+        transparent = scene.render.film_transparent
+        view = camera.view(scene, depsgraph, self.camera_override)
+        self.show("exporting the scene")
+        mesh = export.export_scene(depsgraph)
+        if mesh.triangles == 0:
+            frame = view["window"] or view["camera"]
+            size = (frame["width"], frame["height"])
+            self._write(depsgraph, image.empty_passes(*size, transparent), size)
+            self._say(
+                "WARNING",
+                "Nothing to render: no object with mesh triangles is "
+                "enabled for rendering; the image is empty",
+            )
+            return
+        outcome = self._run(depsgraph, mesh, view)
+        line = stats_line(outcome, mesh.triangles)
+        self._write(depsgraph, image.result_passes(outcome, transparent), outcome.size, line)
+        self.show(line)
+        self._keep_build(scene, outcome)
+
+    # --- steps ----------------------------------------------------------------------
+
+    def _run(
+        self, depsgraph: bpy.types.Depsgraph, mesh: export.SceneMesh, view: dict
+    ) -> pipeline.Outcome:
+        """The job on a worker thread while this one polls Esc and shows progress."""
+        settings = pipeline.Settings.from_scene(depsgraph.scene.scenesort)
+        target = prefs.target(bpy.context)
+        self.task = Task(lambda task: pipeline.render_job(task, target, settings, mesh, view))
+        self.task.start()
+        while not self.task.done:
+            if self.stopped():
+                self.task.cancel()
+            self.update_progress(self.task.fraction)
+            self.show(f"{self.task.step} ({mesh.triangles:,} triangles)")
+            time.sleep(POLL_S)
+        if self.task.error is not None:
+            raise self.task.error
+        return self.task.result
+
+    def _write(
+        self,
+        depsgraph: bpy.types.Depsgraph,
+        passes: dict[str, np.ndarray],
+        size: tuple[int, int],
+        note: str = "",
+    ) -> None:
+        """Fill the Render Result (the border's size when there is one) with `passes`;
+        `note` goes to the result's metadata."""
+        width, height = size
+        result = self.begin_result(0, 0, width, height, layer=depsgraph.view_layer.name)
+        if (result.resolution_x, result.resolution_y) != size:
+            self.end_result(result, cancel=True)
+            raise ValueError(
+                f"Blender's render result is {result.resolution_x}x{result.resolution_y}, "
+                f"the service rendered {width}x{height}"
+            )
+        self.fill(result, passes)
+        self.end_result(result)
+        if note:  # on the whole render's result, as Cycles does: files carry it
+            self.get_result().stamp_data_add_field("scenesort", note)
+
+    def _keep_build(self, scene: bpy.types.Scene, outcome: pipeline.Outcome) -> None:
+        """The build's timings into the panel's table, on the main thread."""
+        if outcome.build is None:
+            return
+        props, settings = scene.original.scenesort, pipeline.Settings.from_scene(scene.scenesort)
+
+        def apply() -> None:
+            timings.apply_build(props, outcome.build, settings.method, settings.leaf_size)
+
+        if threading.current_thread() is threading.main_thread():
+            apply()
+        else:  # Blender data is written on the main thread only
+            bpy.app.timers.register(apply, first_interval=0.0)
+
+    def _say(self, level: str, message: str) -> None:
+        self.report({level}, f"scenesort: {message}")
+        self.show(message)
+
+
+class SCENESORT_RE_ao(AoEngine, bpy.types.RenderEngine):
+    """Ambient occlusion from the scenesort service, like Cycles' AO pass."""
+
+    bl_idname = "SCENESORT"
+    bl_label = "scenesort AO"
+    bl_use_preview = False
+
+
+def _compatible_panels() -> list[type]:
+    """Blender's panels that work with any engine (output, format, color management...),
+    as Blender's render-engine template finds them."""
+    return [
+        panel
+        for panel in bpy.types.Panel.__subclasses__()
+        if "BLENDER_RENDER" in getattr(panel, "COMPAT_ENGINES", ())
+    ]
+
+
+_added_to: list[type] = []
+
+
+def register() -> None:
+    bpy.utils.register_class(SCENESORT_RE_ao)
+    for panel in _compatible_panels():
+        if SCENESORT_RE_ao.bl_idname not in panel.COMPAT_ENGINES:
+            panel.COMPAT_ENGINES.add(SCENESORT_RE_ao.bl_idname)
+            _added_to.append(panel)
+
+
+def unregister() -> None:
+    for panel in _added_to:
+        panel.COMPAT_ENGINES.discard(SCENESORT_RE_ao.bl_idname)
+    _added_to.clear()
+    bpy.utils.unregister_class(SCENESORT_RE_ao)

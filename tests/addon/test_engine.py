@@ -1,0 +1,484 @@
+"""The `scenesort AO` render engine, headless: F12 and Ctrl-F12 through Blender's own
+render operator, against a real service that the first render starts by itself.
+
+Images come back through the files Blender writes (32-bit EXR: linear, no view
+transform); the passes, the status-bar lines and Esc through a subclass of the engine
+(`Probe`) that keeps what Blender holds after the engine filled the result.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from types import SimpleNamespace
+from typing import ClassVar
+
+import bpy
+import httpx
+import numpy as np
+import pytest
+from conftest import add_camera, add_object, box_mesh, free_port, grid_mesh
+
+import addon
+from addon import camera, engine, export, prefs, service
+
+WIDTH, HEIGHT = 40, 30
+FLOOR_TRIANGLES, BOX_TRIANGLES = 2 * 8 * 8, 12
+
+
+class Probe(engine.AoEngine, bpy.types.RenderEngine):
+    """The engine, keeping its passes and status lines; `stop_when(engine)` plays Esc."""
+
+    bl_idname = "SCENESORT_PROBE"
+    bl_label = "scenesort AO (probe)"
+    bl_use_preview = False
+    passes: ClassVar[dict[str, np.ndarray]] = {}
+    stats: ClassVar[list[str]] = []
+    steps: ClassVar[list[str]] = []
+    stop_when: ClassVar[Callable[[engine.AoEngine], bool] | None] = None
+
+    def fill(self, result, passes) -> None:  # noqa: ANN001 - what Blender then holds
+        super().fill(result, passes)
+        size = (result.resolution_y, result.resolution_x)
+        for p in result.layers[0].passes:
+            Probe.passes[p.name] = np.array(p.rect, np.float32).reshape(*size, p.channels)
+
+    def show(self, text: str) -> None:
+        Probe.stats.append(text)
+        super().show(text)
+
+    def stopped(self) -> bool:
+        if self.task is not None:
+            Probe.steps[:] = self.task.steps
+        return bool(Probe.stop_when and Probe.stop_when(self)) or super().stopped()
+
+
+@pytest.fixture(scope="module")
+def live() -> Iterator[bpy.types.Scene]:
+    """A floor with a box on it and a camera; the engine picked in Render Properties."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    addon.register()
+    bpy.utils.register_class(Probe)
+    scene = bpy.context.scene
+    add_object(scene, "Floor", grid_mesh("Floor", 8, 8.0))
+    add_object(scene, "Box", box_mesh("Box", size=1.5), (0.0, 0.0, 0.75))
+    add_camera(scene, (0.0, -7.0, 4.0), (math.radians(60), 0.0, 0.0), WIDTH, HEIGHT)
+    scene.scenesort.ao_distance, scene.scenesort.spp, scene.scenesort.seed = 2.0, 4, 1
+    scene.render.engine = "SCENESORT"
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    try:
+        yield scene
+    finally:
+        proc = service._process
+        bpy.utils.unregister_class(Probe)
+        addon.unregister()
+        assert proc is None or proc.poll() is not None, "unregister left the service running"
+        assert "SCENESORT" not in bpy.types.RENDER_PT_format.COMPAT_ENGINES  # given back
+
+
+@pytest.fixture
+def probe(live) -> Iterator[bpy.types.Scene]:
+    """The scene rendered by `Probe`, with a fresh record."""
+    Probe.passes.clear(), Probe.stats.clear(), Probe.steps.clear()
+    Probe.stop_when = None
+    live.render.engine = Probe.bl_idname
+    try:
+        yield live
+    finally:
+        live.render.engine = "SCENESORT"
+        Probe.stop_when = None
+
+
+def _read(path: Path) -> np.ndarray:
+    """An image file's RGBA, (height, width, 4), row 0 at the top."""
+    img = bpy.data.images.load(str(path))
+    try:
+        pixels = np.empty(len(img.pixels), np.float32)
+        img.pixels.foreach_get(pixels)
+        return pixels.reshape(img.size[1], img.size[0], 4)[::-1]
+    finally:
+        bpy.data.images.remove(img)
+
+
+def f12(scene: bpy.types.Scene, path: Path) -> np.ndarray:
+    """F12 and save: the written image's RGBA (row 0 at the top)."""
+    scene.render.filepath = str(path)
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    return _read(path.with_suffix(".exr"))
+
+
+def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
+    """AO and coverage of the scene's camera rays from the engine itself (no add-on, no
+    service): `kernels.render_ao` on the exported triangles."""
+    import kernels
+    from kernels.camera import Camera
+
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    mesh = export.export_scene(depsgraph)
+    origins, directions, tmin, tmax = Camera.from_dict(camera.camera_dict(scene, depsgraph)).rays()
+    props = scene.scenesort
+    bvh = kernels.build_bvh(mesh.vertices, mesh.indices, method=props.method,
+                            leaf_size=props.leaf_size, device="cpu")  # fmt: skip
+    result = kernels.render_ao(bvh, origins, directions, spp=props.spp, seed=props.seed,
+                               distance=props.ao_distance, tmin=tmin, tmax=tmax)  # fmt: skip
+    shape = camera.resolution(scene)[::-1]
+    return result.ao.reshape(shape), (result.spp_used > 0).reshape(shape)
+
+
+def test_engine_is_selectable_with_its_passes(live) -> None:
+    assert engine.SCENESORT_RE_ao.bl_label == "scenesort AO"
+    assert live.render.engine == "SCENESORT"  # Blender accepts only registered engines
+    assert "SCENESORT" in bpy.types.RENDER_PT_format.COMPAT_ENGINES  # output settings shown
+
+
+def test_f12_combined_is_the_engines_ao_with_zero_background(live, tmp_path) -> None:
+    """F12 starts the service itself; Combined RGB equals a direct engine call's AO on the
+    same rays, 0 where the ray missed (Cycles' AO pass); alpha 1 without Film Transparent."""
+    prefs.preferences(bpy.context).start_on_render = True
+    live.render.film_transparent = False
+    assert not service.running()
+    rgba = f12(live, tmp_path / "still")
+    assert service.running()
+    props = live.scenesort  # the build's timings reach the panel's table
+    assert props.has_build and props.build_triangles == FLOOR_TRIANGLES + BOX_TRIANGLES
+    ao, hit = _direct(live)
+    assert rgba.shape == (HEIGHT, WIDTH, 4)
+    assert 0.3 < hit.mean() < 1.0  # some sky above the floor
+    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+    np.testing.assert_array_equal(rgba[..., 1], rgba[..., 0])
+    np.testing.assert_array_equal(rgba[..., 2], rgba[..., 0])
+    assert np.all(rgba[..., 3] == 1.0)
+    assert rgba[hit, 0].std() > 0.05  # shaded, not flat
+
+
+def test_resolution_percentage_renders_fewer_pixels_of_the_same_view(live, tmp_path) -> None:
+    live.render.resolution_percentage = 50
+    try:
+        rgba = f12(live, tmp_path / "half")
+        ao, hit = _direct(live)
+    finally:
+        live.render.resolution_percentage = 100
+    assert rgba.shape == (HEIGHT // 2, WIDTH // 2, 4) == (*ao.shape, 4)
+    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+
+
+def test_film_transparent_background_alpha_is_exactly_zero(live, tmp_path) -> None:
+    live.render.film_transparent = True
+    try:
+        rgba = f12(live, tmp_path / "transparent")
+    finally:
+        live.render.film_transparent = False
+    _, hit = _direct(live)
+    np.testing.assert_array_equal(rgba[..., 3], hit.astype(np.float32))
+    assert np.all(rgba[~hit] == 0.0)
+
+
+def test_passes_ao_and_depth(probe, tmp_path) -> None:
+    """AO is Combined's grey; Depth is camera-space Z (1e10 on background): the floor
+    right below the view's centre lies about |camera - floor point| * cos away."""
+    f12(probe, tmp_path / "passes")
+    passes = Probe.passes
+    assert set(passes) == {"Combined", "AO", "Depth"}
+    combined, ao, depth = passes["Combined"], passes["AO"][..., 0], passes["Depth"][..., 0]
+    np.testing.assert_array_equal(ao, combined[..., 0])
+    hit = combined[..., 3] > 0 if probe.render.film_transparent else depth < 1e10
+    assert np.all(depth[~hit] == 1e10) and (~hit).any() and hit.any()
+    assert np.all(ao[~hit] == 0.0)
+    # The centre pixel's ray (60 degrees from straight down) meets the floor (z = 0) at
+    # ray length 4 / cos(60) = 8; its camera-space depth is that length (it is the axis).
+    centre = depth[HEIGHT // 2 - 1 : HEIGHT // 2 + 1, WIDTH // 2 - 1 : WIDTH // 2 + 1]
+    assert np.all((centre > 6.0) & (centre < 8.0 + 1e-3))  # the box (nearer) or the floor
+    stats = " ".join(Probe.stats)
+    assert f"{FLOOR_TRIANGLES + BOX_TRIANGLES:,} triangles" in stats
+    assert re.search(r"build [\d.]+ ms", stats) and re.search(r"trace [\d.]+ ms", stats)
+
+
+def test_animation_writes_each_frame_through_blenders_output(live, tmp_path) -> None:
+    """Ctrl-F12: Blender numbers and writes the files itself, with the render's build and
+    trace times in their metadata; the box moves per frame."""
+    from PIL import Image
+
+    box = bpy.data.objects["Box"]
+    settings = live.render.image_settings
+    box.location.x = -1.0
+    box.keyframe_insert("location", frame=1)
+    box.location.x = 1.0
+    box.keyframe_insert("location", frame=3)
+    live.frame_start, live.frame_end = 1, 3
+    live.render.filepath = str(tmp_path / "frame_")
+    settings.file_format = "PNG"
+    try:
+        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+    finally:
+        settings.file_format, settings.color_depth = "OPEN_EXR", "32"
+        box.animation_data_clear()
+        box.location.x = 0.0
+        live.frame_set(1)
+    files = sorted(p.name for p in tmp_path.iterdir())
+    assert files == ["frame_0001.png", "frame_0002.png", "frame_0003.png"]
+    images = [Image.open(tmp_path / name) for name in files]
+    frames = [np.asarray(img) for img in images]
+    assert all(f.shape[:2] == (HEIGHT, WIDTH) for f in frames)
+    assert not np.array_equal(frames[0], frames[2])  # each frame's own depsgraph
+    note = images[0].text["scenesort"]  # the render's metadata, in the file
+    triangles = FLOOR_TRIANGLES + BOX_TRIANGLES
+    pattern = rf"{triangles} triangles \| build [\d.]+ ms.* \| trace [\d.]+ ms \| total .*"
+    assert re.fullmatch(pattern, note), note
+
+
+def test_render_visibility_and_render_levels_decide_what_renders(probe, tmp_path) -> None:
+    """Hidden in the viewport but enabled for rendering: rendered. Disabled for rendering
+    (object, collection) or excluded: not. A collection instance: rendered. Subdivision at
+    its render level (2: 16 quads per face) though the viewport shows level 0. The panel's
+    viewport export differs."""
+    scene = probe
+    hidden = add_object(scene, "Hidden", box_mesh("Hidden", 0.5), (2.0, 0.0, 0.25))
+    hidden.hide_viewport = True
+    hidden.hide_set(True)
+    off = add_object(scene, "NoRender", box_mesh("NoRender", 0.5), (-2.0, 0.0, 0.25))
+    off.hide_render = True
+    subd = add_object(scene, "Subd", box_mesh("Subd", 0.5), (0.0, 2.0, 0.25))
+    modifier = subd.modifiers.new("Subdivision", "SUBSURF")
+    modifier.levels, modifier.render_levels = 0, 2
+    collections = []
+    for name in ("RenderOff", "Excluded"):
+        coll = bpy.data.collections.new(name)
+        scene.collection.children.link(coll)
+        coll.objects.link(bpy.data.objects.new(name, box_mesh(name, 0.5)))
+        collections.append(coll)
+    collections[0].hide_render = True
+    bpy.context.view_layer.layer_collection.children["Excluded"].exclude = True
+    source = bpy.data.collections.new("Source")  # in no scene: only its instance renders
+    source.objects.link(bpy.data.objects.new("Instanced", box_mesh("Instanced", 0.5)))
+    instancer = add_object(scene, "Instancer", None, (0.0, -2.0, 0.25))
+    instancer.instance_type, instancer.instance_collection = "COLLECTION", source
+    try:
+        f12(scene, tmp_path / "visibility")
+        viewport = export.export_scene(bpy.context.evaluated_depsgraph_get()).triangles
+    finally:
+        for obj in (hidden, off, subd, instancer, *(c.objects[0] for c in collections),
+                    source.objects[0]):  # fmt: skip
+            bpy.data.objects.remove(obj)
+        for coll in (*collections, source):
+            bpy.data.collections.remove(coll)
+    base = FLOOR_TRIANGLES + 2 * BOX_TRIANGLES  # the box and the instance
+    expected = base + BOX_TRIANGLES + 6 * 16 * 2  # + Hidden + Subd at level 2
+    assert f"{expected:,} triangles" in " ".join(Probe.stats), Probe.stats[-1]
+    assert viewport == base + BOX_TRIANGLES  # viewport levels, viewport visibility
+
+
+def _depth_top_first() -> np.ndarray:
+    return Probe.passes["Depth"][::-1, :, 0]
+
+
+def test_border_renders_that_part_of_the_frame(probe, tmp_path) -> None:
+    """With a border the result is the border's rectangle; its Depth equals the whole
+    frame's there. Crop to Border writes that rectangle, without crop the whole frame
+    with nothing (alpha 0) outside it."""
+    r = probe.render
+    f12(probe, tmp_path / "whole")
+    whole = _depth_top_first()
+    r.use_border, r.film_transparent = True, True
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.25, 0.75, 0.2, 0.9
+    window = camera.window(probe)
+    x, y, w, h = window["x"], window["y"], window["width"], window["height"]
+    try:
+        r.use_crop_to_border = True
+        cropped = f12(probe, tmp_path / "cropped")
+        part = _depth_top_first()
+        r.use_crop_to_border = False
+        framed = f12(probe, tmp_path / "framed")
+    finally:
+        r.use_border, r.use_crop_to_border, r.film_transparent = False, False, False
+    assert (w, h) == (20, 21) and part.shape == (h, w)
+    np.testing.assert_array_equal(part, whole[y : y + h, x : x + w])
+    assert cropped.shape == (h, w, 4) and framed.shape == (HEIGHT, WIDTH, 4)
+    np.testing.assert_array_equal(framed[y : y + h, x : x + w], cropped)
+    outside = np.ones((HEIGHT, WIDTH), bool)
+    outside[y : y + h, x : x + w] = False
+    assert np.all(framed[outside] == 0.0)
+
+
+def test_pixel_aspect_two_to_one(probe, tmp_path) -> None:
+    """Pixels twice as wide as tall see what every other column of a frame twice as wide
+    sees, shifted half of its pixel (Blender's viewplane; the width is fitted)."""
+    r, cam = probe.render, probe.camera.data
+    r.pixel_aspect_x = 2.0
+    try:
+        f12(probe, tmp_path / "aspect")
+    finally:
+        r.pixel_aspect_x = 1.0
+    wide = _depth_top_first()
+    r.resolution_x, cam.shift_x = 2 * WIDTH, 1.0 / (4 * WIDTH)
+    try:
+        f12(probe, tmp_path / "fine")
+    finally:
+        r.resolution_x, cam.shift_x = WIDTH, 0.0
+    fine = _depth_top_first()
+    assert wide.shape == (HEIGHT, WIDTH) and fine.shape == (HEIGHT, 2 * WIDTH)
+    np.testing.assert_allclose(wide, fine[:, ::2], rtol=1e-5)
+
+
+def _cycles_depth(scene: bpy.types.Scene, path: Path) -> np.ndarray:
+    """Cycles' camera-space depth at pixel centres (top row first): an emission of the
+    Camera Data node's View Z Depth, 1 sample, a 0.01-pixel filter (BLENDER_FACTS.md)."""
+    mat = bpy.data.materials.new("ViewZ")
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    nodes.clear()
+    emission = nodes.new("ShaderNodeEmission")
+    links.new(nodes.new("ShaderNodeCameraData").outputs["View Z Depth"], emission.inputs[1])
+    links.new(emission.outputs[0], nodes.new("ShaderNodeOutputMaterial").inputs["Surface"])
+    layer, render, cycles = bpy.context.view_layer, scene.render, scene.cycles
+    layer.material_override, render.engine = mat, "CYCLES"
+    cycles.samples, cycles.use_adaptive_sampling, cycles.use_denoising = 1, False, False
+    cycles.pixel_filter_type, cycles.filter_width = "GAUSSIAN", 0.01
+    scene.view_settings.view_transform = "Standard"  # EXR holds the values themselves
+    try:
+        return f12(scene, path)[..., 0]
+    finally:
+        layer.material_override, render.engine = None, Probe.bl_idname
+        bpy.data.materials.remove(mat)
+
+
+def test_border_and_pixel_aspect_match_cycles(probe, tmp_path) -> None:
+    """Blender's own renderer as the judge: with a border and pixels twice as tall as wide
+    (pixel aspect 1:2, so AUTO fits the height: 40 < 2 * 30), the Depth pass equals
+    Cycles' camera-space depth at the same pixel centres."""
+    r = probe.render
+    r.pixel_aspect_y, r.use_border, r.use_crop_to_border = 2.0, True, True
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.1, 0.8, 0.3, 1.0
+    try:
+        f12(probe, tmp_path / "ours")
+        ours = _depth_top_first()
+        theirs = _cycles_depth(probe, tmp_path / "cycles")
+    finally:
+        r.pixel_aspect_y, r.use_border, r.use_crop_to_border = 1.0, False, False
+    assert ours.shape == theirs.shape == (21, 28)
+    hit = ours < 1e10
+    assert 0.2 < hit.mean() < 1.0  # floor, box and sky in the border
+    assert np.array_equal(hit, theirs > 0)  # Cycles' world is black: 0 on background
+    close = np.isclose(ours[hit], theirs[hit], rtol=1e-3)
+    assert close.mean() > 0.97, np.abs(ours - theirs)[hit].max()  # a box edge may differ
+
+
+def test_esc_cancels_the_services_job(probe, tmp_path) -> None:
+    """test_break() turning true while the job runs cancels it on the service."""
+    props = probe.scenesort
+    Probe.stop_when = lambda eng: any(s.startswith("running: ao") for s in eng.task.steps)
+    # 78M occlusion rays: many of the engine's rounds, so the job is caught running.
+    props.spp, probe.render.resolution_percentage = 4096, 400
+    try:
+        probe.render.filepath = str(tmp_path / "cancelled")
+        bpy.ops.render.render()
+    finally:
+        props.spp, probe.render.resolution_percentage = 4, 100
+    assert any("cancelled" in line for line in Probe.stats), Probe.stats[-3:]
+    deleted = re.findall(r"DELETE /v1/jobs/([0-9a-f]+)", service.log_path().read_text())
+    assert deleted, "the engine never cancelled the job"
+    job_id = deleted[-1]
+    url = bpy.context.window_manager.scenesort.url or service.served_url()
+    headers = {"Authorization": f"Bearer {service.token_for(url)}"}
+    state = None
+    for _ in range(600):  # the job stops at the engine's next round
+        state = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers).json()["state"]
+        if state not in {"queued", "running"}:
+            break
+        time.sleep(0.1)
+    assert state == "cancelled"
+
+
+def test_empty_scene_gives_a_transparent_image_and_says_so(probe, tmp_path) -> None:
+    objects = [bpy.data.objects["Floor"], bpy.data.objects["Box"]]
+    for obj in objects:
+        obj.hide_render = True
+    probe.render.film_transparent = True
+    try:
+        rgba = f12(probe, tmp_path / "empty")
+    finally:
+        for obj in objects:
+            obj.hide_render = False
+        probe.render.film_transparent = False
+    assert rgba.shape == (HEIGHT, WIDTH, 4) and np.all(rgba == 0.0)
+    assert np.all(Probe.passes["Depth"] == 1e10)
+    assert "Nothing to render" in Probe.stats[-1]
+
+
+def test_no_camera_and_a_panoramic_camera_are_clear_errors(live, tmp_path) -> None:
+    live.render.filepath = str(tmp_path / "none")
+    cam = live.camera
+    live.camera = None
+    try:
+        with pytest.raises(RuntimeError, match="(?i)no camera"):
+            bpy.ops.render.render()
+    finally:
+        live.camera = cam
+    cam.data.type = "PANO"
+    try:
+        with pytest.raises(RuntimeError, match="only Perspective and Orthographic"):
+            bpy.ops.render.render()
+    finally:
+        cam.data.type = "PERSP"
+
+
+def test_a_stopped_or_unreachable_service_is_a_clear_error(live, tmp_path) -> None:
+    live.render.filepath = str(tmp_path / "offline")
+    preferences = prefs.preferences(bpy.context)
+    assert bpy.ops.scenesort.server_stop() == {"FINISHED"}
+    preferences.start_on_render = False
+    try:
+        with pytest.raises(RuntimeError, match="No scenesort service is running"):
+            bpy.ops.render.render()
+        preferences.server_url = f"http://127.0.0.1:{free_port()}"
+        with pytest.raises(RuntimeError, match="No scenesort service is running at http"):
+            bpy.ops.render.render()
+    finally:
+        preferences.start_on_render, preferences.server_url = True, ""
+
+
+def test_engine_panels_show_for_the_engine_only(live) -> None:
+    """Sampling and Film are the engine's own Render Properties panels (poll on the
+    engine); the scenesort panel with its build timings stays in Render Properties."""
+    from addon import panel
+
+    for cls in (panel.SCENESORT_PT_sampling, panel.SCENESORT_PT_film):
+        assert cls.bl_context == "render" and {"SCENESORT"} == cls.COMPAT_ENGINES
+        assert cls.poll(bpy.context)
+        live.render.engine = "CYCLES"
+        try:
+            assert not cls.poll(bpy.context)
+        finally:
+            live.render.engine = "SCENESORT"
+    assert panel.SCENESORT_PT_render.bl_context == "render"
+
+
+class _Layout:
+    """Takes the UILayout calls of a panel's draw (Blender only draws with a window)."""
+
+    use_property_split = False
+
+    def __init__(self) -> None:
+        self.props: list[tuple[object, str, str]] = []
+
+    def column(self, align: bool = False) -> _Layout:
+        return self
+
+    def prop(self, owner: object, name: str, text: str = "") -> None:
+        self.props.append((owner, name, text))
+
+
+def test_engine_panels_draw_the_scenes_settings(live) -> None:
+    from addon import panel
+
+    drawn = {}
+    for cls in (panel.SCENESORT_PT_sampling, panel.SCENESORT_PT_film):
+        layout = _Layout()
+        cls.draw(SimpleNamespace(layout=layout, source=cls.source, groups=cls.groups),
+                 bpy.context)  # fmt: skip
+        drawn.update({name: owner for owner, name, _ in layout.props})
+    assert drawn == {"spp": live.scenesort, "target_error": live.scenesort,
+                     "ao_distance": live.scenesort, "seed": live.scenesort,
+                     "film_transparent": live.render}  # fmt: skip
