@@ -91,11 +91,11 @@ def traverse(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) ->
     if hit.triangle >= 0:
         i = hit.triangle
         exact = refine_hit(r, bvh.tri_verts[3 * i], bvh.tri_verts[3 * i + 1],
-                           bvh.tri_verts[3 * i + 2])
-        if exact[0] < INF:  # float64 can only fail where float32 found a sliver: keep that
-            hit.t = wp.clamp(exact[0], tmin, tmax)  # on the range the float32 test accepted
-            hit.u = exact[1]
-            hit.v = exact[2]
+                           bvh.tri_verts[3 * i + 2], tmin, tmax,
+                           wp.vec3(hit.t, hit.u, hit.v))
+        hit.t = exact[0]
+        hit.u = exact[1]
+        hit.v = exact[2]
         hit.triangle = bvh.tri_ids[i]
     return hit
 

@@ -1464,7 +1464,8 @@ def write_hits(
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
 ):
-    """Unpack the closest hit; t (and u, v) refined in float64 as `kernels.trace` does."""
+    """Unpack the closest hit; t (and u, v) refined in float64 and clamped to the ray's range,
+    as `kernels.trace` does."""
     i = wp.tid()
     key = best[i]
     out_t[i] = INF
@@ -1479,10 +1480,8 @@ def write_hits(
     v0 = tri_verts[3 * tri]
     v1 = tri_verts[3 * tri + 1]
     v2 = tri_verts[3 * tri + 2]
-    h = intersect_triangle(r, v0, v1, v2, rec.tmin, rec.tmax)
-    exact = refine_hit(r, v0, v1, v2)
-    if exact[0] < INF:
-        h = exact
+    h = refine_hit(r, v0, v1, v2, rec.tmin, rec.tmax,
+                   intersect_triangle(r, v0, v1, v2, rec.tmin, rec.tmax))
     out_t[i] = h[0]
     out_triangle[i] = tri
     out_u[i] = h[1]

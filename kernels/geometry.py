@@ -171,10 +171,14 @@ def intersect_triangle(
 
 
 @wp.func
-def refine_hit(r: Ray, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3) -> wp.vec3:
-    """(t, u, v) of a known hit recomputed in float64 with the same projection, so that t is
-    correct to float32 rounding even when the hit is close to the origin (the float32 test
-    decides hit or miss; this only sharpens the reported distance)."""
+def refine_hit(r: Ray, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, tmin: float, tmax: float,
+               found: wp.vec3) -> wp.vec3:
+    """(t, u, v) of a hit that `intersect_triangle` found (`found`) recomputed in float64
+    with the same projection, so that t is correct to float32 rounding even when the hit is
+    close to the origin (the float32 test decides hit or miss; this only sharpens the
+    reported distance). The refined t is clamped to [tmin, tmax], the range the float32
+    test accepted: a ray that starts on the triangle could otherwise report t < tmin. Where
+    float64 finds no hit (a sliver only float32 rounding hit), `found` is kept."""
     ox = wp.float64(r.origin[r.kx])
     oy = wp.float64(r.origin[r.ky])
     oz = wp.float64(r.origin[r.kz])
@@ -195,6 +199,6 @@ def refine_hit(r: Ray, v0: wp.vec3, v1: wp.vec3, v2: wp.vec3) -> wp.vec3:
     w = bx * ay - by * ax
     det = u + v + w
     if det == wp.float64(0.0):
-        return wp.vec3(INF, 0.0, 0.0)
+        return found
     t = (u * az + v * bz + w * cz) / (det * dz)
-    return wp.vec3(float(t), float(v / det), float(w / det))
+    return wp.vec3(wp.clamp(float(t), tmin, tmax), float(v / det), float(w / det))

@@ -107,6 +107,42 @@ def test_axis_aligned_rays_and_closed_mesh(variant):
     assert np.all(h.triangle >= 0), f"{int((h.triangle < 0).sum())} rays escaped"
 
 
+def rays_from_surface_points(n: int, seed: int):
+    """An icosphere and n rays through random points on its triangles (float64 barycentric
+    points, random unit directions): (v, f, points, directions)."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    v = np.asarray(sphere.vertices, np.float32)
+    f = np.asarray(sphere.faces, np.int32)
+    rng = np.random.default_rng(seed)
+    w = rng.dirichlet([1.0, 1.0, 1.0], n)
+    p = np.einsum("ni,nij->nj", w, v.astype(np.float64)[f[rng.integers(0, len(f), n)]])
+    d = rng.normal(size=(n, 3))
+    return v, f, p, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("variant", ["pool", "breadth_first"])
+@pytest.mark.parametrize(("tmin", "tmax"), [(0.0, np.inf), (0.25, np.inf), (0.0, 0.25)],
+                         ids=["tmin=0", "tmin>0", "tmax"])
+def test_refined_distances_stay_in_the_ray_range(variant, tmin, tmax):
+    """Rays whose range starts (or ends) exactly on a triangle: the float32 test accepts a
+    hit at t within rounding of tmin (tmax), and the float64 refinement of t may then fall
+    just outside [tmin, tmax]; it is clamped to the range the float32 test accepted, as
+    `trace` does. (Before the fix, of 20,000 rays starting on the icosphere with tmin = 0,
+    238 got t < 0 from both variants, none from `trace`.)"""
+    v, f, p, d = rays_from_surface_points(20_000, seed=0)
+    anchor = tmin if tmin > 0 else (tmax if np.isfinite(tmax) else 0.0)
+    o = (p - anchor * d).astype(np.float32)
+    d = d.astype(np.float32)
+    ref = bvh_hits(v, f, o, d, tmin, tmax)
+    ours = dacrt_trace(v, f, o, d, tmin, tmax, variant=variant)
+    for h in (ours, ref):
+        hit = h.triangle >= 0
+        assert hit.mean() > 0.5
+        assert np.all(h.t[hit] >= np.float32(tmin)), f"{int((h.t[hit] < tmin).sum())} < tmin"
+        assert np.all(h.t[hit] <= np.float32(tmax)), f"{int((h.t[hit] > tmax).sum())} > tmax"
+    assert_equal_hits(ours, ref)
+
+
 @pytest.mark.parametrize("name", ["bunny", "dragon", "buddha", "blade"])
 def test_equals_bvh_on_shared_objects(name, shared_scene):
     scene = shared_scene(name)
