@@ -513,7 +513,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     async def create_job(request: JobRequest) -> JobStatus:
         """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
-        from kernels.camera import Camera
+        from kernels import Camera
 
         try:
             camera = Camera.from_dict(request.camera.model_dump())

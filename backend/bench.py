@@ -26,8 +26,8 @@ def run(args: argparse.Namespace) -> int:
     import kernels
     from backend import peers
     from backend.render import load_scene
-    from kernels.ao import default_distance
-    from kernels.pool import cpu_cores
+    from kernels.core import cpu_cores
+    from kernels.render import default_distance
 
     console = Console()
     scene = load_scene(args.scene, args.width, args.height)

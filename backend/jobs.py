@@ -329,7 +329,7 @@ def bvh_for_ao(
 
 def adaptive_max_spp() -> int:
     """The engine's cap on samples per ray in adaptive (target_error) mode."""
-    from kernels import ao
+    from kernels.render import ao
 
     return int(getattr(ao, "DEFAULT_MAX_SPP", 1024))
 

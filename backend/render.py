@@ -5,7 +5,7 @@
     scenesort render --scene mesh.ply --camera cam.json --target-error 0.02
 
 `--scene` takes a mesh file or a shared scene's name; `--camera` a JSON file holding either
-the wire form of `kernels.camera.Camera` or a scenes.json look-at camera (position,
+the wire form of `kernels.Camera` or a scenes.json look-at camera (position,
 look_at, up, fov_y_deg). The PNG is 8-bit grey, AO scaled to 0..255 with no gamma (like
 Cycles' AO pass); `--npy` also writes the float32 (height, width) image.
 """
@@ -83,7 +83,7 @@ def load_scene(scene: str | None, width: int | None, height: int | None) -> Any:
 def framing_camera(vertices: np.ndarray, width: int, height: int) -> Any:
     """A 35-degree pinhole camera on the +Y+Z diagonal that fits the mesh's bounding
     sphere with a 10% margin (like the shared scenes' object cameras)."""
-    from kernels.camera import Camera
+    from kernels import Camera
 
     lo, hi = vertices.min(axis=0).astype(float), vertices.max(axis=0).astype(float)
     centre = 0.5 * (lo + hi)
@@ -98,7 +98,7 @@ def framing_camera(vertices: np.ndarray, width: int, height: int) -> Any:
 
 def load_camera(path: Path, width: int, height: int) -> Any:
     """A camera from JSON: the Camera wire form, or a scenes.json look-at description."""
-    from kernels.camera import Camera
+    from kernels import Camera
 
     try:
         data = json.loads(path.read_text())

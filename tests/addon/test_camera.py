@@ -38,7 +38,7 @@ def _setup(
 
 @pytest.mark.parametrize("name,settings,w,h,pct,scale", CAMERAS, ids=[c[0] for c in CAMERAS])
 def test_rays_equal_the_engine_camera_model(registered, name, settings, w, h, pct, scale) -> None:
-    from kernels.camera import Camera
+    from kernels import Camera
 
     _setup(registered, settings, w, h, pct, scale)
     desc = camera.camera_dict(registered)

@@ -12,7 +12,7 @@ from PIL import Image
 import kernels
 from backend.cli import main
 from backend.scenes import shared_scene, shared_scenes_dir
-from kernels.camera import Camera
+from kernels import Camera
 
 
 @pytest.fixture(scope="module")

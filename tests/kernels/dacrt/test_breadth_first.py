@@ -1,6 +1,6 @@
 """Breadth-first parallel DACRT (2013 paper) specifics: status codes, the terminal-node
 buffer, thresholds and peak memory. Equality with the BVH tracer on random meshes, shared
-scenes and the hypothesis properties run in test_dacrt.py for both variants."""
+scenes and the hypothesis properties run in test_api.py for both variants."""
 
 from __future__ import annotations
 
@@ -9,20 +9,20 @@ import pytest
 import warp as wp
 
 import kernels
-from kernels import pdacrt as pd
-from kernels.dacrt_api import DeviceArrays, dacrt_trace
+from kernels import dacrt_trace
+from kernels.core import DeviceArrays
+from kernels.dacrt import breadth_first as bf
 
-from .reference import random_rays, random_soup
-from .test_trace import assert_same_hits
+from ..reference import assert_same_hits, random_rays, random_soup
 
 
 def test_triangle_status_codes():
     """Node number in the upper 30 bits, none/left/both/right = 0..3 in the lower 2."""
     mem = DeviceArrays("cpu")
-    lv = pd._new_level(mem, 2, "cpu")
+    lv = bf._new_level(mem, 2, "cpu")
     lv.lo.assign(np.array([[0, 0, 0], [10, 0, 0]], np.float32))
     lv.hi.assign(np.array([[4, 1, 1], [14, 1, 1]], np.float32))
-    wp.launch(pd.split_level, dim=2, inputs=[lv], device="cpu")
+    wp.launch(bf.split_level, dim=2, inputs=[lv], device="cpu")
     assert list(lv.axis.numpy()) == [0, 0] and list(lv.split.numpy()) == [2.0, 12.0]
     tri_lo = np.array([[0.5, 0, 0], [2.5, 0, 0], [1.5, 0, 0], [2, 0, 0], [20, 0, 0]], np.float32)
     tri_hi = tri_lo + np.float32(0.5)
@@ -31,13 +31,13 @@ def test_triangle_status_codes():
     node_of = wp.array([0, 0, 0, 0, 1], dtype=int)
     keys = wp.empty(5, dtype=wp.int32)
     values = wp.empty(5, dtype=int)
-    wp.launch(pd.filter_tris, dim=5,
+    wp.launch(bf.filter_tris, dim=5,
               inputs=[lv, wp.array(np.arange(5), dtype=int), node_of,
                       wp.array(tri_lo, dtype=wp.vec3), wp.array(tri_hi, dtype=wp.vec3), keys,
                       values], device="cpu")
     k = keys.numpy()
     assert list(k >> 2) == [0, 0, 0, 0, 1]
-    assert list(k & 3) == [pd.LEFT, pd.RIGHT, pd.BOTH, pd.BOTH, pd.NONE]
+    assert list(k & 3) == [bf.LEFT, bf.RIGHT, bf.BOTH, bf.BOTH, bf.NONE]
 
 
 @pytest.mark.parametrize(("alpha", "buffer_entries"), [(4, 64), (8, 1 << 12), (10**6, 1 << 20)])

@@ -9,7 +9,7 @@ from hypothesis import strategies as st
 
 import kernels
 
-from .reference import check_bvh, random_soup
+from ..reference import check_bvh, random_soup
 
 
 @pytest.mark.parametrize("method", ["sah", "median"])

@@ -9,21 +9,16 @@ from __future__ import annotations
 
 import warp as wp
 
-from .bvh_build import BvhNode
-from .geometry import INF, Hit, Ray, intersect_box, intersect_triangle, make_ray, refine_hit
+from ..core.box import INF
+from ..core.ray import Hit, Ray, intersect_box, make_ray
+from ..core.triangle import intersect_triangle, refine_hit
+from .node import BvhArrays
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
 STACK_SIZE = 64
 NodeStack = wp.types.vector(length=STACK_SIZE, dtype=wp.int32)
 DistStack = wp.types.vector(length=STACK_SIZE, dtype=wp.float32)
-
-
-@wp.struct
-class BvhArrays:
-    nodes: wp.array(dtype=BvhNode)
-    tri_verts: wp.array(dtype=wp.vec3)  # v0, v1, v2 per triangle, in leaf order
-    tri_ids: wp.array(dtype=int)  # the caller's triangle index per leaf position
 
 
 @wp.func

@@ -7,7 +7,7 @@ import itertools
 import numpy as np
 import pytest
 
-from kernels import dacrt_table as tb
+from kernels.dacrt import table as tb
 
 TABLE = tb.flat_table().reshape(tb.MASKS, tb.ROW)
 

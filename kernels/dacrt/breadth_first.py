@@ -12,8 +12,8 @@ The implicit hierarchy is built and traversed one level at a time from the host:
   terminal  when the buffer passes its threshold: one thread per (node, ray) intersects the
             node's triangles (sec. 2.2), then a segmented minimum per ray: sort by ray id,
             `runlength_encode`, min over each run.
-Rays and boxes use the same margins as the task-pool variant (see `dacrt.py`), so the hits
-are those of `kernels.trace`.
+Rays and boxes use the same margins and classification as the task-pool variant
+(`records.py`, `classify.py`), so the hits are those of `kernels.trace`.
 """
 
 from __future__ import annotations
@@ -24,10 +24,21 @@ import numpy as np
 import warp as wp
 from warp.utils import array_scan, radix_sort_pairs, runlength_encode
 
-from . import dacrt as dk
-from .api import Hits
-from .dacrt_api import DeviceArrays, rays_and_triangles, scene_box, write_hits
-from .geometry import INF, intersect_triangle, make_ray
+from ..core.box import INF
+from ..core.device_arrays import DeviceArrays
+from ..core.hits import Hits
+from ..core.ray import make_ray
+from ..core.triangle import intersect_triangle
+from .classify import CLS_LEFT, CLS_RIGHT, ray_side, ray_span, side_of, widened_range
+from .records import (
+    KEY_NONE,
+    TraceArrays,
+    hit_key,
+    rays_and_triangles,
+    scene_box,
+    unpack_hits,
+    write_hits,
+)
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
@@ -96,9 +107,9 @@ def split_level(lv: Level):
 
 @wp.func
 def code_of(side: int) -> int:
-    if side == dk.CLS_LEFT:
+    if side == CLS_LEFT:
         return LEFT
-    if side == dk.CLS_RIGHT:
+    if side == CLS_RIGHT:
         return RIGHT
     return BOTH
 
@@ -119,24 +130,24 @@ def filter_tris(lv: Level, ids: wp.array(dtype=int), node_of: wp.array(dtype=int
     if (lo[0] <= nhi[0] and lo[1] <= nhi[1] and lo[2] <= nhi[2] and hi[0] >= nlo[0]
             and hi[1] >= nlo[1] and hi[2] >= nlo[2]):
         a = lv.axis[k]
-        code = code_of(dk.side_of(wp.vec2(lo[a], hi[a]), lv.split[k], 0.0))
+        code = code_of(side_of(wp.vec2(lo[a], hi[a]), lv.split[k], 0.0))
     keys[i] = wp.int32(k * 4 + code)
     values[i] = tri
 
 
 @wp.kernel
 def filter_rays(lv: Level, ids: wp.array(dtype=int), node_of: wp.array(dtype=int),
-                d: dk.DacrtData, keys: wp.array(dtype=wp.int32), values: wp.array(dtype=int)):
+                d: TraceArrays, keys: wp.array(dtype=wp.int32), values: wp.array(dtype=int)):
     """Status code of a ray: none if it misses the node's box, else by its span's side."""
     i = wp.tid()
     k = node_of[i]
     ray = ids[i]
     r = d.rays[ray]
-    w = dk.widened_range(r)
-    span = dk.ray_span(r, lv.lo[k], lv.hi[k], w[0], w[1])
+    w = widened_range(r)
+    span = ray_span(r, lv.lo[k], lv.hi[k], w[0], w[1])
     code = NONE
     if span[0] < INF:
-        code = code_of(dk.ray_side(r, span, lv.axis[k], lv.split[k], d.margin))
+        code = code_of(ray_side(r, span, lv.axis[k], lv.split[k], d.margin))
     keys[i] = wp.int32(k * 4 + code)
     values[i] = ray
 
@@ -254,7 +265,7 @@ def next_level_nodes(ch: Children, lv: Level, term_tri_base: int, term_node_base
 
 
 @wp.kernel
-def intersect_segments(d: dk.DacrtData, ray_ids: wp.array(dtype=int),
+def intersect_segments(d: TraceArrays, ray_ids: wp.array(dtype=int),
                        ray_seg: wp.array(dtype=int), seg_tri_start: wp.array(dtype=int),
                        seg_tri_count: wp.array(dtype=int), tri_ids: wp.array(dtype=int),
                        keys: wp.array(dtype=wp.uint64)):
@@ -266,14 +277,14 @@ def intersect_segments(d: dk.DacrtData, ray_ids: wp.array(dtype=int),
     r = make_ray(rec.origin, d.directions[ray])
     tmin = rec.tmin
     tmax = rec.tmax
-    key = wp.uint64(dk.KEY_NONE)
+    key = wp.uint64(KEY_NONE)
     first = seg_tri_start[s]
     for q in range(first, first + seg_tri_count[s]):
         tri = tri_ids[q]
         h = intersect_triangle(r, d.tri_verts[3 * tri], d.tri_verts[3 * tri + 1],
                                d.tri_verts[3 * tri + 2], tmin, tmax)
         if h[0] < INF:
-            key = wp.min(key, dk.hit_key(h[0], tri))
+            key = wp.min(key, hit_key(h[0], tri))
     keys[j] = key
 
 
@@ -317,7 +328,7 @@ class Terminal:
         return (self.tris + tris <= self.capacity and self.rays + rays <= self.capacity
                 and self.nodes + nodes <= self.capacity)
 
-    def flush(self, d: dk.DacrtData, device) -> None:
+    def flush(self, d: TraceArrays, device) -> None:
         if self.rays == 0:
             self.tris = self.nodes = 0
             return
@@ -344,18 +355,18 @@ def _scan_total(a: wp.array, out: wp.array) -> int:
     return int(out[-1:].numpy()[0]) + last
 
 
-def pdacrt_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin, device,
+def breadth_first_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin, device,
                  info: dict, alpha: int, beta: int, max_depth: int,
                  buffer_entries: int = 1 << 20) -> Hits:
     """The level loop of Algorithm 1 (sec. 2); arguments validated by `dacrt_trace`."""
     wp.load_module(filter_rays.module, device=device)
-    wp.load_module(dk.write_hits.module, device=device)
+    wp.load_module(write_hits.module, device=device)
     t_start = time.perf_counter()
     mem = DeviceArrays(device)
     r, m, n = len(origins), len(indices), len(ids)
     d = rays_and_triangles(mem, vertices, indices, origins, directions, tmin, tmax)
     d.margin = margin
-    d.best = mem.new(max(r, 1), wp.uint64, fill=np.uint64(0xFFFFFFFFFFFFFFFF))
+    d.best = mem.new(max(r, 1), wp.uint64, fill=KEY_NONE)
     levels = 0
     peak_nodes = 0
     phase_s = dict.fromkeys(("filter", "sort", "reduce", "children", "gather", "intersect"), 0.0)
@@ -451,7 +462,7 @@ def pdacrt_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin
         phase_s["intersect"] += time.perf_counter() - t6
     wp.synchronize_device(device)
     trace_ms = (time.perf_counter() - t_start) * 1e3
-    hits = write_hits(mem, d, r)
+    hits = unpack_hits(mem, d, r)
     info.update({
         "variant": "breadth_first",
         "total_ms": (time.perf_counter() - t_start) * 1e3,

@@ -1,11 +1,11 @@
 """Task-pool divide-and-conquer ray tracing (2012 paper, sec. 5).
 
 No acceleration structure: a task holds a node box, an interval of the ray index array and
-one of the triangle index array. Two task kinds share the pool of `pool.py`:
+one of the triangle index array. Two task kinds share the pool of `kernels.pool`:
   intersection   one step; each work chunk covers CHUNK ray-triangle pairs; the closest hit
                  per ray is an atomic min on a packed (t, triangle) key (deterministic)
   subdivision    SplitPlane (spatial median or RDH), PPS1, Swap1, PPS2, Swap2, AABB, then
-                 seven children chosen from the dependency table (`dacrt_table.py`)
+                 seven children chosen from the dependency table (`table.py`)
 Rays are classified left / straddling / right / clipped against the plane within the node
 box; triangles left / straddling / right by their boxes. A ray whose closest hit so far lies
 before its entry into the node box is clipped too (ordered early termination). Boxes and
@@ -18,14 +18,23 @@ and the left triangle part); a step's chunks are the segments' chunks one after 
 
 from __future__ import annotations
 
+import time
+
+import numpy as np
 import warp as wp
 
-from . import dacrt_table as tb
-from .chunks import CHUNK, ceil_div, level_base, level_count, level_size
-from .geometry import INF, intersect_triangle, make_ray, max3, min3, refine_hit
-from .pool import (
+from ..core.box import INF, max3, min3
+from ..core.device_arrays import DeviceArrays
+from ..core.hits import Hits
+from ..core.ray import make_ray
+from ..core.triangle import intersect_triangle
+from ..pool.atomics import cycles, shared_add, shared_max
+from ..pool.chunks import CHUNK, ceil_div, level_base, level_count, level_size
+from ..pool.state import (
     Pool,
-    cycles,
+    check_pool,
+    default_workers,
+    make_pool,
     pool_acquire,
     pool_alloc,
     pool_finish,
@@ -36,209 +45,85 @@ from .pool import (
     pool_resolve,
     pool_running,
     pool_wait,
-    shared_add,
-    shared_max,
-    shared_max_vec3,
-    shared_min_vec3,
+)
+from ..pool.worker import launch_workers
+from . import table
+from .classify import (
+    CLS_CLIPPED,
+    CLS_LEFT,
+    CLS_RIGHT,
+    CLS_STRADDLE,
+    ray_side,
+    ray_span,
+    side_of,
+    widen,
+    widened_range,
+)
+from .rdh import choose_rdh_split, median_plane, rdh_children, sample_counts, split_plane_chunk
+from .records import (
+    KEY_NONE,
+    RayRecord,
+    hit_key,
+    key_t,
+    margin_for,
+    rays_and_triangles,
+    scene_box,
+    shared_min_u64,
+    unpack_hits,
+)
+from .task import (
+    C_KPAIRS,
+    C_LEAVES,
+    C_MAX_DEPTH,
+    C_OVERFLOW,
+    C_RAYS_SORTED,
+    C_SKIPPED,
+    C_TASKS,
+    C_TRIS_SORTED,
+    C_VISITS,
+    CAND_BOXES,
+    CAND_INTS,
+    COUNTERS,
+    MAX_SUCC,
+    PH_AABB,
+    PH_DONE,
+    PH_INTERSECT,
+    PH_PPS1,
+    PH_PPS2,
+    PH_SORT,
+    PH_SPLIT_PLANE,
+    PH_SWAP1,
+    PH_SWAP2,
+    PHASE_NAMES,
+    PHASES,
+    RAY_INTERVAL,
+    ROLE_BOX,
+    ROLE_RAYS,
+    ROLE_RAYS_LEFT,
+    ROLE_RAYS_RIGHT,
+    ROLE_TRIS,
+    ROLE_TRIS_LEFT,
+    SPLIT_MEDIAN,
+    SPLIT_RDH,
+    T_COUNT,
+    T_IS_SINK,
+    T_ORDER,
+    T_PREDS,
+    T_SINKS,
+    T_SUCC,
+    TABLE,
+    TRI_INTERVAL,
+    DacrtData,
+    DacrtTask,
+    Segment3,
+    Slots7,
 )
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
-CANDIDATES = wp.constant(32)  # RDH candidate planes over the three axes (sec. 5.2)
-PLANES = wp.constant(33)  # ... and the spatial median as one more, so RDH can choose it
-MEDIAN_TRUST = wp.constant(0.6)  # RDH keeps the median unless a candidate is 40% cheaper
-CAND_INTS = 33 * 4  # per pool slot and plane: tris, then rays, of the left and right child
-CAND_BOXES = 33 * 2  # per pool slot and plane: the sampled children's boxes
-KEY_NONE = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 PREFETCH = wp.constant(16)  # items ahead that the sort's classification loops prefetch
-HASH_M1 = wp.constant(wp.uint32(0x7FEB352D))  # hash32's multipliers
-HASH_M2 = wp.constant(wp.uint32(0x846CA68B))
-T_WIDEN = wp.constant(1.0e-5)  # relative widening of [tmin, tmax] for classification
-
-SPLIT_MEDIAN = wp.constant(0)
-SPLIT_RDH = wp.constant(1)
-
-PH_SPLIT_PLANE = wp.constant(0)
-PH_PPS1 = wp.constant(1)
-PH_SWAP1 = wp.constant(2)
-PH_PPS2 = wp.constant(3)
-PH_SWAP2 = wp.constant(4)
-PH_AABB = wp.constant(5)
-PH_INTERSECT = wp.constant(6)
-PH_SORT = wp.constant(7)  # PPS1 to AABB of a small task in one worker (sort_small_task)
-PH_DONE = wp.constant(8)
-PHASE_NAMES = ("SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2", "AABB", "Intersect", "Sort")
-PHASES = wp.constant(8)
-
-# element classes (ray_cls / tri_cls)
-CLS_LEFT = wp.constant(0)
-CLS_STRADDLE = wp.constant(1)
-CLS_RIGHT = wp.constant(2)
-CLS_CLIPPED = wp.constant(3)
-
-# segment roles
-ROLE_RAYS = wp.constant(0)  # PPS1: all rays, mark right or clipped
-ROLE_TRIS = wp.constant(1)  # PPS1: all triangles, mark right
-ROLE_RAYS_LEFT = wp.constant(2)  # PPS2: left/straddling rays, mark straddling
-ROLE_RAYS_RIGHT = wp.constant(3)  # PPS2: right/clipped rays, mark clipped
-ROLE_TRIS_LEFT = wp.constant(4)  # PPS2: left/straddling triangles, mark straddling
-ROLE_BOX = wp.constant(5)  # AABB: one of the three triangle intervals
-
-# counters[]
-C_TASKS = wp.constant(0)
-C_LEAVES = wp.constant(1)
-C_MAX_DEPTH = wp.constant(2)
-C_OVERFLOW = wp.constant(3)  # an intersection task with more than 2^31 pairs
-C_RAYS_SORTED = wp.constant(4)  # rays entering PPS1, summed over subdivision tasks
-C_KPAIRS = wp.constant(5)  # ray-triangle pairs of intersection tasks, in thousands
-C_TRIS_SORTED = wp.constant(6)  # triangles entering PPS1, summed over subdivision tasks
-C_VISITS = wp.constant(7)  # rays met by intersection tasks (per batch of chunks)
-C_SKIPPED = wp.constant(8)  # ... of them clipped by the task's box or already hit nearer
-COUNTERS = 9
-
-TABLE = wp.constant(tb.ROW)  # row length of the flat dependency table, and its fields
-T_COUNT = wp.constant(tb.COUNT)
-T_SINKS = wp.constant(tb.SINKS)
-T_ORDER = wp.constant(tb.ORDER)
-T_PREDS = wp.constant(tb.PREDS)
-T_IS_SINK = wp.constant(tb.IS_SINK)
-T_SUCC = wp.constant(tb.SUCC)
-MAX_SUCC = wp.constant(tb.MAX_SUCC)
-Slots7 = wp.types.vector(length=7, dtype=wp.int32)
-RAY_INTERVAL = wp.constant(Slots7(*(int(x) for x in tb.RAY_INTERVAL)))  # of T1..T7
-TRI_INTERVAL = wp.constant(Slots7(*(int(x) for x in tb.TRI_INTERVAL)))
-
-
-@wp.struct
-class Segment3:
-    """Up to three index-array segments that one PPS, Swap or AABB phase works on."""
-
-    count: int  # segments in use
-    is_tri: wp.vec3i  # 1: triangle index array, 0: ray index array
-    start: wp.vec3i  # first position
-    size: wp.vec3i
-    role: wp.vec3i
-    pivot: wp.vec3i  # after PPS: unmarked items (they stay in front)
-    ones_left: wp.vec3i  # marked items in front of the pivot: what Swap exchanges
-
-
-@wp.struct
-class DacrtTask:
-    ray_start: int
-    ray_count: int
-    tri_start: int
-    tri_count: int
-    depth: int
-    phase: int
-    step: int
-    chunks: int
-    leaf: int  # 1: intersection task
-    tries: int  # planes that separated nothing (all rays and triangles straddling)
-    lo: wp.vec3  # node box (widened by the margin)
-    hi: wp.vec3
-    axis: int
-    split: float
-    seg: Segment3
-    rays: wp.vec4i  # rays left, straddling, right, clipped (after PPS2)
-    tris: wp.vec3i  # triangles left, straddling, right
-    box_lo: wp.mat33  # rows: boxes of the left, straddling, right triangles (after AABB)
-    box_hi: wp.mat33
-    succ: wp.vec2i  # slots this task activates when it finishes (sec. 5.3)
-    nsucc: int
-
-
-@wp.struct
-class RayRecord:
-    """What the box and plane tests read of a ray: 32 bytes, one cache line access per ray
-    in the classification phases, where rays are visited in index-array order."""
-
-    origin: wp.vec3
-    tmin: float
-    inv_dir: wp.vec3  # 1/d, +-inf where d == 0 (treated as parallel to that slab)
-    tmax: float
-
-
-@wp.struct
-class DacrtData:
-    rays: wp.array(dtype=RayRecord)  # per ray id
-    directions: wp.array(dtype=wp.vec3)  # exact, for the triangle test
-    tri_verts: wp.array(dtype=wp.vec3)  # v0, v1, v2 per triangle id
-    tri_lo: wp.array(dtype=wp.vec3)
-    tri_hi: wp.array(dtype=wp.vec3)
-    ray_ids: wp.array(dtype=int)  # the ray index array
-    tri_ids: wp.array(dtype=int)  # the triangle index array
-    ray_cls: wp.array(dtype=wp.int8)  # per ray id, CLS_*
-    tri_cls: wp.array(dtype=wp.int8)
-    ray_mark: wp.array(dtype=wp.int8)  # per position: 1 = goes behind the pivot
-    tri_mark: wp.array(dtype=wp.int8)
-    ray_scan: wp.array(dtype=int)  # PPS levels packed inside each segment
-    tri_scan: wp.array(dtype=int)
-    ray_swap_id: wp.array(dtype=int)  # Swap's separate index arrays
-    ray_swap_pos: wp.array(dtype=int)
-    tri_swap_id: wp.array(dtype=int)
-    tri_swap_pos: wp.array(dtype=int)
-    box_lo: wp.array(dtype=wp.vec3)  # AABB levels, per triangle position
-    box_hi: wp.array(dtype=wp.vec3)
-    cand: wp.array(dtype=wp.int32)  # RDH sample counts, CAND_INTS per pool slot
-    cand_lo: wp.array(dtype=wp.vec3)  # RDH children's boxes, CAND_BOXES per pool slot
-    cand_hi: wp.array(dtype=wp.vec3)
-    neg: wp.array(dtype=wp.int32)  # per slot: straddling rays heading to -axis
-    best: wp.array(dtype=wp.uint64)  # per ray id: packed (t, triangle) of the closest hit
-    tasks: wp.array(dtype=DacrtTask)
-    table: wp.array(dtype=wp.int32)  # dacrt_table.flat_table()
-    counters: wp.array(dtype=wp.int32)
-    phase_cycles: wp.array(dtype=wp.int64)  # PHASES per worker
-    split_method: int
-    rdh_min_rays: int  # tasks with fewer rays take the median (cheaper than sampling)
-    margin: float
-    max_depth: int
-    c_inters: float
-    c_sort: float
-    min_rays: int
-    min_tris: int
-    small_items: int  # tasks with at most this many rays + triangles sort in one worker
-
-
-# ---------------------------------------------------------------- keys and atomics
-
-
-@wp.func_native(
-    """
-union { float f; uint32_t u; } c;
-c.f = t;
-uint32_t b = (c.u & 0x80000000u) ? ~c.u : (c.u | 0x80000000u);
-return ((uint64_t)b << 32) | (uint64_t)(uint32_t)tri;
-"""
-)
-def hit_key(t: float, tri: int) -> wp.uint64:
-    """(t, triangle) packed so that unsigned order is t order, then triangle order."""
-    ...
-
-
-@wp.func_native(
-    """
-uint32_t b = (uint32_t)(key >> 32);
-union { float f; uint32_t u; } c;
-c.u = (b & 0x80000000u) ? (b & 0x7FFFFFFFu) : ~b;
-return c.f;
-"""
-)
-def key_t(key: wp.uint64) -> float: ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    atomicMin((unsigned long long*)&a[i], (unsigned long long)v);
-#else
-    uint64_t old;
-    __atomic_load(&a[i], &old, __ATOMIC_SEQ_CST);
-    while (v < old && !__atomic_compare_exchange_n(&a[i], &old, v, false, __ATOMIC_SEQ_CST,
-                                                   __ATOMIC_SEQ_CST)) {}
-#endif
-"""
-)
-def shared_min_u64(a: wp.array(dtype=wp.uint64), i: int, v: wp.uint64): ...
+SPLITS: dict[str, int] = {"median": int(SPLIT_MEDIAN), "rdh": int(SPLIT_RDH)}
+SMALL_ITEMS_CPU = 32768  # least small_items on CPU (measured: 4096 -> 32768 saved 3-7%)
 
 
 @wp.func_native(
@@ -268,89 +153,20 @@ def prefetch_tri(lo: wp.array(dtype=wp.vec3), hi: wp.array(dtype=wp.vec3), i: in
     ...
 
 
-# ---------------------------------------------------------------- small helpers
-
-
-@wp.func
-def widen(lo: wp.vec3, hi: wp.vec3, m: float) -> wp.mat33:
-    """Rows 0, 1: the box grown by m on every side."""
-    return wp.matrix_from_rows(lo - wp.vec3(m), hi + wp.vec3(m), wp.vec3(0.0))
-
-
-@wp.func
-def infinite(x: float) -> bool:
-    """wp.isinf compiles to a libm call on CPU (spilling every register around it)."""
-    return wp.abs(x) == INF
-
-
-@wp.func
-def ray_span(r: RayRecord, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: float) -> wp.vec2:
-    """(entry, exit) of the ray in [lo, hi] within [tmin, tmax]; entry inf on a miss."""
-    t0 = tmin
-    t1 = tmax
-    for k in range(3):
-        if infinite(r.inv_dir[k]):
-            if r.origin[k] < lo[k] or r.origin[k] > hi[k]:
-                return wp.vec2(INF, INF)
-        else:
-            a = (lo[k] - r.origin[k]) * r.inv_dir[k]
-            b = (hi[k] - r.origin[k]) * r.inv_dir[k]
-            enter = wp.where(a < b, a, b)  # selects, not wp.min: a third of the instructions
-            leave = wp.where(a < b, b, a)
-            t0 = wp.where(enter > t0, enter, t0)
-            t1 = wp.where(leave < t1, leave, t1)
-    if t0 <= t1:
-        return wp.vec2(t0, t1)
-    return wp.vec2(INF, INF)
-
-
-@wp.func
-def widened_range(r: RayRecord) -> wp.vec2:
-    lo = r.tmin
-    hi = r.tmax
-    return wp.vec2(lo - T_WIDEN * wp.abs(lo), hi + T_WIDEN * wp.abs(hi))
-
-
-@wp.func
-def ray_side(r: RayRecord, span: wp.vec2, axis: int, split: float, m: float) -> int:
-    """Side of the plane (widened by m) that the ray's points within the span lie on,
-    compared in t: the plane's crossings (split -+ m - o) / d against the span's ends, so no
-    division (the rounding of the products is a few ulps of t: far inside the margin)."""
-    inv = r.inv_dir[axis]
-    o = r.origin[axis]
-    if infinite(inv):
-        return side_of(wp.vec2(o, o), split, m)
-    below = (split - m - o) * inv  # t where the ray crosses split - m
-    above = (split + m - o) * inv
-    if inv > 0.0:
-        return CLS_STRADDLE + int(span[0] > above) - int(span[1] < below)
-    return CLS_STRADDLE + int(span[1] < above) - int(span[0] > below)
-
-
-@wp.func
-def side_of(lo_hi: wp.vec2, split: float, m: float) -> int:
-    if lo_hi[1] < split - m:
-        return CLS_LEFT
-    if lo_hi[0] > split + m:
-        return CLS_RIGHT
-    return CLS_STRADDLE
-
-
 @wp.func
 def classify_ray(d: DacrtData, t: DacrtTask, ray: int, r: RayRecord) -> int:
     """Left / straddling / right of the plane within the node box, or clipped: misses the
     box, or already hit something before entering it (sec. 5.2, PPS1)."""
     w = widened_range(r)
     span = ray_span(r, t.lo, t.hi, w[0], w[1])
-    if span[0] == INF or key_t(d.best[ray]) < span[0]:
+    if span[0] == INF or key_t(d.io.best[ray]) < span[0]:
         return CLS_CLIPPED
-    return ray_side(r, span, t.axis, t.split, d.margin)
+    return ray_side(r, span, t.axis, t.split, d.io.margin)
 
 
 @wp.func
 def classify_tri(d: DacrtData, t: DacrtTask, tri: int) -> int:
-    return side_of(wp.vec2(d.tri_lo[tri][t.axis], d.tri_hi[tri][t.axis]), t.split, 0.0)
-
+    return side_of(wp.vec2(d.io.tri_lo[tri][t.axis], d.io.tri_hi[tri][t.axis]), t.split, 0.0)
 
 # ---------------------------------------------------------------- segment storage
 
@@ -390,7 +206,7 @@ def mark_item(d: DacrtData, t: DacrtTask, role: int, i: int) -> int:
     behind the pivot, bit 1 for a straddling ray heading to -axis (PPS1)."""
     if role == ROLE_RAYS:
         ray = d.ray_ids[i]
-        r = d.rays[ray]
+        r = d.io.rays[ray]
         c = classify_ray(d, t, ray, r)
         d.ray_cls[ray] = wp.int8(c)
         m = int(c >= CLS_RIGHT)
@@ -435,7 +251,6 @@ def segment_levels(t: DacrtTask) -> int:
     for k in range(t.seg.count):
         levels = wp.max(levels, level_count(t.seg.size[k]))
     return levels
-
 
 # ---------------------------------------------------------------- PPS1 / PPS2
 
@@ -513,7 +328,6 @@ def pps_top(d: DacrtData, t: DacrtTask) -> DacrtTask:
         set_scan(d, t.seg.is_tri[k], top, 0)
     return t
 
-
 # ---------------------------------------------------------------- Swap1 / Swap2
 
 
@@ -560,7 +374,6 @@ def swap_chunk(d: DacrtData, t: DacrtTask, k: int, chunk: int):
                     d.ray_ids[d.ray_swap_pos[base + ones]] = item
                 ones += 1
 
-
 # ---------------------------------------------------------------- AABB
 
 
@@ -576,8 +389,8 @@ def aabb_chunk(d: DacrtData, t: DacrtTask, k: int, chunk: int):
         first = base + chunk * CHUNK
         for i in range(first, wp.min(first + CHUNK, base + n)):
             tri = d.tri_ids[i]
-            lo = min3(lo, d.tri_lo[tri])
-            hi = max3(hi, d.tri_hi[tri])
+            lo = min3(lo, d.io.tri_lo[tri])
+            hi = max3(hi, d.io.tri_hi[tri])
     else:
         src = level_base(base, n, level - 1)
         first = src + chunk * CHUNK
@@ -595,292 +408,6 @@ def aabb_chunks(t: DacrtTask, k: int) -> int:
     if t.step < level_count(n):
         return level_size(n, t.step + 1)
     return 0
-
-
-# ---------------------------------------------------------------- SplitPlane (RDH)
-
-
-@wp.func
-def median_plane(lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
-    """(axis, position): the middle of the box's longest axis."""
-    e = hi - lo
-    axis = int(0)
-    if e[1] > e[axis]:
-        axis = 1
-    if e[2] > e[axis]:
-        axis = 2
-    return wp.vec2(float(axis), 0.5 * (lo[axis] + hi[axis]))
-
-
-@wp.func
-def axis_planes(t: DacrtTask) -> wp.vec3i:
-    """RDH candidates on each axis: 32 in proportion to the node's extent (sec. 5.2)."""
-    e = wp.max(t.hi - t.lo, wp.vec3(0.0))
-    total = e[0] + e[1] + e[2]
-    n = wp.vec3i(0, 0, 0)
-    if total > 0.0:
-        n[0] = int(float(CANDIDATES) * e[0] / total)
-        n[1] = int(float(CANDIDATES) * e[1] / total)
-    n[2] = CANDIDATES - n[0] - n[1]
-    return n
-
-
-@wp.func
-def plane_pos(t: DacrtTask, axis: int, i: int, n: int) -> float:
-    """The i-th of n planes uniformly spaced on the axis (non-decreasing in i)."""
-    e = wp.max(t.hi[axis] - t.lo[axis], 0.0)
-    return t.lo[axis] + e * (float(i) + 0.5) / float(n)
-
-
-@wp.func
-def candidate(t: DacrtTask, c: int) -> wp.vec2:
-    """(axis, position) of RDH candidate c (axis by axis); c = CANDIDATES: the median."""
-    if c == CANDIDATES:
-        return median_plane(t.lo, t.hi)
-    n = axis_planes(t)
-    axis = int(0)
-    i = c
-    while i >= n[axis]:
-        i -= n[axis]
-        axis += 1
-    return wp.vec2(float(axis), plane_pos(t, axis, i, n[axis]))
-
-
-@wp.func
-def planes_below(t: DacrtTask, axis: int, n: int, x: float, inclusive: int) -> int:
-    """How many of the axis's n planes lie below x (at or below it if inclusive)."""
-    lo = int(0)
-    hi = n
-    while lo < hi:
-        mid = (lo + hi) / 2
-        p = plane_pos(t, axis, mid, n)
-        if p < x or (inclusive != 0 and p == x):
-            lo = mid + 1
-        else:
-            hi = mid
-    return lo
-
-
-@wp.func
-def sample_counts(t: DacrtTask) -> wp.vec2i:
-    """N_T = sqrt(#tris), N_R = sqrt(#rays) samples (sec. 5.2)."""
-    return wp.vec2i(wp.max(1, int(wp.sqrt(float(t.tri_count)))),
-                    wp.max(1, int(wp.sqrt(float(t.ray_count)))))
-
-
-@wp.func
-def half_box(t: DacrtTask, lo: wp.vec3, hi: wp.vec3, axis: int, pos: float,
-             right: int) -> wp.mat33:
-    """Rows 0, 1: a triangle box cut to the node box and to one side of a plane."""
-    blo = wp.max(lo, t.lo)
-    bhi = wp.min(hi, t.hi)
-    if right != 0:
-        blo[axis] = wp.max(blo[axis], pos)
-    else:
-        bhi[axis] = wp.min(bhi[axis], pos)
-    return wp.matrix_from_rows(blo, bhi, wp.vec3(0.0))
-
-
-@wp.func
-def hits_child(d: DacrtData, r: RayRecord, w: wp.vec2, k: int) -> bool:
-    """Does the ray meet child box k (rdh_boxes)? An empty box is met by no ray.
-    Monotone: a ray that meets a box meets every box around it."""
-    lo = d.cand_lo[k]
-    hi = d.cand_hi[k]
-    if lo[0] > hi[0] or lo[1] > hi[1] or lo[2] > hi[2]:
-        return False
-    return ray_span(r, lo, hi, w[0], w[1])[0] < INF
-
-
-@wp.func
-def add_tri_sample(d: DacrtData, ints: int, boxes: int, c: int, right: int, lo: wp.vec3,
-                   hi: wp.vec3):
-    shared_add(d.cand, ints + 4 * c + right, 1)
-    shared_min_vec3(d.cand_lo, boxes + 2 * c + right, lo)
-    shared_max_vec3(d.cand_hi, boxes + 2 * c + right, hi)
-
-
-@wp.func
-def sample_tri(d: DacrtData, t: DacrtTask, ints: int, boxes: int, lo: wp.vec3, hi: wp.vec3):
-    """A sampled triangle counts in the left child of the planes at or above its box's low
-    end (a suffix of each axis's planes) and in the right child of those at or below its
-    high end (a prefix): stored once, at the suffix's first and the prefix's last plane,
-    and summed up by rdh_children."""
-    n = axis_planes(t)
-    first = int(0)
-    for a in range(3):
-        below = planes_below(t, a, n[a], lo[a], 0)
-        if below < n[a]:
-            add_tri_sample(d, ints, boxes, first + below, 0, lo, hi)
-        upto = planes_below(t, a, n[a], hi[a], 1)
-        if upto > 0:
-            add_tri_sample(d, ints, boxes, first + upto - 1, 1, lo, hi)
-        first += n[a]
-    p = median_plane(t.lo, t.hi)
-    side = side_of(wp.vec2(lo[int(p[0])], hi[int(p[0])]), p[1], 0.0)
-    if side != CLS_RIGHT:
-        add_tri_sample(d, ints, boxes, CANDIDATES, 0, lo, hi)
-    if side != CLS_LEFT:
-        add_tri_sample(d, ints, boxes, CANDIDATES, 1, lo, hi)
-
-
-@wp.func
-def sample_ray(d: DacrtData, t: DacrtTask, ints: int, boxes: int, r: RayRecord):
-    """A sampled ray meets the left children of a suffix of each axis's planes (their boxes
-    grow with the plane) and the right children of a prefix: two binary searches per axis,
-    stored as for triangles."""
-    w = widened_range(r)
-    if ray_span(r, t.lo, t.hi, w[0], w[1])[0] == INF:
-        return
-    n = axis_planes(t)
-    first = int(0)
-    for a in range(3):
-        for right in range(2):
-            lo = int(0)  # first plane where the ray meets the left child / misses the right
-            hi = n[a]
-            while lo < hi:
-                mid = (lo + hi) / 2
-                c = first + mid
-                if hits_child(d, r, w, boxes + 2 * c + right) == (right == 0):
-                    hi = mid
-                else:
-                    lo = mid + 1
-            if right == 0 and lo < n[a]:
-                shared_add(d.cand, ints + 4 * (first + lo) + 2, 1)
-            if right == 1 and lo > 0:
-                shared_add(d.cand, ints + 4 * (first + lo - 1) + 3, 1)
-        first += n[a]
-    for right in range(2):
-        if hits_child(d, r, w, boxes + 2 * CANDIDATES + right):
-            shared_add(d.cand, ints + 4 * CANDIDATES + 2 + right, 1)
-
-
-@wp.func
-def hash32(x: int) -> int:
-    """A well-mixed 31-bit hash of x (Wellons' lowbias32)."""
-    h = wp.uint32(x)
-    h = (h ^ (h >> wp.uint32(16))) * HASH_M1
-    h = (h ^ (h >> wp.uint32(15))) * HASH_M2
-    return int((h ^ (h >> wp.uint32(16))) >> wp.uint32(1))
-
-
-@wp.func
-def sample_position(t: DacrtTask, step: int, s: int) -> int:
-    """Index-array position of SplitPlane's sample s at step 0 (triangles) or 1 (rays): one
-    sample in each of n equal strata, at a hashed place in it. (A fixed stride aliases with
-    the image's rows: at 1024² every one of the root's 1024 ray samples was a pixel of the
-    first column.)"""
-    n = sample_counts(t)[step]
-    start = t.tri_start
-    count = t.tri_count
-    if step != 0:
-        start = t.ray_start
-        count = t.ray_count
-    stride = count / n
-    seed = hash32(hash32(t.ray_start) ^ t.tri_start) ^ (step << 30)  # the task's own offsets
-    return start + s * stride + hash32(seed ^ s) % stride
-
-
-@wp.func
-def split_plane_chunk(d: DacrtData, t: DacrtTask, slot: int, chunk: int):
-    """RDH sampling (sec. 5.2). Step 0: sampled triangles in the left and right child of
-    every candidate, and the children's boxes. Step 1: sampled rays that meet each child's
-    box: the ray distribution estimates how often a child is visited."""
-    ns = sample_counts(t)
-    ints = slot * CAND_INTS
-    boxes = slot * CAND_BOXES
-    if t.step == 0:
-        for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[0])):
-            tri = d.tri_ids[sample_position(t, 0, s)]
-            sample_tri(d, t, ints, boxes, d.tri_lo[tri], d.tri_hi[tri])
-    else:
-        for s in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, ns[1])):
-            ray = d.ray_ids[sample_position(t, 1, s)]
-            sample_ray(d, t, ints, boxes, d.rays[ray])
-
-
-@wp.func
-def rdh_children(d: DacrtData, t: DacrtTask, slot: int, field: int):
-    """Turn what sample_tri (field 0) or sample_ray (field 2) stored at the ends of each
-    axis's suffixes and prefixes into per-plane counts (and, for triangles, boxes)."""
-    n = axis_planes(t)
-    ints = slot * CAND_INTS
-    boxes = slot * CAND_BOXES
-    first = int(0)
-    for a in range(3):
-        count = int(0)
-        lo = wp.vec3(INF)
-        hi = wp.vec3(-INF)
-        for c in range(first, first + n[a]):  # left children: sums over the suffixes
-            count += d.cand[ints + 4 * c + field]
-            d.cand[ints + 4 * c + field] = count
-            if field == 0:
-                lo = wp.min(lo, d.cand_lo[boxes + 2 * c])
-                hi = wp.max(hi, d.cand_hi[boxes + 2 * c])
-                d.cand_lo[boxes + 2 * c] = lo
-                d.cand_hi[boxes + 2 * c] = hi
-        count = int(0)
-        lo = wp.vec3(INF)
-        hi = wp.vec3(-INF)
-        for j in range(n[a]):  # right children: the prefixes, from the axis's last plane
-            c = first + n[a] - 1 - j
-            count += d.cand[ints + 4 * c + field + 1]
-            d.cand[ints + 4 * c + field + 1] = count
-            if field == 0:
-                lo = wp.min(lo, d.cand_lo[boxes + 2 * c + 1])
-                hi = wp.max(hi, d.cand_hi[boxes + 2 * c + 1])
-                d.cand_lo[boxes + 2 * c + 1] = lo
-                d.cand_hi[boxes + 2 * c + 1] = hi
-        first += n[a]
-    if field == 0:
-        for c in range(PLANES):  # the children's boxes: cut to the node and plane, widened
-            p = candidate(t, c)
-            for right in range(2):
-                k = boxes + 2 * c + right
-                box = half_box(t, d.cand_lo[k], d.cand_hi[k], int(p[0]), p[1], right)
-                if box[0][0] <= box[1][0] and box[0][1] <= box[1][1] and box[0][2] <= box[1][2]:
-                    box = widen(box[0], box[1], d.margin)
-                d.cand_lo[k] = box[0]
-                d.cand_hi[k] = box[1]
-
-
-@wp.func
-def choose_rdh_split(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
-    """The cheapest candidate by the ray distribution heuristic (Bittner & Havran 2009):
-    triangles of each child times the rays that meet its box, estimated from the samples.
-    Clears the samples for the slot's next use."""
-    rdh_children(d, t, slot, 2)
-    base = slot * CAND_INTS
-    boxes = slot * CAND_BOXES
-    ns = sample_counts(t)
-    tri_scale = float(t.tri_count) / float(ns[0])  # samples -> estimated counts
-    ray_scale = float(t.ray_count) / float(ns[1])
-    best = float(INF)
-    for c in range(PLANES):
-        k = base + 4 * c
-        tl = tri_scale * float(d.cand[k])
-        tr = tri_scale * float(d.cand[k + 1])
-        rl = ray_scale * float(d.cand[k + 2])
-        rr = ray_scale * float(d.cand[k + 3])
-        # sec. 5.2's costs: the children's pairs, plus sorting what they hold (straddling
-        # triangles and rays counted on both sides)
-        cost = d.c_inters * (tl * rl + tr * rr) + d.c_sort * (tl + tr + rl + rr)
-        if c == CANDIDATES:
-            # the median, evaluated last, must lose clearly: the other costs come from
-            # samples, and an estimate that is only a little lower is mostly noise
-            cost *= MEDIAN_TRUST
-        if cost < best:
-            best = cost
-            p = candidate(t, c)
-            t.axis = int(p[0])
-            t.split = p[1]
-    for k in range(CAND_INTS):
-        d.cand[base + k] = 0
-    for k in range(CAND_BOXES):
-        d.cand_lo[boxes + k] = wp.vec3(INF)
-        d.cand_hi[boxes + k] = wp.vec3(-INF)
-    return t
-
 
 # ---------------------------------------------------------------- steps and tasks
 
@@ -919,22 +446,22 @@ def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
     while p < last:
         n = wp.min(last - p, t.tri_start + t.tri_count - first_tri)  # pairs of ray i here
         ray = d.ray_ids[t.ray_start + i]
-        rec = d.rays[ray]
+        rec = d.io.rays[ray]
         w = widened_range(rec)
         span = ray_span(rec, t.lo, t.hi, w[0], w[1])
         # Most rays of an intersection task are clipped by its box or already hit nearer
         # (bunny 1024²: 79% of them): those skip the ray set-up too, not only the pairs.
-        if span[0] < INF and not key_t(d.best[ray]) < span[0]:
-            r = make_ray(rec.origin, d.directions[ray])
+        if span[0] < INF and not key_t(d.io.best[ray]) < span[0]:
+            r = make_ray(rec.origin, d.io.directions[ray])
             key = KEY_NONE
             for j in range(first_tri, first_tri + n):
                 tri = d.tri_ids[j]
-                h = intersect_triangle(r, d.tri_verts[3 * tri], d.tri_verts[3 * tri + 1],
-                                       d.tri_verts[3 * tri + 2], rec.tmin, rec.tmax)
+                h = intersect_triangle(r, d.io.tri_verts[3 * tri], d.io.tri_verts[3 * tri + 1],
+                                       d.io.tri_verts[3 * tri + 2], rec.tmin, rec.tmax)
                 if h[0] < INF:
                     key = wp.min(key, hit_key(h[0], tri))
             if key != KEY_NONE:
-                shared_min_u64(d.best, ray, key)
+                shared_min_u64(d.io.best, ray, key)
         else:
             skipped += 1
         visits += 1
@@ -1126,9 +653,9 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
     end = t.ray_start + t.ray_count
     for i in range(t.ray_start, end):
         if i + PREFETCH < end:
-            prefetch_ray(d.rays, d.best, d.ray_ids[i + PREFETCH])
+            prefetch_ray(d.io.rays, d.io.best, d.ray_ids[i + PREFETCH])
         ray = d.ray_ids[i]
-        r = d.rays[ray]
+        r = d.io.rays[ray]
         c = classify_ray(d, t, ray, r)
         d.ray_mark[i] = wp.int8(c)  # by position: read in order below
         n_ray[c] = n_ray[c] + 1
@@ -1145,7 +672,7 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
     end = t.tri_start + t.tri_count
     for i in range(t.tri_start, end):
         if i + PREFETCH < end:
-            prefetch_tri(d.tri_lo, d.tri_hi, d.tri_ids[i + PREFETCH])
+            prefetch_tri(d.io.tri_lo, d.io.tri_hi, d.tri_ids[i + PREFETCH])
         tri = d.tri_ids[i]
         c = classify_tri(d, t, tri)
         d.tri_mark[i] = wp.int8(c)
@@ -1158,8 +685,8 @@ def sort_small_task(d: DacrtData, t: DacrtTask, slot: int):
         c = int(d.tri_mark[i])
         d.tri_swap_id[t.tri_start + at3[c]] = tri
         at3[c] = at3[c] + 1
-        lo[c] = min3(lo[c], d.tri_lo[tri])
-        hi[c] = max3(hi[c], d.tri_hi[tri])
+        lo[c] = min3(lo[c], d.io.tri_lo[tri])
+        hi[c] = max3(hi[c], d.io.tri_hi[tri])
     for i in range(t.tri_start, t.tri_start + t.tri_count):
         d.tri_ids[i] = d.tri_swap_id[i]
     for k in range(4):
@@ -1233,7 +760,6 @@ def aabb_result(d: DacrtData, t: DacrtTask) -> DacrtTask:
     t.phase = PH_DONE
     return t
 
-
 # ---------------------------------------------------------------- children (sec. 5.3)
 
 
@@ -1246,7 +772,7 @@ def child_box(d: DacrtData, t: DacrtTask, ray_side: int, tri_side: int) -> wp.ma
         hi[t.axis] = wp.min(hi[t.axis], t.split)
     if ray_side == CLS_RIGHT or tri_side == CLS_RIGHT:
         lo[t.axis] = wp.max(lo[t.axis], t.split)
-    return widen(lo, hi, d.margin)
+    return widen(lo, hi, d.io.margin)
 
 
 @wp.func
@@ -1345,7 +871,6 @@ def spawn_children(d: DacrtData, pool: Pool, t: DacrtTask, slot: int) -> int:
     shared_max(d.counters, C_MAX_DEPTH, depth)
     return keep
 
-
 # ---------------------------------------------------------------- the worker
 
 
@@ -1415,74 +940,93 @@ def start_trace(d: DacrtData, pool: Pool, lo: wp.vec3, hi: wp.vec3, rays: int, t
     pool_publish(pool, slot, wp.max(t.chunks, 1))
 
 
-@wp.kernel
-def prepare_triangles(
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.vec3i),
-    tri_verts: wp.array(dtype=wp.vec3),
-    tri_lo: wp.array(dtype=wp.vec3),
-    tri_hi: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid()
-    f = indices[i]
-    a = vertices[f[0]]
-    b = vertices[f[1]]
-    c = vertices[f[2]]
-    tri_verts[3 * i] = a
-    tri_verts[3 * i + 1] = b
-    tri_verts[3 * i + 2] = c
-    tri_lo[i] = wp.min(wp.min(a, b), c)
-    tri_hi[i] = wp.max(wp.max(a, b), c)
+# ---------------------------------------------------------------- host side
 
 
-@wp.kernel
-def prepare_rays(
-    origins: wp.array(dtype=wp.vec3),
-    directions: wp.array(dtype=wp.vec3),
-    tmin: wp.array(dtype=float),
-    tmax: wp.array(dtype=float),
-    rays: wp.array(dtype=RayRecord),
-):
-    i = wp.tid()
-    d = directions[i]
-    r = RayRecord()
-    r.origin = origins[i]
-    r.tmin = tmin[i]
-    r.inv_dir = wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2])  # +-inf where d == 0
-    r.tmax = tmax[i]
-    rays[i] = r
+def pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, device,
+                info, workers, min_chunks, capacity, max_depth, c_sort, c_inters, min_rays,
+                min_tris, rdh_min_rays, small_items) -> Hits:
+    wp.load_module(dacrt_worker.module, device=device)  # compile time is not trace time
+    t_start = time.perf_counter()
+    mem = DeviceArrays(device)
+    r, m, n = len(origins), len(indices), len(ids)
+    io = rays_and_triangles(mem, vertices, indices, origins, directions, tmin, tmax)
+    io.best = mem.new(max(r, 1), wp.uint64, fill=KEY_NONE)
+    io.margin = margin_for(vertices, origins)
+    d = DacrtData()
+    d.io = io
+    d.ray_ids = mem.new(max(r, 1), int, data=np.arange(max(r, 1), dtype=np.int32))
+    d.tri_ids = mem.new(max(n, 1), int, data=ids if n else np.zeros(1, np.int32))
+    for name, size, dtype in (("ray_cls", r, wp.int8), ("ray_mark", r, wp.int8),
+                              ("ray_scan", r, int), ("ray_swap_id", r, int),
+                              ("ray_swap_pos", r, int), ("tri_cls", m, wp.int8),
+                              ("tri_mark", n, wp.int8), ("tri_scan", n, int),
+                              ("tri_swap_id", n, int), ("tri_swap_pos", n, int),
+                              ("box_lo", n, wp.vec3), ("box_hi", n, wp.vec3)):
+        setattr(d, name, mem.new(max(size, 1), dtype))
+    d.cand = mem.new(capacity * CAND_INTS, wp.int32, fill=0)
+    d.cand_lo = mem.new(capacity * CAND_BOXES, wp.vec3, fill=wp.vec3(np.inf))
+    d.cand_hi = mem.new(capacity * CAND_BOXES, wp.vec3, fill=wp.vec3(-np.inf))
+    d.neg = mem.new(capacity, wp.int32, fill=0)
+    d.tasks = mem.new(capacity, DacrtTask)
+    d.table = mem.new(table.MASKS * table.ROW, wp.int32,
+                      data=table.flat_table())
+    d.counters = mem.new(COUNTERS, wp.int32, fill=0)
+    workers = default_workers(device) if workers is None else max(1, int(workers))
+    d.phase_cycles = mem.new(workers * PHASES, wp.int64, fill=0)
+    d.split_method = SPLITS[split]
+    d.rdh_min_rays = rdh_min_rays
+    if small_items is None:
+        small_items = max(SMALL_ITEMS_CPU, (r + n) // workers) if device.is_cpu else 0
+    d.small_items = small_items
+    d.max_depth = max_depth
+    d.c_inters = c_inters  # sec. 6.2: C_INTERS = 1, C_SORT = 80
+    d.c_sort = c_sort
+    d.min_rays = min_rays  # sec. 6.2: 32 rays, 16 triangles
+    d.min_tris = min_tris
+    pool = make_pool(capacity, workers, min_chunks, device)
+    mem.bytes += 2 * capacity * 4
+    mem.peak = max(mem.peak, mem.bytes)
+    prepare_ms = (time.perf_counter() - t_start) * 1e3
 
+    t0 = time.perf_counter()
+    if r and n:
+        box_lo, box_hi = scene_box(vertices, indices, ids, io.margin)
+        wp.launch(start_trace, dim=1,
+                  inputs=[d, pool, wp.vec3(*box_lo), wp.vec3(*box_hi), r, n], device=device)
+        launch_workers(dacrt_worker, workers, [d, pool], device)
+    counters = d.counters.numpy()
+    if counters[C_OVERFLOW]:
+        raise RuntimeError("a DACRT leaf holds more than 2e9 ray-triangle pairs: the split "
+                           "made no progress; lower max_depth or use variant='breadth_first'")
+    state = check_pool(pool) if r and n else np.zeros(4, np.int32)
+    wp.synchronize_device(device)
+    trace_ms = (time.perf_counter() - t0) * 1e3
 
-@wp.kernel
-def write_hits(
-    tri_verts: wp.array(dtype=wp.vec3),
-    rays: wp.array(dtype=RayRecord),
-    directions: wp.array(dtype=wp.vec3),
-    best: wp.array(dtype=wp.uint64),
-    out_t: wp.array(dtype=float),
-    out_triangle: wp.array(dtype=int),
-    out_u: wp.array(dtype=float),
-    out_v: wp.array(dtype=float),
-):
-    """Unpack the closest hit; t (and u, v) refined in float64 and clamped to the ray's range,
-    as `kernels.trace` does."""
-    i = wp.tid()
-    key = best[i]
-    out_t[i] = INF
-    out_triangle[i] = -1
-    out_u[i] = 0.0
-    out_v[i] = 0.0
-    if key == KEY_NONE:
-        return
-    tri = int(key & wp.uint64(0xFFFFFFFF))
-    rec = rays[i]
-    r = make_ray(rec.origin, directions[i])
-    v0 = tri_verts[3 * tri]
-    v1 = tri_verts[3 * tri + 1]
-    v2 = tri_verts[3 * tri + 2]
-    h = refine_hit(r, v0, v1, v2, rec.tmin, rec.tmax,
-                   intersect_triangle(r, v0, v1, v2, rec.tmin, rec.tmax))
-    out_t[i] = h[0]
-    out_triangle[i] = tri
-    out_u[i] = h[1]
-    out_v[i] = h[2]
+    t0 = time.perf_counter()
+    hits = unpack_hits(mem, io, r)
+    spent = d.phase_cycles.numpy().reshape(workers, PHASES).sum(axis=0).astype(np.float64)
+    share = spent / spent.sum() if spent.sum() > 0 else np.zeros_like(spent)
+    info.update({
+        "variant": "pool",
+        "split": split,
+        "total_ms": (time.perf_counter() - t_start) * 1e3,
+        "prepare_ms": prepare_ms,
+        "trace_ms": trace_ms,
+        "phase_ms": {name: float(trace_ms * s) for name, s in zip(PHASE_NAMES, share,
+                                                                   strict=True)},
+        "peak_bytes": int(mem.peak),
+        "tasks": int(counters[C_TASKS]) + 1,
+        "intersection_tasks": int(counters[C_LEAVES]),
+        "depth": int(counters[C_MAX_DEPTH]),
+        "rays_sorted": int(counters[C_RAYS_SORTED]),
+        "tris_sorted": int(counters[C_TRIS_SORTED]),
+        "pairs": 1000 * int(counters[C_KPAIRS]),
+        "intersection_rays": int(counters[C_VISITS]),
+        "intersection_rays_skipped": int(counters[C_SKIPPED]),
+        "pool_slots_used": int(state[2]),
+        "workers": workers,
+        "small_items": small_items,
+        "degenerate": int(m - n),
+    })
+    return hits

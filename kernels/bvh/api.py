@@ -3,35 +3,32 @@
 from __future__ import annotations
 
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
 import warp as wp
 
-from . import bvh_build as bb
-from .bvh_trace import STACK_SIZE, BvhArrays, trace_kernel
-from .pool import check_pool, cpu_cores, default_workers, launch_workers, make_pool
-from .validate import as_rays, as_triangle_mesh, per_ray
+from ..core.hits import Hits
+from ..core.launch import get_device, host_threads, launch_split, sync_ms, to_device
+from ..core.validate import as_rays, as_triangle_mesh, per_ray
+from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
+from ..pool.worker import launch_workers
+from . import build as bb
+from .build_data import (
+    BIN_SLOTS,
+    CYCLE_ROW,
+    METHOD_MEDIAN,
+    METHOD_SAH,
+    PHASE_NAMES,
+    BuildData,
+    BuildTask,
+)
+from .node import BvhArrays, BvhNode, empty_root, sah_cost
+from .traverse import STACK_SIZE, trace_kernel
 
 Method = Literal["sah", "median"]
-METHODS: dict[str, int] = {"median": int(bb.METHOD_MEDIAN), "sah": int(bb.METHOD_SAH)}
-DEFAULT_MIN_CHUNKS = 14  # K of eq. 3.1 (sec. 3.4)
-PARTS_PER_THREAD = 8  # launch_split: parts per host thread, for load balance
-MIN_PART = 4096  # launch_split: fewest items worth a launch of their own
-
-
-@dataclass
-class Hits:
-    t: np.ndarray  # (R,) float32, inf on a miss
-    triangle: np.ndarray  # (R,) int32, -1 on a miss
-    u: np.ndarray  # (R,) float32 weight of v1
-    v: np.ndarray  # (R,) float32 weight of v2
-
-    @property
-    def hit(self) -> np.ndarray:
-        return self.triangle >= 0
+METHODS: dict[str, int] = {"median": int(METHOD_MEDIAN), "sah": int(METHOD_SAH)}
 
 
 @dataclass
@@ -55,16 +52,6 @@ class Bvh:
         return self.arrays.tri_ids.numpy()
 
 
-def _device(device) -> wp.context.Device:
-    wp.init()
-    return wp.get_device(device)
-
-
-def _sync_ms(device, start: float) -> float:
-    wp.synchronize_device(device)
-    return (time.perf_counter() - start) * 1e3
-
-
 def build_bvh(
     vertices: np.ndarray,
     indices: np.ndarray,
@@ -86,7 +73,7 @@ def build_bvh(
         raise ValueError(f"max_depth must be in 1..{STACK_SIZE}, got {max_depth}")
     if int(min_chunks) < 1:
         raise ValueError(f"min_chunks must be >= 1, got {min_chunks}")
-    device = _device(device)
+    device = get_device(device)
     phase_ms: dict[str, float] = {}
     wp.load_module(bb.build_worker.module, device=device)  # compile time is not build time
     t_total = t0 = time.perf_counter()
@@ -98,7 +85,7 @@ def build_bvh(
     workers = default_workers(device) if workers is None else int(workers)
     v_wp = wp.array(vertices, dtype=wp.vec3, device=device)
     f_wp = wp.array(indices, dtype=wp.vec3i, device=device)
-    b = bb.BuildData()
+    b = BuildData()
     lo, hi = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(2))
     valid = wp.empty(m, dtype=int, device=device)
     inf = np.float32(np.inf)
@@ -123,15 +110,15 @@ def build_bvh(
     b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
         wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
     )
-    bins = (capacity + workers) * bb.BIN_SLOTS  # per slot, then per worker
+    bins = (capacity + workers) * BIN_SLOTS  # per slot, then per worker
     b.bin_count = wp.empty(bins, dtype=int, device=device)
     b.bin_lo, b.bin_hi, b.bin_clo, b.bin_chi = (
         wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(4)
     )
-    b.tasks = wp.empty(capacity, dtype=bb.BuildTask, device=device)
-    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=bb.BvhNode, device=device)
+    b.tasks = wp.empty(capacity, dtype=BuildTask, device=device)
+    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=BvhNode, device=device)
     b.counters = wp.zeros(2, dtype=int, device=device)
-    b.phase_cycles = wp.zeros(workers * bb.CYCLE_ROW, dtype=wp.int64, device=device)
+    b.phase_cycles = wp.zeros(workers * CYCLE_ROW, dtype=wp.int64, device=device)
     b.method = METHODS[method]
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)
@@ -139,7 +126,7 @@ def build_bvh(
     wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, b],
               device=device)
     wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
-    phase_ms["prepare"] = _sync_ms(device, t0)
+    phase_ms["prepare"] = sync_ms(device, t0)
 
     t0 = time.perf_counter()
     if n > 0:
@@ -147,11 +134,11 @@ def build_bvh(
                   inputs=[b, pool, *(wp.vec3(*row) for row in box), n], device=device)
         launch_workers(bb.build_worker, workers, [b, pool], device)
     pool_state = check_pool(pool)
-    build_ms = _sync_ms(device, t0)
-    cycles = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(bb.PHASE_NAMES)]
+    build_ms = sync_ms(device, t0)
+    cycles = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(PHASE_NAMES)]
     cycles = cycles.sum(axis=0).astype(np.float64)
     share = cycles / cycles.sum() if cycles.sum() > 0 else np.zeros_like(cycles)
-    for name, s in zip(bb.PHASE_NAMES, share, strict=True):
+    for name, s in zip(PHASE_NAMES, share, strict=True):
         phase_ms[name] = float(build_ms * s)
 
     t0 = time.perf_counter()
@@ -160,10 +147,10 @@ def build_bvh(
     wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, b.perm, tri_verts],
               device=device)
     arrays = BvhArrays()
-    arrays.nodes = b.nodes if n > 0 else _empty_root(device)
+    arrays.nodes = b.nodes if n > 0 else empty_root(device)
     arrays.tri_verts = tri_verts
     arrays.tri_ids = b.perm if n > 0 else wp.empty(0, dtype=int, device=device)
-    phase_ms["reorder"] = _sync_ms(device, t0)
+    phase_ms["reorder"] = sync_ms(device, t0)
     total_ms = (time.perf_counter() - t_total) * 1e3
 
     bvh = Bvh(vertices=vertices, indices=indices, method=method, leaf_size=int(leaf_size),
@@ -189,53 +176,6 @@ def build_bvh(
         "device": str(device),
     }
     return bvh
-
-
-def degenerate_mask(vertices: np.ndarray, indices: np.ndarray, device=None,
-                    threads: int | None = None) -> np.ndarray:
-    """Zero-area triangles of a validated mesh, as `build_bvh` skips them (the float64 cross
-    product of the float32 edges is exactly zero): a bool mask, computed on every core."""
-    device = _device(device)
-    m = len(indices)
-    flags = np.empty(m, np.int8)
-    out = to_device(flags, wp.int8, device)
-    launch_split(bb.degenerate_flags, m, [to_device(vertices, wp.vec3, device)],
-                 [to_device(np.ascontiguousarray(indices, np.int32), wp.vec3i, device)], [],
-                 [out], device, _threads(device, threads))
-    return (flags if device.is_cpu else out.numpy()).view(bool)
-
-
-def count_degenerate(vertices: np.ndarray, indices: np.ndarray, device=None,
-                     threads: int | None = None) -> int:
-    """How many triangles `degenerate_mask` flags."""
-    return int(np.count_nonzero(degenerate_mask(vertices, indices, device, threads)))
-
-
-def _empty_root(device) -> wp.array:
-    """The BVH of a mesh with no triangles: a root whose box, a point at infinity, no ray
-    enters (an inverted box would look like all of space to the slab test)."""
-    node = np.zeros(1, dtype=bb.BvhNode.numpy_dtype())
-    node["lo"] = np.inf
-    node["hi"] = np.inf
-    return wp.array(node, dtype=bb.BvhNode, device=device)
-
-
-def sah_cost(nodes: np.ndarray) -> float:
-    """SAH cost with traversal and intersection cost 1: sum over nodes of A(node)/A(root)
-    times 1 for inner nodes and times the triangle count for leaves."""
-    raw = np.ascontiguousarray(nodes).view(np.float32).reshape(len(nodes), 8)  # 32-byte rows
-    count = raw.view(np.int32)[:, 7]
-    e = np.maximum(raw[:, 4:7] - raw[:, 0:3], np.float32(0.0))
-    area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]  # float32: a statistic
-    if area[0] <= 0:
-        return float(count[0]) if len(nodes) == 1 else float(len(nodes))
-    return float(np.dot(area.astype(np.float64), np.maximum(count, 1)) / float(area[0]))
-
-
-def _threads(device, threads: int | None) -> int:
-    if not device.is_cpu:
-        return 1
-    return cpu_cores() if threads is None else max(1, int(threads))
 
 
 def trace(
@@ -265,42 +205,7 @@ def trace(
     inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
               to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
     launch_split(trace_kernel, r, [bvh.arrays], inputs, [int(any_hit)], outputs, device,
-                 _threads(device, threads))
+                 host_threads(device, threads))
     if not device.is_cpu:
         t, tri, u, v = (a.numpy() for a in outputs)
     return Hits(t=t, triangle=tri, u=u, v=v)
-
-
-def to_device(a: np.ndarray, dtype, device) -> wp.array:
-    """A Warp view of a contiguous numpy array on CPU (no copy), a copy elsewhere."""
-    return wp.array(a, dtype=dtype, device=device, copy=not device.is_cpu)
-
-
-def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, outputs: list,
-                 device, threads: int) -> None:
-    """Launch `kernel` over n items, split into contiguous parts run by `threads` host
-    threads (only on CPU, where a launch is serial). Arrays in `per_item` and `outputs`
-    of length n are sliced per part; shorter ones (a broadcast scalar) are passed whole."""
-    if n == 0:
-        return
-    # More parts than threads, taken in turn by the pool's threads: camera rays cost very
-    # different amounts in different parts of the image (sky against geometry).
-    parts = min(threads * PARTS_PER_THREAD, max(1, n // MIN_PART)) if threads > 1 else 1
-    if parts <= 1:
-        wp.launch(kernel, dim=n, inputs=[*shared, *per_item, *scalars], outputs=outputs,
-                  device=device)
-        return
-    wp.load_module(kernel.module, device=device)  # compile once, not in every thread
-    bounds = np.linspace(0, n, parts + 1).astype(int)
-
-    def part(x: wp.array, a: int, b: int) -> wp.array:
-        return x[a:b] if x.shape[0] == n else x
-
-    def run(k: int) -> None:
-        a, b = int(bounds[k]), int(bounds[k + 1])
-        wp.launch(kernel, dim=b - a, inputs=[*shared, *(part(x, a, b) for x in per_item),
-                                             *scalars],
-                  outputs=[part(x, a, b) for x in outputs], device=device)
-
-    with ThreadPoolExecutor(threads) as ex:
-        list(ex.map(run, range(parts)))

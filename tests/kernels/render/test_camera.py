@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from kernels.camera import Camera
+from kernels import Camera
 
 # --- helpers -----------------------------------------------------------------------
 

@@ -10,8 +10,8 @@ from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
 import kernels
-from kernels.ao import EFFICIENCY_MIN, Z95, half_width, sampler_efficiency
-from kernels.camera import Camera
+from kernels import Camera
+from kernels.render.ao import EFFICIENCY_MIN, Z95, half_width, sampler_efficiency
 
 SAMPLERS = ("random", "sobol")
 

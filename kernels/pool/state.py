@@ -9,22 +9,25 @@ The application keeps the task data (its own `@wp.struct` array) in the same slo
 `unfinished[slot]` counts the chunks of the current step not yet finished, so the worker that
 brings it to zero is the last finisher and advances the task.
 
-Here a worker is one thread (the paper's warp of 32 threads shares a chunk of 32 items; one
-thread walks the chunk's items instead). A Warp CPU launch is one serial loop and Warp's CPU
-atomics are plain read-modify-writes, so on CPU each core runs its own launch of the worker
-kernel and every access to state shared between workers goes through the `shared_*`
-functions below: real atomics (`__atomic` builtins, sequentially consistent, which also
-order the task data written before a header against the reads after it). On CUDA they are
-CUDA's atomics, and `memory_fence()` orders task data before the header that publishes it.
+Every access to state that workers share goes through the real atomics of `atomics.py`.
 """
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 import warp as wp
+
+from ..core.launch import cpu_cores
+from .atomics import (
+    cpu_relax,
+    cycles,
+    memory_fence,
+    pool_load,
+    shared_add,
+    shared_cas,
+    shared_exch,
+    shared_max,
+)
 
 EMPTY = wp.constant(-(1 << 30))
 # state[] entries
@@ -36,6 +39,7 @@ STAMPS = wp.constant(4)  # publications so far (stamps them; 2^31 per pool is pl
 ERR_OVERFLOW = wp.constant(1)
 ERR_STUCK = wp.constant(2)
 STATE_SIZE = 5
+DEFAULT_MIN_CHUNKS = 14  # K of eq. 3.1 (sec. 3.4)
 
 
 @wp.struct
@@ -56,144 +60,6 @@ class PoolError(RuntimeError):
 
 class PoolOverflow(PoolError):
     """Every slot of the pool was in use (the workers stopped at once)."""
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    __threadfence();
-#endif
-"""
-)
-def memory_fence(): ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    return atomicAdd(&a[i], v);
-#else
-    return __atomic_fetch_add(&a[i], v, __ATOMIC_SEQ_CST);
-#endif
-"""
-)
-def shared_add(a: wp.array(dtype=wp.int32), i: int, v: int) -> int: ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    return atomicExch(&a[i], v);
-#else
-    return __atomic_exchange_n(&a[i], v, __ATOMIC_SEQ_CST);
-#endif
-"""
-)
-def shared_exch(a: wp.array(dtype=wp.int32), i: int, v: int) -> int: ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    return atomicCAS(&a[i], expected, v);
-#else
-    __atomic_compare_exchange_n(&a[i], &expected, v, false, __ATOMIC_SEQ_CST, __ATOMIC_SEQ_CST);
-    return expected;
-#endif
-"""
-)
-def shared_cas(a: wp.array(dtype=wp.int32), i: int, expected: int, v: int) -> int: ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    return atomicMax(&a[i], v);
-#else
-    return __atomic_fetch_max(&a[i], v, __ATOMIC_SEQ_CST);
-#endif
-"""
-)
-def shared_max(a: wp.array(dtype=wp.int32), i: int, v: int) -> int: ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    wp::atomic_min(&a[i], v);
-#else
-    for (int k = 0; k < 3; ++k) {
-        float* p = &a[i].c[k];
-        float old;
-        __atomic_load(p, &old, __ATOMIC_SEQ_CST);
-        while (v.c[k] < old &&
-               !__atomic_compare_exchange(p, &old, &v.c[k], false, __ATOMIC_SEQ_CST,
-                                          __ATOMIC_SEQ_CST)) {}
-    }
-#endif
-"""
-)
-def shared_min_vec3(a: wp.array(dtype=wp.vec3), i: int, v: wp.vec3): ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    wp::atomic_max(&a[i], v);
-#else
-    for (int k = 0; k < 3; ++k) {
-        float* p = &a[i].c[k];
-        float old;
-        __atomic_load(p, &old, __ATOMIC_SEQ_CST);
-        while (v.c[k] > old &&
-               !__atomic_compare_exchange(p, &old, &v.c[k], false, __ATOMIC_SEQ_CST,
-                                          __ATOMIC_SEQ_CST)) {}
-    }
-#endif
-"""
-)
-def shared_max_vec3(a: wp.array(dtype=wp.vec3), i: int, v: wp.vec3): ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    return clock64();
-#else
-    return (int64_t)__builtin_readcyclecounter();
-#endif
-"""
-)
-def cycles() -> wp.int64: ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    return atomicAdd(&a[i], 0);
-#else
-    return __atomic_load_n(&a[i], __ATOMIC_SEQ_CST);
-#endif
-"""
-)
-def pool_load(a: wp.array(dtype=wp.int32), i: int) -> int:
-    """Atomic read: a plain load may be served from a stale cache line or register. (On x86
-    a plain `mov`, so idle workers polling the pool do not take the cache line away.)"""
-    ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    __nanosleep(100);
-#elif defined(__x86_64__)
-    __builtin_ia32_pause();
-#elif defined(__aarch64__)
-    __asm__ __volatile__("yield");
-#endif
-"""
-)
-def cpu_relax(): ...
 
 
 @wp.func
@@ -344,27 +210,7 @@ def check_pool(pool: Pool) -> np.ndarray:
     return state
 
 
-def cpu_cores() -> int:
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-
-
 def default_workers(device) -> int:
     """One worker per core on CPU (each a launch of its own); enough to fill a GPU."""
     device = wp.get_device(device)
     return cpu_cores() if device.is_cpu else 64 * device.sm_count * 4
-
-
-def launch_workers(kernel, workers: int, inputs: list, device) -> None:
-    """Launch a persistent worker kernel whose last argument is the first worker's index:
-    on CPU one launch of one worker per host thread, so the workers run in parallel."""
-    if not wp.get_device(device).is_cpu or workers == 1:
-        wp.launch(kernel, dim=workers, inputs=[*inputs, 0], device=device)
-        return
-    wp.load_module(kernel.module, device=device)
-    with ThreadPoolExecutor(workers) as ex:
-        futures = [
-            ex.submit(wp.launch, kernel, dim=1, inputs=[*inputs, w], device=device)
-            for w in range(workers)
-        ]
-        for f in futures:
-            f.result()

@@ -19,11 +19,12 @@ from __future__ import annotations
 
 import warp as wp
 
-from .chunks import CHUNK, ceil_div, level_base, level_count, level_size
-from .geometry import INF, max3, min3
-from .pool import (
+from ..core.box import INF, longest_axis, max3, min3
+from ..core.triangle import is_degenerate
+from ..pool.atomics import cycles, shared_add, shared_max
+from ..pool.chunks import CHUNK, ceil_div, level_base, level_count, level_size
+from ..pool.state import (
     Pool,
-    cycles,
     pool_acquire,
     pool_alloc,
     pool_finish,
@@ -32,138 +33,34 @@ from .pool import (
     pool_publish,
     pool_release,
     pool_running,
-    shared_add,
-    shared_max,
-    shared_max_vec3,
-    shared_min_vec3,
 )
+from .binned_sah import (
+    bin_of,
+    bin_scale,
+    choose_sah_split,
+    merge_bins,
+    reset_bin,
+    split_plane_chunk,
+)
+from .build_data import (
+    CYCLE_ROW,
+    MAX_DEPTH,
+    METHOD_SAH,
+    NODE_COUNT,
+    PHASE_AABB,
+    PHASE_DONE,
+    PHASE_PPS,
+    PHASE_SPLIT_PLANE,
+    PHASE_SWAP,
+    SMALL_TASK,
+    BuildData,
+    BuildTask,
+    centroid,
+    write_node,
+)
+from .sweep_sah import small_subtree
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
-
-BINS = wp.constant(32)  # SAH candidate planes per axis (sec. 4.1)
-BIN_SLOTS = 32  # bins per pool slot
-BinFloats = wp.types.vector(length=32, dtype=wp.float32)
-
-METHOD_MEDIAN = wp.constant(0)
-METHOD_SAH = wp.constant(1)
-
-PHASE_SPLIT_PLANE = wp.constant(0)
-PHASE_PPS = wp.constant(1)
-PHASE_SWAP = wp.constant(2)
-PHASE_AABB = wp.constant(3)
-PHASE_DONE = wp.constant(4)
-# cycles per phase; "Nodes": writing nodes, storing child tasks and small subtrees
-PHASE_NAMES = ("SplitPlane", "PPS", "Swap", "AABB", "Nodes")
-CYCLE_ROW = wp.constant(8)  # int64 per worker in phase_cycles: a cache line, no false sharing
-
-# counters[]
-NODE_COUNT = wp.constant(0)
-MAX_DEPTH = wp.constant(1)
-
-
-@wp.struct
-class BvhNode:
-    """32 bytes. Inner nodes: children at `first` and `first + 1`, `count` 0."""
-
-    lo: wp.vec3  # 12 bytes
-    first: int  # 4: leaf: first triangle position in leaf order; inner: left child index
-    hi: wp.vec3  # 12
-    count: int  # 4: leaf: triangles (> 0); inner: 0
-
-
-@wp.struct
-class BuildTask:
-    node: int  # the node this task fills
-    start: int  # triangle range [start, start + count) of the index array
-    count: int
-    depth: int
-    phase: int
-    step: int
-    chunks: int  # work chunks of the current step
-    lo: wp.vec3  # node box
-    hi: wp.vec3
-    clo: wp.vec3  # centroid box: the split axis, SAH bins and median plane live in it
-    chi: wp.vec3
-    axis: int
-    split_bin: int  # SAH: bins <= split_bin go left
-    split: float  # median: centroids <= split go left
-    pivot: int  # triangles that go left
-    ones_left: int  # right-marked triangles in [start, start + pivot): what Swap exchanges
-    llo: wp.vec3  # children's boxes and centroid boxes (the latter for median only)
-    lhi: wp.vec3
-    lclo: wp.vec3
-    lchi: wp.vec3
-    rlo: wp.vec3
-    rhi: wp.vec3
-    rclo: wp.vec3
-    rchi: wp.vec3
-
-
-@wp.struct
-class BuildData:
-    perm: wp.array(dtype=int)  # the index array: triangle ids, in leaf order when done
-    tri_lo: wp.array(dtype=wp.vec3)  # each position's triangle box: it moves with `perm`, so
-    tri_hi: wp.array(dtype=wp.vec3)  # every phase reads memory in order (centroid: its middle)
-    swap_id: wp.array(dtype=int)  # Swap's separate index array (with the same payload) ...
-    swap_lo: wp.array(dtype=wp.vec3)
-    swap_hi: wp.array(dtype=wp.vec3)
-    swap_pos: wp.array(dtype=int)  # ... and where each of its entries came from
-    mark: wp.array(dtype=wp.int8)  # 1 = right of the plane, per index-array position
-    scan: wp.array(dtype=int)  # PPS levels, stored inside each task's own range
-    box_lo: wp.array(dtype=wp.vec3)  # AABB levels, likewise
-    box_hi: wp.array(dtype=wp.vec3)
-    cbox_lo: wp.array(dtype=wp.vec3)
-    cbox_hi: wp.array(dtype=wp.vec3)
-    bin_count: wp.array(dtype=int)  # BIN_SLOTS per pool slot, then per worker
-    bin_lo: wp.array(dtype=wp.vec3)  # box of the bin's triangles
-    bin_hi: wp.array(dtype=wp.vec3)
-    bin_clo: wp.array(dtype=wp.vec3)  # box of their centroids
-    bin_chi: wp.array(dtype=wp.vec3)
-    tasks: wp.array(dtype=BuildTask)  # the task data array, one entry per pool slot
-    nodes: wp.array(dtype=BvhNode)
-    counters: wp.array(dtype=int)
-    phase_cycles: wp.array(dtype=wp.int64)  # per worker and phase
-    method: int
-    leaf_size: int
-    max_depth: int
-
-
-# ---------------------------------------------------------------- small helpers
-
-
-@wp.func
-def longest_axis(lo: wp.vec3, hi: wp.vec3) -> int:
-    e = hi - lo
-    axis = int(0)
-    if e[1] > e[axis]:
-        axis = 1
-    if e[2] > e[axis]:
-        axis = 2
-    return axis
-
-
-@wp.func
-def half_area(lo: wp.vec3, hi: wp.vec3) -> float:
-    e = max3(hi - lo, wp.vec3(0.0))
-    return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
-
-
-@wp.func
-def centroid(b: BuildData, i: int) -> wp.vec3:
-    """The centroid of the triangle box at index-array position i (as triangle_boxes has it)."""
-    return 0.5 * (b.tri_lo[i] + b.tri_hi[i])
-
-
-@wp.func
-def bin_scale(t: BuildTask) -> float:
-    """Bins per unit length along the split axis of the task's centroid box."""
-    return float(BINS) / (t.chi[t.axis] - t.clo[t.axis])
-
-
-@wp.func
-def bin_of(c: float, lo: float, scale: float) -> int:
-    """SAH bin of a centroid coordinate: the same float expression in SplitPlane and PPS."""
-    return wp.clamp(int((c - lo) * scale), 0, BINS - 1)
 
 
 @wp.func
@@ -173,271 +70,6 @@ def goes_right(b: BuildData, t: BuildTask, scale: float, i: int) -> bool:
     if b.method == METHOD_SAH:
         return bin_of(c, t.clo[t.axis], scale) > t.split_bin
     return c > t.split
-
-
-# ---------------------------------------------------------------- SplitPlane
-
-
-@wp.func
-def split_plane_chunk(b: BuildData, t: BuildTask, bin_slot: int, chunk: int):
-    """Bin one chunk's triangles into the 32 bins of the split axis (sec. 4.1, SplitPlane),
-    bins that only this worker writes (plain updates). The bins span the centroid box on
-    its longest axis and keep both the triangles' box and their centroids' box, which give
-    the children's boxes and the next level's bins."""
-    first = t.start + chunk * CHUNK
-    last = wp.min(first + CHUNK, t.start + t.count)
-    scale = bin_scale(t)
-    origin = t.clo[t.axis]
-    base = bin_slot * BIN_SLOTS
-    for i in range(first, last):
-        lo = b.tri_lo[i]
-        hi = b.tri_hi[i]
-        c = 0.5 * (lo + hi)
-        k = base + bin_of(c[t.axis], origin, scale)
-        b.bin_count[k] = b.bin_count[k] + 1
-        b.bin_lo[k] = min3(b.bin_lo[k], lo)
-        b.bin_hi[k] = max3(b.bin_hi[k], hi)
-        b.bin_clo[k] = min3(b.bin_clo[k], c)
-        b.bin_chi[k] = max3(b.bin_chi[k], c)
-
-
-@wp.func
-def reset_bin(b: BuildData, k: int):
-    b.bin_count[k] = 0
-    b.bin_lo[k] = wp.vec3(INF)
-    b.bin_hi[k] = wp.vec3(-INF)
-    b.bin_clo[k] = wp.vec3(INF)
-    b.bin_chi[k] = wp.vec3(-INF)
-
-
-@wp.func
-def merge_bins(b: BuildData, from_slot: int, to_slot: int):
-    """Add a worker's private bins to the task's shared ones (atomically: other workers
-    may merge theirs at the same time) and clear them."""
-    src = from_slot * BIN_SLOTS
-    dst = to_slot * BIN_SLOTS
-    for k in range(BIN_SLOTS):
-        n = b.bin_count[src + k]
-        if n > 0:
-            shared_add(b.bin_count, dst + k, n)
-            shared_min_vec3(b.bin_lo, dst + k, b.bin_lo[src + k])
-            shared_max_vec3(b.bin_hi, dst + k, b.bin_hi[src + k])
-            shared_min_vec3(b.bin_clo, dst + k, b.bin_clo[src + k])
-            shared_max_vec3(b.bin_chi, dst + k, b.bin_chi[src + k])
-            reset_bin(b, src + k)
-
-
-@wp.func
-def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
-    """The last finisher of SplitPlane picks the cheapest of the 31 planes with a suffix and
-    a prefix sweep over the bins; the bins give the children's exact boxes and centroid
-    boxes. Leaves the bins cleared for the slot's next task."""
-    best_cost = float(INF)
-    base = slot * BIN_SLOTS
-    right_area = BinFloats()
-    lo = wp.vec3(INF)
-    hi = wp.vec3(-INF)
-    for k in range(BINS - 1, 0, -1):  # right_area[k]: bins k .. BINS-1
-        if b.bin_count[base + k] > 0:
-            lo = min3(lo, b.bin_lo[base + k])
-            hi = max3(hi, b.bin_hi[base + k])
-        right_area[k] = half_area(lo, hi)
-    lo = wp.vec3(INF)
-    hi = wp.vec3(-INF)
-    n_left = int(0)
-    for k in range(BINS - 1):  # the plane between bins k and k + 1
-        n = b.bin_count[base + k]
-        if n > 0:
-            n_left += n
-            lo = min3(lo, b.bin_lo[base + k])
-            hi = max3(hi, b.bin_hi[base + k])
-        n_right = t.count - n_left
-        if n_left > 0 and n_right > 0:
-            cost = float(n_left) * half_area(lo, hi) + float(n_right) * right_area[k + 1]
-            if cost < best_cost:
-                best_cost = cost
-                t.split_bin = k
-                t.pivot = n_left
-    t.llo = wp.vec3(INF)
-    t.lhi = wp.vec3(-INF)
-    t.lclo = wp.vec3(INF)
-    t.lchi = wp.vec3(-INF)
-    t.rlo = wp.vec3(INF)
-    t.rhi = wp.vec3(-INF)
-    t.rclo = wp.vec3(INF)
-    t.rchi = wp.vec3(-INF)
-    for k in range(BINS):
-        i = base + k
-        if b.bin_count[i] > 0:
-            if k <= t.split_bin:
-                t.llo = min3(t.llo, b.bin_lo[i])
-                t.lhi = max3(t.lhi, b.bin_hi[i])
-                t.lclo = min3(t.lclo, b.bin_clo[i])
-                t.lchi = max3(t.lchi, b.bin_chi[i])
-            else:
-                t.rlo = min3(t.rlo, b.bin_lo[i])
-                t.rhi = max3(t.rhi, b.bin_hi[i])
-                t.rclo = min3(t.rclo, b.bin_clo[i])
-                t.rchi = max3(t.rchi, b.bin_chi[i])
-            reset_bin(b, i)
-    if best_cost == INF:
-        t.pivot = -1  # all centroids fell into one bin
-    return t
-
-
-# ---------------------------------------------------------------- small ranges (SAH leaves)
-
-SMALL_TASK = wp.constant(64)  # SAH ranges up to this size are built in one worker
-SmallFloats = wp.types.vector(length=64, dtype=wp.float32)  # per item of a small range
-SmallInts = wp.types.vector(length=64, dtype=wp.int32)  # the small subtree's stack
-
-
-@wp.func
-def write_node(b: BuildData, node: int, lo: wp.vec3, hi: wp.vec3, first: int, count: int):
-    n = BvhNode()
-    n.lo = lo
-    n.hi = hi
-    n.first = first
-    n.count = count
-    b.nodes[node] = n
-
-
-@wp.func
-def write_node_box(b: BuildData, node: int, box: wp.mat33, first: int, count: int):
-    write_node(b, node, box[0], box[1], first, count)
-
-
-@wp.func
-def sort_small(b: BuildData, start: int, count: int, axis: int):
-    """Sort a small range by centroid on `axis`: an insertion sort of (key, position) pairs
-    held locally, then one pass through Swap's arrays (free here: the range is this
-    worker's) to move the items and their boxes."""
-    keys = SmallFloats()
-    order = SmallInts()
-    for i in range(count):
-        key = b.tri_lo[start + i][axis] + b.tri_hi[start + i][axis]
-        j = i
-        while j > 0:
-            if keys[j - 1] <= key:
-                break
-            keys[j] = keys[j - 1]
-            order[j] = order[j - 1]
-            j -= 1
-        keys[j] = key
-        order[j] = start + i
-    for i in range(count):
-        src = order[i]
-        b.swap_id[start + i] = b.perm[src]
-        b.swap_lo[start + i] = b.tri_lo[src]
-        b.swap_hi[start + i] = b.tri_hi[src]
-    for i in range(start, start + count):
-        b.perm[i] = b.swap_id[i]
-        b.tri_lo[i] = b.swap_lo[i]
-        b.tri_hi[i] = b.swap_hi[i]
-
-
-@wp.func
-def small_split(b: BuildData, start: int, count: int, area: float, may_leaf: bool) -> int:
-    """Exact SAH over the count - 1 planes of a sorted small range: the size of the left
-    part, or 0 where a leaf is allowed and cheaper (traversal and intersection cost 1)."""
-    right_area = SmallFloats()
-    lo = wp.vec3(INF)
-    hi = wp.vec3(-INF)
-    for k in range(count - 1, 0, -1):  # right_area[k]: items k .. count - 1
-        lo = min3(lo, b.tri_lo[start + k])
-        hi = max3(hi, b.tri_hi[start + k])
-        right_area[k] = half_area(lo, hi)
-    best = wp.where(may_leaf, area * float(count), INF)
-    best_k = int(0)
-    lo = wp.vec3(INF)
-    hi = wp.vec3(-INF)
-    for k in range(1, count):
-        lo = min3(lo, b.tri_lo[start + k - 1])
-        hi = max3(hi, b.tri_hi[start + k - 1])
-        cost = area + half_area(lo, hi) * float(k) + right_area[k] * float(count - k)
-        if cost < best:
-            best = cost
-            best_k = k
-    return best_k
-
-
-@wp.func
-def range_box(b: BuildData, start: int, count: int) -> wp.mat33:
-    """Rows: the box of a range's triangles and its centroids' extent."""
-    lo = wp.vec3(INF)
-    hi = wp.vec3(-INF)
-    clo = wp.vec3(INF)
-    chi = wp.vec3(-INF)
-    for i in range(start, start + count):
-        lo = min3(lo, b.tri_lo[i])
-        hi = max3(hi, b.tri_hi[i])
-        c = b.tri_lo[i] + b.tri_hi[i]  # twice the centroid: only the longest axis matters
-        clo = min3(clo, c)
-        chi = max3(chi, c)
-    return wp.matrix_from_rows(lo, hi, chi - clo)
-
-
-@wp.func
-def centroid_axis(extent: wp.vec3) -> int:
-    """The longest axis of a centroid box's extent, or -1 where the centroids coincide."""
-    axis = longest_axis(wp.vec3(0.0), extent)
-    return wp.where(extent[axis] > 0.0, axis, -1)
-
-
-@wp.func
-def small_subtree(b: BuildData, node: int, depth: int):
-    """Finish the subtree of a node written as a leaf. SAH: a range of at most SMALL_TASK
-    triangles is built here, in the worker that made it, where the pool's phases would cost
-    more than the work: each node is sorted on its longest centroid axis (unless its parent
-    already sorted it so) and cut at the exact SAH minimum over all count - 1 planes, and
-    becomes a leaf wherever that is cheaper (leaf_size is then a maximum, as in Embree).
-    Median: the node stays a leaf."""
-    if b.method != METHOD_SAH:
-        return
-    n = b.nodes[node]
-    nodes = SmallInts()  # the stack: node, depth, split axis, axis the range is sorted by
-    depths = SmallInts()
-    axes = SmallInts()
-    sorted_by = SmallInts()
-    nodes[0] = node
-    depths[0] = depth
-    axes[0] = centroid_axis(range_box(b, n.first, n.count)[2])
-    sorted_by[0] = -1
-    sp = int(1)
-    deepest = depth
-    while sp > 0:
-        sp -= 1
-        n = b.nodes[nodes[sp]]
-        d = depths[sp]
-        axis = axes[sp]
-        deepest = wp.max(deepest, d)
-        if n.count < 2 or d >= b.max_depth - 1:
-            continue
-        k = n.count / 2  # coincident centroids: halve, as the pool's tasks do
-        if axis >= 0:
-            if sorted_by[sp] != axis:
-                sort_small(b, n.first, n.count, axis)
-            k = small_split(b, n.first, n.count, half_area(n.lo, n.hi),
-                            n.count <= b.leaf_size)
-        elif n.count <= b.leaf_size:
-            k = 0
-        if k == 0:
-            continue
-        left = shared_add(b.counters, NODE_COUNT, 2)
-        write_node(b, nodes[sp], n.lo, n.hi, left, 0)
-        lbox = range_box(b, n.first, k)
-        rbox = range_box(b, n.first + k, n.count - k)
-        write_node_box(b, left, lbox, n.first, k)
-        write_node_box(b, left + 1, rbox, n.first + k, n.count - k)
-        nodes[sp] = left
-        axes[sp] = centroid_axis(lbox[2])
-        nodes[sp + 1] = left + 1
-        axes[sp + 1] = centroid_axis(rbox[2])
-        for c in range(2):
-            depths[sp + c] = d + 1
-            sorted_by[sp + c] = axis
-        sp += 2
-    shared_max(b.counters, MAX_DEPTH, deepest)
 
 
 # ---------------------------------------------------------------- PPS
@@ -883,25 +515,6 @@ def start_build(b: BuildData, pool: Pool, root_lo: wp.vec3, root_hi: wp.vec3,
 @wp.kernel
 def reset_bins(b: BuildData):
     reset_bin(b, wp.tid())
-
-
-@wp.func
-def is_degenerate(a: wp.vec3, b: wp.vec3, c: wp.vec3) -> bool:
-    """Zero area: the float64 cross product of the float32 edges is exactly zero."""
-    a64 = wp.vec3d(wp.float64(a[0]), wp.float64(a[1]), wp.float64(a[2]))
-    e1 = wp.vec3d(wp.float64(b[0]), wp.float64(b[1]), wp.float64(b[2])) - a64
-    e2 = wp.vec3d(wp.float64(c[0]), wp.float64(c[1]), wp.float64(c[2])) - a64
-    n = wp.cross(e1, e2)
-    zero = wp.float64(0.0)
-    return n[0] == zero and n[1] == zero and n[2] == zero
-
-
-@wp.kernel
-def degenerate_flags(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
-                     out: wp.array(dtype=wp.int8)):
-    f = indices[wp.tid()]
-    out[wp.tid()] = wp.int8(wp.where(is_degenerate(vertices[f[0]], vertices[f[1]],
-                                                   vertices[f[2]]), 1, 0))
 
 
 @wp.kernel

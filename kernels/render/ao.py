@@ -38,12 +38,14 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from .api import Bvh, _threads, launch_split
-from .bvh_trace import BvhArrays, closest_hit, traverse
-from .dacrt_api import dacrt_trace
-from .geometry import make_ray
+from ..bvh.api import Bvh
+from ..bvh.node import BvhArrays
+from ..bvh.traverse import closest_hit, traverse
+from ..core.launch import host_threads, launch_split
+from ..core.ray import make_ray
+from ..core.validate import as_rays, per_ray
+from ..dacrt.api import dacrt_trace
 from .sampling import SAMPLERS, cosine_direction, pixel_key
-from .validate import as_rays, per_ray
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
@@ -276,7 +278,7 @@ def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.
                     for x, dt in ((origins, wp.vec3), (directions, wp.vec3),
                                   (tmin_a, float), (tmax_a, float))]
         launch_split(primary_kernel, m, [bvh.arrays, verts, tris], per_item, [],
-                     [pts, nrm, hit], device, _threads(device, threads))
+                     [pts, nrm, hit], device, host_threads(device, threads))
     keep = np.flatnonzero(hit.numpy())
     sel = wp.array(keep.astype(np.int32), dtype=int, device=device)
     return PrimaryHits(
@@ -380,7 +382,7 @@ def render_ao(
     r = len(origins)
     dist = default_distance(bvh) if distance is None else float(distance)
     device = bvh.device
-    nthreads = _threads(device, threads)
+    nthreads = host_threads(device, threads)
     last = [0.0]
 
     def report(fraction: float, phase: str) -> None:

@@ -10,7 +10,13 @@ from embreex.mesh_construction import TriangleMesh
 
 import kernels
 
-from .reference import axis_aligned_cube_rays, brute_force, random_rays, random_soup
+from ..reference import (
+    assert_same_hits,
+    axis_aligned_cube_rays,
+    brute_force,
+    random_rays,
+    random_soup,
+)
 
 
 def embree_closest(vertices, indices, origins, directions):
@@ -20,18 +26,6 @@ def embree_closest(vertices, indices, origins, directions):
     tri = res["primID"].astype(np.int64)
     t = np.where(tri >= 0, res["tfar"], np.inf).astype(np.float32)
     return t, tri
-
-
-def assert_same_hits(hits, ref_t, ref_tri, rel=1e-6):
-    """Hit/miss identical; t within `rel`; a different triangle only where t is equal."""
-    ours = hits.triangle >= 0
-    theirs = ref_tri >= 0
-    assert np.array_equal(ours, theirs), f"{int((ours != theirs).sum())} hit/miss mismatches"
-    both = ours & theirs
-    err = np.abs(hits.t[both] - ref_t[both]) / np.maximum(np.abs(ref_t[both]), 1e-30)
-    assert err.max(initial=0) <= rel, f"t differs by {err.max():.3g} relative"
-    other = both & (hits.triangle != ref_tri)
-    assert np.all(np.abs(hits.t[other] - ref_t[other]) <= rel * np.abs(ref_t[other]))
 
 
 @pytest.mark.parametrize("method", ["sah", "median"])

@@ -7,7 +7,7 @@ import pytest
 import warp as wp
 
 import kernels
-from kernels.pool import (
+from kernels.pool.state import (
     Pool,
     PoolError,
     check_pool,
@@ -23,7 +23,7 @@ from kernels.pool import (
     pool_wait,
 )
 
-from .reference import random_soup
+from ..reference import random_soup
 
 
 @wp.kernel
