@@ -13,15 +13,15 @@ from ..core.hits import Hits
 from ..core.launch import get_device, host_threads, launch_split, sync_ms, to_device
 from ..core.validate import as_rays, as_triangle_mesh, per_ray
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
-from ..pool.worker import launch_workers
+from ..pool.worker import CYCLE_ROW, launch_workers
 from . import build as bb
 from .build_data import (
-    BIN_SLOTS,
-    CYCLE_ROW,
+    BINS,
     METHOD_MEDIAN,
     METHOD_SAH,
     PHASE_NAMES,
     BuildData,
+    BuildItem,
     BuildTask,
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
@@ -100,17 +100,13 @@ def build_bvh(
     box = bounds.numpy()
 
     capacity = pool_capacity or (256 * workers if device.is_cpu else max(4096, 2 * n // leaf_size))
-    b.perm, b.swap_id, b.swap_pos, b.scan = (
-        wp.empty(max(n, 1), dtype=int, device=device) for _ in range(4)
-    )
-    b.tri_lo, b.tri_hi, b.swap_lo, b.swap_hi = (
-        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
-    )
+    b.items, b.spare = (wp.empty(max(n, 1), dtype=BuildItem, device=device) for _ in range(2))
+    b.spare_pos, b.scan = (wp.empty(max(n, 1), dtype=int, device=device) for _ in range(2))
     b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
     b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
         wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
     )
-    bins = (capacity + workers) * BIN_SLOTS  # per slot, then per worker
+    bins = (capacity + workers) * int(BINS)  # per slot, then per worker
     b.bin_count = wp.empty(bins, dtype=int, device=device)
     b.bin_lo, b.bin_hi, b.bin_clo, b.bin_chi = (
         wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(4)
@@ -135,21 +131,22 @@ def build_bvh(
         launch_workers(bb.build_worker, workers, [b, pool], device)
     pool_state = check_pool(pool)
     build_ms = sync_ms(device, t0)
-    cycles = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(PHASE_NAMES)]
-    cycles = cycles.sum(axis=0).astype(np.float64)
-    share = cycles / cycles.sum() if cycles.sum() > 0 else np.zeros_like(cycles)
+    spent = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(PHASE_NAMES)]
+    spent = spent.sum(axis=0).astype(np.float64)
+    share = spent / spent.sum() if spent.sum() > 0 else np.zeros_like(spent)
     for name, s in zip(PHASE_NAMES, share, strict=True):
         phase_ms[name] = float(build_ms * s)
 
     t0 = time.perf_counter()
     node_count, depth = (int(x) for x in b.counters.numpy())
     tri_verts = wp.empty(max(3 * n, 1), dtype=wp.vec3, device=device)
-    wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, b.perm, tri_verts],
+    tri_ids = wp.empty(n, dtype=int, device=device)
+    wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, b.items, tri_ids, tri_verts],
               device=device)
     arrays = BvhArrays()
     arrays.nodes = b.nodes if n > 0 else empty_root(device)
     arrays.tri_verts = tri_verts
-    arrays.tri_ids = b.perm if n > 0 else wp.empty(0, dtype=int, device=device)
+    arrays.tri_ids = tri_ids
     phase_ms["reorder"] = sync_ms(device, t0)
     total_ms = (time.perf_counter() - t_total) * 1e3
 

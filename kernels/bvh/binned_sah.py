@@ -12,7 +12,7 @@ import warp as wp
 from ..core.box import INF, half_area, max3, min3
 from ..pool.atomics import shared_add, shared_max_vec3, shared_min_vec3
 from ..pool.chunks import CHUNK
-from .build_data import BIN_SLOTS, BINS, BinFloats, BuildData, BuildTask
+from .build_data import BINS, BinFloats, BuildData, BuildTask
 
 
 @wp.func
@@ -37,10 +37,11 @@ def split_plane_chunk(b: BuildData, t: BuildTask, bin_slot: int, chunk: int):
     last = wp.min(first + CHUNK, t.start + t.count)
     scale = bin_scale(t)
     origin = t.clo[t.axis]
-    base = bin_slot * BIN_SLOTS
+    base = bin_slot * BINS
     for i in range(first, last):
-        lo = b.tri_lo[i]
-        hi = b.tri_hi[i]
+        it = b.items[i]
+        lo = it.lo
+        hi = it.hi
         c = 0.5 * (lo + hi)
         k = base + bin_of(c[t.axis], origin, scale)
         b.bin_count[k] = b.bin_count[k] + 1
@@ -63,9 +64,9 @@ def reset_bin(b: BuildData, k: int):
 def merge_bins(b: BuildData, from_slot: int, to_slot: int):
     """Add a worker's private bins to the task's shared ones (atomically: other workers
     may merge theirs at the same time) and clear them."""
-    src = from_slot * BIN_SLOTS
-    dst = to_slot * BIN_SLOTS
-    for k in range(BIN_SLOTS):
+    src = from_slot * BINS
+    dst = to_slot * BINS
+    for k in range(BINS):
         n = b.bin_count[src + k]
         if n > 0:
             shared_add(b.bin_count, dst + k, n)
@@ -82,7 +83,7 @@ def choose_sah_split(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
     a prefix sweep over the bins; the bins give the children's exact boxes and centroid
     boxes. Leaves the bins cleared for the slot's next task."""
     best_cost = float(INF)
-    base = slot * BIN_SLOTS
+    base = slot * BINS
     right_area = BinFloats()
     lo = wp.vec3(INF)
     hi = wp.vec3(-INF)

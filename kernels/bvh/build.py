@@ -13,27 +13,37 @@ worker that finished the previous step (sec. 3.4). A split that leaves one side 
 (coincident centroids) falls back to halving the range, and takes its boxes from AABB.
 SAH nodes of at most SMALL_TASK triangles are not tasks: the worker that makes one builds
 its subtree in place with exact SAH sweeps (small_subtree), leaves where they are cheaper.
+
+The worker loop is the pool's (`pool.worker`); PPS, Swap and AABB are the pool's chunk
+phases (`pool.phases`) over the task's index range, with level 1 of PPS (the marks) and of
+AABB (the boxes of the items) here.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from ..core.box import INF, longest_axis, max3, min3
+from ..core.box import INF, max3, median_plane, min3
 from ..core.triangle import is_degenerate
-from ..pool.atomics import cycles, shared_add, shared_max
-from ..pool.chunks import CHUNK, ceil_div, level_base, level_count, level_size
-from ..pool.state import (
-    Pool,
-    pool_acquire,
-    pool_alloc,
-    pool_finish,
-    pool_hand_over,
-    pool_idle,
-    pool_publish,
-    pool_release,
-    pool_running,
+from ..pool.atomics import shared_add, shared_max
+from ..pool.chunks import CHUNK, ceil_div, level_count
+from ..pool.phases import (
+    aabb_chunks,
+    ones_before,
+    pps_chunks,
+    pps_count,
+    pps_down_chunk,
+    pps_total,
+    pps_up_chunk,
+    reduce_boxes,
+    reduced_box,
+    store_box,
+    swap_chunks,
+    swap_exchange_chunk,
+    swap_gather_chunk,
 )
+from ..pool.state import Pool, pool_alloc, pool_publish, pool_release
+from ..pool.worker import Application, make_worker
 from .binned_sah import (
     bin_of,
     bin_scale,
@@ -43,7 +53,6 @@ from .binned_sah import (
     split_plane_chunk,
 )
 from .build_data import (
-    CYCLE_ROW,
     MAX_DEPTH,
     METHOD_SAH,
     NODE_COUNT,
@@ -54,6 +63,7 @@ from .build_data import (
     PHASE_SWAP,
     SMALL_TASK,
     BuildData,
+    BuildItem,
     BuildTask,
     centroid,
     write_node,
@@ -66,123 +76,54 @@ wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 @wp.func
 def goes_right(b: BuildData, t: BuildTask, scale: float, i: int) -> bool:
     """Marked 1 in PPS: right of the SAH plane (`scale` from bin_scale) or the median."""
-    c = 0.5 * (b.tri_lo[i][t.axis] + b.tri_hi[i][t.axis])
+    it = b.items[i]
+    c = 0.5 * (it.lo[t.axis] + it.hi[t.axis])
     if b.method == METHOD_SAH:
         return bin_of(c, t.clo[t.axis], scale) > t.split_bin
     return c > t.split
 
 
-# ---------------------------------------------------------------- PPS
-
-
 @wp.func
-def pps_up_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
-    """Up-sweep: level 1 marks a chunk's triangles and counts the right ones; higher levels sum
-    CHUNK values of the level below."""
-    dst = level_base(t.start, t.count, level) + chunk
+def mark_chunk(b: BuildData, t: BuildTask, chunk: int):
+    """PPS, level 1: mark a chunk's triangles right of the plane (1) or not, and count them."""
+    first = t.start + chunk * CHUNK
+    scale = float(0.0)
+    if b.method == METHOD_SAH:
+        scale = bin_scale(t)
     total = int(0)
-    if level == 1:
-        first = t.start + chunk * CHUNK
-        last = wp.min(first + CHUNK, t.start + t.count)
-        scale = float(0.0)
-        if b.method == METHOD_SAH:
-            scale = bin_scale(t)
-        for i in range(first, last):
-            right = int(0)
-            if goes_right(b, t, scale, i):
-                right = 1
-            b.mark[i] = wp.int8(right)
-            total += right
-    else:
-        src = level_base(t.start, t.count, level - 1)
-        n = level_size(t.count, level - 1)
-        first = chunk * CHUNK
-        last = wp.min(first + CHUNK, n)
-        for i in range(first, last):
-            total += b.scan[src + i]
-    b.scan[dst] = total
+    for i in range(first, wp.min(first + CHUNK, t.start + t.count)):
+        right = int(0)
+        if goes_right(b, t, scale, i):
+            right = 1
+        b.mark[i] = wp.int8(right)
+        total += right
+    pps_count(b.scan, t.start, chunk, total)
 
 
 @wp.func
-def pps_down_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
-    """Down-sweep: turn CHUNK sums of `level` into exclusive prefix sums, starting from the
-    offset that the level above now holds for this group."""
-    src = level_base(t.start, t.count, level)
-    n = level_size(t.count, level)
-    running = b.scan[level_base(t.start, t.count, level + 1) + chunk]
-    first = chunk * CHUNK
-    last = wp.min(first + CHUNK, n)
-    for i in range(first, last):
-        x = b.scan[src + i]
-        b.scan[src + i] = running
-        running += x
-
-
-@wp.func
-def ones_before(b: BuildData, t: BuildTask, local: int) -> int:
-    """Right-marked triangles before local position `local`, from the PPS result."""
-    c = local / CHUNK
-    ones = int(0)
-    if c < level_size(t.count, 1):
-        ones = b.scan[t.start + c]
-    for i in range(t.start + c * CHUNK, t.start + local):
-        ones += int(b.mark[i])
-    return ones
-
-
-# ---------------------------------------------------------------- Swap
-
-
-@wp.func
-def swap_gather_chunk(b: BuildData, t: BuildTask, chunk: int):
-    """Swap, step 1: left-marked triangles right of the pivot go to the separate index array,
-    ranked among themselves."""
-    c = t.pivot / CHUNK + chunk
-    ones = b.scan[t.start + c]
-    zeros_left = t.pivot - t.ones_left
-    first = c * CHUNK
-    last = wp.min(first + CHUNK, t.count)
-    for k in range(first, last):
-        if b.mark[t.start + k] != wp.int8(0):
-            ones += 1
-        elif k >= t.pivot:
-            r = t.start + (k - ones) - zeros_left
-            i = t.start + k
-            b.swap_id[r] = b.perm[i]
-            b.swap_lo[r] = b.tri_lo[i]
-            b.swap_hi[r] = b.tri_hi[i]
-            b.swap_pos[r] = i
-
-
-@wp.func
-def swap_exchange_chunk(b: BuildData, t: BuildTask, chunk: int):
-    """Swap, step 2: the r-th right-marked triangle left of the pivot trades places with the
-    r-th entry of the separate index array."""
-    ones = b.scan[t.start + chunk]
-    first = chunk * CHUNK
-    last = wp.min(first + CHUNK, t.pivot)
-    for k in range(first, last):
-        if b.mark[t.start + k] != wp.int8(0):
-            i = t.start + k
-            r = t.start + ones
-            j = b.swap_pos[r]
-            b.perm[j] = b.perm[i]
-            b.tri_lo[j] = b.tri_lo[i]
-            b.tri_hi[j] = b.tri_hi[i]
-            b.perm[i] = b.swap_id[r]
-            b.tri_lo[i] = b.swap_lo[r]
-            b.tri_hi[i] = b.swap_hi[r]
-            ones += 1
-
-
-# ---------------------------------------------------------------- AABB
+def box_chunk(b: BuildData, base: int, n: int, chunk: int):
+    """AABB, level 1: the box and centroid box of a chunk of one half's triangles."""
+    lo = wp.vec3(INF)
+    hi = wp.vec3(-INF)
+    clo = wp.vec3(INF)
+    chi = wp.vec3(-INF)
+    first = base + chunk * CHUNK
+    for i in range(first, wp.min(first + CHUNK, base + n)):
+        it = b.items[i]
+        c = centroid(it)
+        lo = min3(lo, it.lo)
+        hi = max3(hi, it.hi)
+        clo = min3(clo, c)
+        chi = max3(chi, c)
+    store_box(b.box_lo, b.box_hi, base, n, 1, chunk, lo, hi)
+    store_box(b.cbox_lo, b.cbox_hi, base, n, 1, chunk, clo, chi)
 
 
 @wp.func
 def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
-    """Reduction of boxes over the two halves [0, pivot) and [pivot, count) separately; chunks
-    of the left half come first."""
-    n_left_chunks = segment_chunks(t.pivot, level)
+    """Reduction of boxes over the two halves [0, pivot) and [pivot, count) separately (two
+    segments); chunks of the left half come first."""
+    n_left_chunks = aabb_chunks(t.pivot, level)
     base = t.start
     n = t.pivot
     c = chunk
@@ -190,41 +131,11 @@ def aabb_chunk(b: BuildData, t: BuildTask, level: int, chunk: int):
         base = t.start + t.pivot
         n = t.count - t.pivot
         c = chunk - n_left_chunks
-    lo = wp.vec3(INF)
-    hi = wp.vec3(-INF)
-    clo = wp.vec3(INF)
-    chi = wp.vec3(-INF)
     if level == 1:
-        first = base + c * CHUNK
-        last = wp.min(first + CHUNK, base + n)
-        for i in range(first, last):
-            lo = min3(lo, b.tri_lo[i])
-            hi = max3(hi, b.tri_hi[i])
-            clo = min3(clo, centroid(b, i))
-            chi = max3(chi, centroid(b, i))
+        box_chunk(b, base, n, c)
     else:
-        src = level_base(base, n, level - 1)
-        first = src + c * CHUNK
-        last = wp.min(first + CHUNK, src + level_size(n, level - 1))
-        for i in range(first, last):
-            lo = min3(lo, b.box_lo[i])
-            hi = max3(hi, b.box_hi[i])
-            clo = min3(clo, b.cbox_lo[i])
-            chi = max3(chi, b.cbox_hi[i])
-    dst = level_base(base, n, level) + c
-    b.box_lo[dst] = lo
-    b.box_hi[dst] = hi
-    b.cbox_lo[dst] = clo
-    b.cbox_hi[dst] = chi
-
-
-@wp.func
-def segment_chunks(n: int, level: int) -> int:
-    """AABB chunks of one half at `level`: none once that half is reduced to one box (its
-    range has room for its own levels only)."""
-    if level > level_count(n):
-        return 0
-    return level_size(n, level)
+        reduce_boxes(b.box_lo, b.box_hi, base, n, level, c)
+        reduce_boxes(b.cbox_lo, b.cbox_hi, base, n, level, c)
 
 
 @wp.func
@@ -234,17 +145,19 @@ def aabb_levels(t: BuildTask) -> int:
 
 @wp.func
 def aabb_result(b: BuildData, t: BuildTask) -> BuildTask:
-    left = level_base(t.start, t.pivot, level_count(t.pivot))
     n_right = t.count - t.pivot
-    right = level_base(t.start + t.pivot, n_right, level_count(n_right))
-    t.llo = b.box_lo[left]
-    t.lhi = b.box_hi[left]
-    t.lclo = b.cbox_lo[left]
-    t.lchi = b.cbox_hi[left]
-    t.rlo = b.box_lo[right]
-    t.rhi = b.box_hi[right]
-    t.rclo = b.cbox_lo[right]
-    t.rchi = b.cbox_hi[right]
+    box = reduced_box(b.box_lo, b.box_hi, t.start, t.pivot)
+    cbox = reduced_box(b.cbox_lo, b.cbox_hi, t.start, t.pivot)
+    t.llo = box[0]
+    t.lhi = box[1]
+    t.lclo = cbox[0]
+    t.lchi = cbox[1]
+    box = reduced_box(b.box_lo, b.box_hi, t.start + t.pivot, n_right)
+    cbox = reduced_box(b.cbox_lo, b.cbox_hi, t.start + t.pivot, n_right)
+    t.rlo = box[0]
+    t.rhi = box[1]
+    t.rclo = cbox[0]
+    t.rchi = cbox[1]
     return t
 
 
@@ -263,17 +176,12 @@ def step_chunks(t: BuildTask) -> int:
         return ceil_div(t.count, CHUNK)
     if t.phase == PHASE_PPS:
         levels = pps_levels(t)
-        if t.step < levels:  # up-sweep to level step + 1
-            return level_size(t.count, t.step + 1)
-        level = 2 * levels - 1 - t.step  # down-sweep of level `level`
-        return level_size(t.count, level + 1)
+        return pps_chunks(t.count, levels, levels, t.step)
     if t.phase == PHASE_SWAP:
-        if t.step == 0:
-            return ceil_div(t.count, CHUNK) - t.pivot / CHUNK
-        return ceil_div(t.pivot, CHUNK)
+        return swap_chunks(t.count, t.pivot, t.step)
     if t.phase == PHASE_AABB:
         level = t.step + 1
-        return segment_chunks(t.pivot, level) + segment_chunks(t.count - t.pivot, level)
+        return aabb_chunks(t.pivot, level) + aabb_chunks(t.count - t.pivot, level)
     return 0
 
 
@@ -283,17 +191,69 @@ def run_chunk(b: BuildData, t: BuildTask, slot: int, chunk: int):
         split_plane_chunk(b, t, slot, chunk)
     elif t.phase == PHASE_PPS:
         levels = pps_levels(t)
-        if t.step < levels:
-            pps_up_chunk(b, t, t.step + 1, chunk)
+        if t.step == 0:
+            mark_chunk(b, t, chunk)
+        elif t.step < levels:
+            pps_up_chunk(b.scan, t.start, t.count, t.step + 1, chunk)
         else:
-            pps_down_chunk(b, t, 2 * levels - 1 - t.step, chunk)
+            pps_down_chunk(b.scan, t.start, t.count, 2 * levels - 1 - t.step, chunk)
     elif t.phase == PHASE_SWAP:
         if t.step == 0:
-            swap_gather_chunk(b, t, chunk)
+            swap_gather_chunk(b.items, b.spare, b.spare_pos, b.mark, b.scan, t.start, t.count,
+                              t.pivot, t.ones_left, chunk)
         else:
-            swap_exchange_chunk(b, t, chunk)
+            swap_exchange_chunk(b.items, b.spare, b.spare_pos, b.mark, b.scan, t.start,
+                                t.pivot, chunk)
     elif t.phase == PHASE_AABB:
         aabb_chunk(b, t, t.step + 1, chunk)
+
+
+@wp.func
+def run_chunks(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask, first: int,
+               count: int):
+    """Chunks of a step (the worker's `run_chunks`). A SplitPlane step shared with other
+    workers is binned into this worker's own bins first and merged once (sec. 4.1)."""
+    if t.phase == PHASE_SPLIT_PLANE and count < t.chunks:
+        own = pool.capacity + worker
+        for c in range(first, first + count):
+            split_plane_chunk(b, t, own, c)
+        merge_bins(b, own, slot)
+    else:
+        for c in range(first, first + count):
+            run_chunk(b, t, slot, c)
+
+
+@wp.func
+def complete_step(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
+    """The last finisher interprets the step's results and moves the task on (the worker's
+    `complete_step`)."""
+    if t.phase == PHASE_SPLIT_PLANE:
+        t = choose_sah_split(b, t, slot)
+        if t.pivot < 0:
+            return halve(t)
+        return enter(t, PHASE_PPS)
+    if t.phase == PHASE_PPS:
+        levels = pps_levels(t)
+        if t.step == levels - 1:  # the top holds the number of right triangles
+            t.pivot = t.count - pps_total(b.scan, t.start, t.count)
+            if t.pivot == 0 or t.pivot == t.count:
+                return halve(t)
+        if t.step == 2 * levels - 2:  # level 1 now holds each chunk's exclusive offset
+            t.ones_left = ones_before(b.scan, b.mark, t.start, t.count, t.pivot)
+            return enter(t, PHASE_SWAP)
+    elif t.phase == PHASE_SWAP:
+        if t.step == 1:
+            if b.method == METHOD_SAH:
+                t.phase = PHASE_DONE
+                return t
+            return enter(t, PHASE_AABB)
+    elif t.phase == PHASE_AABB and t.step == aabb_levels(t) - 1:
+        t = aabb_result(b, t)
+        t.phase = PHASE_DONE
+        return t
+    t.step += 1
+    t.chunks = step_chunks(t)
+    return t
 
 
 @wp.func
@@ -309,40 +269,6 @@ def halve(t: BuildTask) -> BuildTask:
     """No plane separates the centroids: split the range in two and compute the boxes."""
     t.pivot = t.count / 2
     return enter(t, PHASE_AABB)
-
-
-@wp.func
-def complete_step(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
-    """The last finisher interprets the step's results and moves the task on."""
-    if t.phase == PHASE_SPLIT_PLANE:
-        t = choose_sah_split(b, t, slot)
-        if t.pivot < 0:
-            return halve(t)
-        return enter(t, PHASE_PPS)
-    if t.phase == PHASE_PPS:
-        levels = pps_levels(t)
-        if t.step == levels - 1:  # the top holds the number of right triangles
-            top = level_base(t.start, t.count, levels)
-            t.pivot = t.count - b.scan[top]
-            if t.pivot == 0 or t.pivot == t.count:
-                return halve(t)
-            b.scan[top] = 0
-        if t.step == 2 * levels - 2:  # level 1 now holds each chunk's exclusive offset
-            t.ones_left = ones_before(b, t, t.pivot)
-            return enter(t, PHASE_SWAP)
-    elif t.phase == PHASE_SWAP:
-        if t.step == 1:
-            if b.method == METHOD_SAH:
-                t.phase = PHASE_DONE
-                return t
-            return enter(t, PHASE_AABB)
-    elif t.phase == PHASE_AABB and t.step == aabb_levels(t) - 1:
-        t = aabb_result(b, t)
-        t.phase = PHASE_DONE
-        return t
-    t.step += 1
-    t.chunks = step_chunks(t)
-    return t
 
 
 @wp.func
@@ -362,12 +288,13 @@ def new_task(
     t.chi = chi
     t.pivot = 0
     t.ones_left = 0
-    t.axis = longest_axis(clo, chi)
+    plane = median_plane(clo, chi)  # the longest axis of the centroid box, and its middle
+    t.axis = int(plane[0])
     if b.method == METHOD_SAH:
         if chi[t.axis] <= clo[t.axis]:
             return halve(t)  # coincident centroids: no plane separates them
         return enter(t, PHASE_SPLIT_PLANE)
-    t.split = 0.5 * (clo[t.axis] + chi[t.axis])
+    t.split = plane[1]
     if not (t.split >= clo[t.axis] and t.split < chi[t.axis]):
         return halve(t)  # coincident centroids, or a midpoint that rounds onto the upper end
     return enter(t, PHASE_PPS)
@@ -428,73 +355,9 @@ def split_node(b: BuildData, pool: Pool, t: BuildTask, slot: int) -> int:
     return keep
 
 
-@wp.func
-def add_cycles(b: BuildData, worker: int, phase: int, since: wp.int64):
-    i = worker * CYCLE_ROW + phase
-    b.phase_cycles[i] = b.phase_cycles[i] + (cycles() - since)
-
-
-@wp.func
-def advance(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask):
-    """Run steps inline while they have fewer than K chunks (sec. 3.4), finishing tasks and
-    continuing with a child; publish the first step that is big enough for the pool."""
-    s = slot
-    task = t
-    while True:
-        phase = task.phase
-        since = cycles()
-        task = complete_step(b, task, s)
-        add_cycles(b, worker, phase, since)
-        if task.phase == PHASE_DONE:
-            since = cycles()
-            next_slot = split_node(b, pool, task, s)
-            add_cycles(b, worker, PHASE_DONE, since)
-            if next_slot < 0:
-                return
-            s = next_slot
-            task = b.tasks[s]
-        if task.chunks >= pool.min_chunks:
-            b.tasks[s] = task
-            pool_hand_over(pool, s, task.chunks)
-            return
-        since = cycles()
-        for c in range(task.chunks):
-            run_chunk(b, task, s, c)
-        add_cycles(b, worker, task.phase, since)
-
-
-@wp.func
-def run_chunks(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask, first: int,
-               count: int):
-    """Acquired chunks of a pool step. A SplitPlane step shared with other workers is
-    binned into this worker's own bins first and merged once (sec. 4.1)."""
-    since = cycles()
-    if t.phase == PHASE_SPLIT_PLANE and count < t.chunks:
-        own = pool.capacity + worker
-        for c in range(first, first + count):
-            split_plane_chunk(b, t, own, c)
-        merge_bins(b, own, slot)
-    else:
-        for c in range(first, first + count):
-            run_chunk(b, t, slot, c)
-    add_cycles(b, worker, t.phase, since)
-
-
-@wp.kernel
-def build_worker(b: BuildData, pool: Pool, first_worker: int):
-    """The persistent worker of Algorithm 1."""
-    worker = first_worker + wp.tid()
-    idle_since = wp.int64(-1)
-    while pool_running(pool):
-        got = pool_acquire(pool)
-        slot = got[0]
-        if slot < 0:
-            idle_since = pool_idle(pool, idle_since)
-            continue
-        idle_since = wp.int64(-1)
-        run_chunks(b, pool, worker, slot, b.tasks[slot], got[1], got[2])
-        if pool_finish(pool, slot, got[2]):
-            advance(b, pool, worker, slot, b.tasks[slot])
+build_worker = make_worker(Application(
+    data=BuildData, task=BuildTask, run_chunks=run_chunks, complete_step=complete_step,
+    finish_task=split_node, done=PHASE_DONE, module=__name__, name="build"))
 
 
 @wp.kernel
@@ -559,22 +422,27 @@ def compact_valid(
     """The initial index array: the valid triangles in order, with their boxes."""
     i = wp.tid()
     if valid[i] != 0:
-        k = offsets[i]
-        b.perm[k] = i
-        b.tri_lo[k] = lo[i]
-        b.tri_hi[k] = hi[i]
+        it = BuildItem()
+        it.lo = lo[i]
+        it.tri = i
+        it.hi = hi[i]
+        b.items[offsets[i]] = it
 
 
 @wp.kernel
 def gather_leaf_triangles(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
-    perm: wp.array(dtype=int),
+    items: wp.array(dtype=BuildItem),
+    tri_ids: wp.array(dtype=int),
     tri_verts: wp.array(dtype=wp.vec3),
 ):
-    """Triangles in leaf order, three vertices each, so a leaf reads one contiguous block."""
+    """Triangles in leaf order: the caller's index of each, and three vertices each, so a
+    leaf reads one contiguous block."""
     i = wp.tid()
-    f = indices[perm[i]]
+    tri = items[i].tri
+    tri_ids[i] = tri
+    f = indices[tri]
     tri_verts[3 * i] = vertices[f[0]]
     tri_verts[3 * i + 1] = vertices[f[1]]
     tri_verts[3 * i + 2] = vertices[f[2]]

@@ -1,8 +1,8 @@
 """The BVH build's task record and data arrays (2012 paper, sec. 4), shared by its phases.
 
-One `BuildTask` per pool slot; `BuildData` holds the index array with each position's
-triangle box (moved with it, so every phase reads memory in order), the arrays of the PPS,
-Swap and AABB phases, the SAH bins and the nodes.
+One `BuildTask` per pool slot; `BuildData` holds the index array of `BuildItem`s (each
+position's triangle with its box), the arrays of the PPS, Swap and AABB phases, the SAH bins
+and the nodes.
 """
 
 from __future__ import annotations
@@ -11,9 +11,8 @@ import warp as wp
 
 from .node import BvhNode
 
-BINS = wp.constant(32)  # SAH candidate planes per axis (sec. 4.1)
-BIN_SLOTS = 32  # bins per pool slot
-BinFloats = wp.types.vector(length=32, dtype=wp.float32)
+BINS = wp.constant(32)  # SAH bins on the split axis (sec. 4.1), per pool slot and worker
+BinFloats = wp.types.vector(length=BINS, dtype=wp.float32)  # a value per bin
 
 METHOD_MEDIAN = wp.constant(0)
 METHOD_SAH = wp.constant(1)
@@ -25,15 +24,14 @@ PHASE_AABB = wp.constant(3)
 PHASE_DONE = wp.constant(4)
 # cycles per phase; "Nodes": writing nodes, storing child tasks and small subtrees
 PHASE_NAMES = ("SplitPlane", "PPS", "Swap", "AABB", "Nodes")
-CYCLE_ROW = wp.constant(8)  # int64 per worker in phase_cycles: a cache line, no false sharing
 
 # counters[]
 NODE_COUNT = wp.constant(0)
 MAX_DEPTH = wp.constant(1)
 
 SMALL_TASK = wp.constant(64)  # SAH ranges up to this size are built in one worker
-SmallFloats = wp.types.vector(length=64, dtype=wp.float32)  # per item of a small range
-SmallInts = wp.types.vector(length=64, dtype=wp.int32)  # the small subtree's stack
+SmallFloats = wp.types.vector(length=SMALL_TASK, dtype=wp.float32)  # per item of a range
+SmallInts = wp.types.vector(length=SMALL_TASK, dtype=wp.int32)  # the small subtree's stack
 
 
 @wp.struct
@@ -65,21 +63,27 @@ class BuildTask:
 
 
 @wp.struct
+class BuildItem:
+    """A position of the index array: a triangle and its box, which move together, so that
+    every phase reads memory in order (the centroid is the box's middle). 28 bytes."""
+
+    lo: wp.vec3
+    tri: int  # the caller's triangle index
+    hi: wp.vec3
+
+
+@wp.struct
 class BuildData:
-    perm: wp.array(dtype=int)  # the index array: triangle ids, in leaf order when done
-    tri_lo: wp.array(dtype=wp.vec3)  # each position's triangle box: it moves with `perm`, so
-    tri_hi: wp.array(dtype=wp.vec3)  # every phase reads memory in order (centroid: its middle)
-    swap_id: wp.array(dtype=int)  # Swap's separate index array (with the same payload) ...
-    swap_lo: wp.array(dtype=wp.vec3)
-    swap_hi: wp.array(dtype=wp.vec3)
-    swap_pos: wp.array(dtype=int)  # ... and where each of its entries came from
+    items: wp.array(dtype=BuildItem)  # the index array, in leaf order when done
+    spare: wp.array(dtype=BuildItem)  # Swap's separate index array ...
+    spare_pos: wp.array(dtype=int)  # ... and where each of its entries came from
     mark: wp.array(dtype=wp.int8)  # 1 = right of the plane, per index-array position
     scan: wp.array(dtype=int)  # PPS levels, stored inside each task's own range
     box_lo: wp.array(dtype=wp.vec3)  # AABB levels, likewise
     box_hi: wp.array(dtype=wp.vec3)
-    cbox_lo: wp.array(dtype=wp.vec3)
+    cbox_lo: wp.array(dtype=wp.vec3)  # ... and of the centroids' boxes
     cbox_hi: wp.array(dtype=wp.vec3)
-    bin_count: wp.array(dtype=int)  # BIN_SLOTS per pool slot, then per worker
+    bin_count: wp.array(dtype=int)  # BINS per pool slot, then per worker
     bin_lo: wp.array(dtype=wp.vec3)  # box of the bin's triangles
     bin_hi: wp.array(dtype=wp.vec3)
     bin_clo: wp.array(dtype=wp.vec3)  # box of their centroids
@@ -87,16 +91,16 @@ class BuildData:
     tasks: wp.array(dtype=BuildTask)  # the task data array, one entry per pool slot
     nodes: wp.array(dtype=BvhNode)
     counters: wp.array(dtype=int)
-    phase_cycles: wp.array(dtype=wp.int64)  # per worker and phase
+    phase_cycles: wp.array(dtype=wp.int64)  # per worker and phase (pool.worker.CYCLE_ROW)
     method: int
     leaf_size: int
     max_depth: int
 
 
 @wp.func
-def centroid(b: BuildData, i: int) -> wp.vec3:
-    """The centroid of the triangle box at index-array position i (as triangle_boxes has it)."""
-    return 0.5 * (b.tri_lo[i] + b.tri_hi[i])
+def centroid(it: BuildItem) -> wp.vec3:
+    """The centroid of an item's triangle box (as triangle_boxes computes it)."""
+    return 0.5 * (it.lo + it.hi)
 
 
 @wp.func

@@ -25,12 +25,13 @@ from .build_data import (
 @wp.func
 def sort_small(b: BuildData, start: int, count: int, axis: int):
     """Sort a small range by centroid on `axis`: an insertion sort of (key, position) pairs
-    held locally, then one pass through Swap's arrays (free here: the range is this
-    worker's) to move the items and their boxes."""
+    held locally, then one pass through Swap's spare array (free here: the range is this
+    worker's) to move the items."""
     keys = SmallFloats()
     order = SmallInts()
     for i in range(count):
-        key = b.tri_lo[start + i][axis] + b.tri_hi[start + i][axis]
+        it = b.items[start + i]
+        key = it.lo[axis] + it.hi[axis]
         j = i
         while j > 0:
             if keys[j - 1] <= key:
@@ -42,13 +43,9 @@ def sort_small(b: BuildData, start: int, count: int, axis: int):
         order[j] = start + i
     for i in range(count):
         src = order[i]
-        b.swap_id[start + i] = b.perm[src]
-        b.swap_lo[start + i] = b.tri_lo[src]
-        b.swap_hi[start + i] = b.tri_hi[src]
+        b.spare[start + i] = b.items[src]
     for i in range(start, start + count):
-        b.perm[i] = b.swap_id[i]
-        b.tri_lo[i] = b.swap_lo[i]
-        b.tri_hi[i] = b.swap_hi[i]
+        b.items[i] = b.spare[i]
 
 
 @wp.func
@@ -59,16 +56,18 @@ def small_split(b: BuildData, start: int, count: int, area: float, may_leaf: boo
     lo = wp.vec3(INF)
     hi = wp.vec3(-INF)
     for k in range(count - 1, 0, -1):  # right_area[k]: items k .. count - 1
-        lo = min3(lo, b.tri_lo[start + k])
-        hi = max3(hi, b.tri_hi[start + k])
+        it = b.items[start + k]
+        lo = min3(lo, it.lo)
+        hi = max3(hi, it.hi)
         right_area[k] = half_area(lo, hi)
     best = wp.where(may_leaf, area * float(count), INF)
     best_k = int(0)
     lo = wp.vec3(INF)
     hi = wp.vec3(-INF)
     for k in range(1, count):
-        lo = min3(lo, b.tri_lo[start + k - 1])
-        hi = max3(hi, b.tri_hi[start + k - 1])
+        it = b.items[start + k - 1]
+        lo = min3(lo, it.lo)
+        hi = max3(hi, it.hi)
         cost = area + half_area(lo, hi) * float(k) + right_area[k] * float(count - k)
         if cost < best:
             best = cost
@@ -84,9 +83,10 @@ def range_box(b: BuildData, start: int, count: int) -> wp.mat33:
     clo = wp.vec3(INF)
     chi = wp.vec3(-INF)
     for i in range(start, start + count):
-        lo = min3(lo, b.tri_lo[i])
-        hi = max3(hi, b.tri_hi[i])
-        c = b.tri_lo[i] + b.tri_hi[i]  # twice the centroid: only the longest axis matters
+        it = b.items[i]
+        lo = min3(lo, it.lo)
+        hi = max3(hi, it.hi)
+        c = it.lo + it.hi  # twice the centroid: only the longest axis matters
         clo = min3(clo, c)
         chi = max3(chi, c)
     return wp.matrix_from_rows(lo, hi, chi - clo)

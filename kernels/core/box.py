@@ -1,4 +1,6 @@
-"""Axis-aligned boxes: componentwise bounds, surface area, the longest axis.
+"""Axis-aligned boxes: componentwise bounds, surface area, the longest axis and the spatial
+median plane that halves it (the split of the 2012 paper's median builder and DACRT, and
+of the 2013 paper).
 
 Boxes are (lo, hi) pairs of `wp.vec3`; an empty box is (+inf, -inf), which every min/max
 update fixes at its first point.
@@ -41,3 +43,10 @@ def longest_axis(lo: wp.vec3, hi: wp.vec3) -> int:
 def half_area(lo: wp.vec3, hi: wp.vec3) -> float:
     e = max3(hi - lo, wp.vec3(0.0))
     return e[0] * e[1] + e[1] * e[2] + e[2] * e[0]
+
+
+@wp.func
+def median_plane(lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
+    """(axis, position) of the spatial median: the middle of the box's longest axis."""
+    axis = longest_axis(lo, hi)
+    return wp.vec2(float(axis), 0.5 * (lo[axis] + hi[axis]))

@@ -24,7 +24,7 @@ import numpy as np
 import warp as wp
 from warp.utils import array_scan, radix_sort_pairs, runlength_encode
 
-from ..core.box import INF
+from ..core.box import INF, median_plane
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
 from ..core.ray import make_ray
@@ -95,14 +95,9 @@ def mark_node_starts(starts: wp.array(dtype=int), flags: wp.array(dtype=int)):
 def split_level(lv: Level):
     """Midpoint of the largest extent (sec. 2)."""
     k = wp.tid()
-    e = lv.hi[k] - lv.lo[k]
-    axis = int(0)
-    if e[1] > e[axis]:
-        axis = 1
-    if e[2] > e[axis]:
-        axis = 2
-    lv.axis[k] = axis
-    lv.split[k] = 0.5 * (lv.lo[k][axis] + lv.hi[k][axis])
+    plane = median_plane(lv.lo[k], lv.hi[k])
+    lv.axis[k] = int(plane[0])
+    lv.split[k] = plane[1]
 
 
 @wp.func

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from ..core.box import INF
+from ..core.box import INF, median_plane
 from ..pool.atomics import shared_add, shared_max_vec3, shared_min_vec3
 from ..pool.chunks import CHUNK
 from .classify import CLS_LEFT, CLS_RIGHT, ray_span, side_of, widen, widened_range
@@ -20,18 +20,6 @@ from .task import CAND_BOXES, CAND_INTS, CANDIDATES, MEDIAN_TRUST, PLANES, Dacrt
 
 HASH_M1 = wp.constant(wp.uint32(0x7FEB352D))  # hash32's multipliers
 HASH_M2 = wp.constant(wp.uint32(0x846CA68B))
-
-
-@wp.func
-def median_plane(lo: wp.vec3, hi: wp.vec3) -> wp.vec2:
-    """(axis, position): the middle of the box's longest axis."""
-    e = hi - lo
-    axis = int(0)
-    if e[1] > e[axis]:
-        axis = 1
-    if e[2] > e[axis]:
-        axis = 2
-    return wp.vec2(float(axis), 0.5 * (lo[axis] + hi[axis]))
 
 
 @wp.func

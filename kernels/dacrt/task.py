@@ -26,9 +26,9 @@ PH_SWAP2 = wp.constant(4)
 PH_AABB = wp.constant(5)
 PH_INTERSECT = wp.constant(6)
 PH_SORT = wp.constant(7)  # PPS1 to AABB of a small task in one worker (sort_small_task)
-PH_DONE = wp.constant(8)
-PHASE_NAMES = ("SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2", "AABB", "Intersect", "Sort")
-PHASES = wp.constant(8)
+PH_DONE = wp.constant(8)  # finished: its cycles are those of storing children (sec. 5.3)
+PHASE_NAMES = ("SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2", "AABB", "Intersect", "Sort",
+               "Children")
 
 
 # segment roles
@@ -126,7 +126,7 @@ class DacrtData:
     tasks: wp.array(dtype=DacrtTask)
     table: wp.array(dtype=wp.int32)  # dacrt_table.flat_table()
     counters: wp.array(dtype=wp.int32)
-    phase_cycles: wp.array(dtype=wp.int64)  # PHASES per worker
+    phase_cycles: wp.array(dtype=wp.int64)  # per worker and phase (pool.worker.CYCLE_ROW)
     split_method: int
     rdh_min_rays: int  # tasks with fewer rays take the median (cheaper than sampling)
     max_depth: int

@@ -23,30 +23,40 @@ import time
 import numpy as np
 import warp as wp
 
-from ..core.box import INF, max3, min3
+from ..core.box import INF, max3, median_plane, min3
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle
-from ..pool.atomics import cycles, shared_add, shared_max
-from ..pool.chunks import CHUNK, ceil_div, level_base, level_count, level_size
+from ..pool.atomics import shared_add, shared_max
+from ..pool.chunks import CHUNK, ceil_div, level_count
+from ..pool.phases import (
+    aabb_chunks,
+    ones_before,
+    pps_chunks,
+    pps_count,
+    pps_down_chunk,
+    pps_total,
+    pps_up_chunk,
+    reduce_boxes,
+    reduced_box,
+    store_box,
+    swap_chunks,
+    swap_exchange_chunk,
+    swap_gather_chunk,
+)
 from ..pool.state import (
     Pool,
     check_pool,
     default_workers,
     make_pool,
-    pool_acquire,
     pool_alloc,
-    pool_finish,
-    pool_hand_over,
-    pool_idle,
     pool_publish,
     pool_release,
     pool_resolve,
-    pool_running,
     pool_wait,
 )
-from ..pool.worker import launch_workers
+from ..pool.worker import CYCLE_ROW, Application, launch_workers, make_worker
 from . import table
 from .classify import (
     CLS_CLIPPED,
@@ -59,7 +69,7 @@ from .classify import (
     widen,
     widened_range,
 )
-from .rdh import choose_rdh_split, median_plane, rdh_children, sample_counts, split_plane_chunk
+from .rdh import choose_rdh_split, rdh_children, sample_counts, split_plane_chunk
 from .records import (
     KEY_NONE,
     RayRecord,
@@ -95,7 +105,6 @@ from .task import (
     PH_SWAP1,
     PH_SWAP2,
     PHASE_NAMES,
-    PHASES,
     RAY_INTERVAL,
     ROLE_BOX,
     ROLE_RAYS,
@@ -168,36 +177,8 @@ def classify_ray(d: DacrtData, t: DacrtTask, ray: int, r: RayRecord) -> int:
 def classify_tri(d: DacrtData, t: DacrtTask, tri: int) -> int:
     return side_of(wp.vec2(d.io.tri_lo[tri][t.axis], d.io.tri_hi[tri][t.axis]), t.split, 0.0)
 
+
 # ---------------------------------------------------------------- segment storage
-
-
-@wp.func
-def get_id(d: DacrtData, is_tri: int, i: int) -> int:
-    if is_tri != 0:
-        return d.tri_ids[i]
-    return d.ray_ids[i]
-
-
-@wp.func
-def get_mark(d: DacrtData, is_tri: int, i: int) -> int:
-    if is_tri != 0:
-        return int(d.tri_mark[i])
-    return int(d.ray_mark[i])
-
-
-@wp.func
-def get_scan(d: DacrtData, is_tri: int, i: int) -> int:
-    if is_tri != 0:
-        return d.tri_scan[i]
-    return d.ray_scan[i]
-
-
-@wp.func
-def set_scan(d: DacrtData, is_tri: int, i: int, x: int):
-    if is_tri != 0:
-        d.tri_scan[i] = x
-    else:
-        d.ray_scan[i] = x
 
 
 @wp.func
@@ -252,162 +233,128 @@ def segment_levels(t: DacrtTask) -> int:
         levels = wp.max(levels, level_count(t.seg.size[k]))
     return levels
 
-# ---------------------------------------------------------------- PPS1 / PPS2
+
+# ---------------------------------------------------------------- PPS1 / PPS2 / Swap / AABB
 
 
 @wp.func
-def pps_chunks(n: int, levels: int, top: int, step: int) -> int:
-    """Chunks of one segment (with `levels` of its own, `top` the most of any segment) at
-    this step: up-sweep at steps < levels, down-sweep aligned to end together."""
-    if step < levels:
-        return level_size(n, step + 1)
-    if step >= top:
-        level = 2 * top - 1 - step
-        if level <= levels - 1:
-            return level_size(n, level + 1)
-    return 0
+def mark_chunk(d: DacrtData, t: DacrtTask, slot: int, k: int, chunk: int):
+    """PPS level 1 of segment k (sec. 5.2, PPS1 and PPS2: the 32-ary PPS of sec. 4.1): mark
+    and count a chunk's items by the segment's role; straddling rays heading to -axis are
+    counted per slot (they decide which side is near)."""
+    base = t.seg.start[k]
+    first = base + chunk * CHUNK
+    total = int(0)
+    neg = int(0)
+    for i in range(first, wp.min(first + CHUNK, base + t.seg.size[k])):
+        code = mark_item(d, t, t.seg.role[k], i)
+        total += code & 1
+        neg += code >> 1
+    if neg > 0:  # one atomic per chunk, not per ray
+        shared_add(d.neg, slot, neg)
+    if t.seg.is_tri[k] != 0:
+        pps_count(d.tri_scan, base, chunk, total)
+    else:
+        pps_count(d.ray_scan, base, chunk, total)
 
 
 @wp.func
 def pps_chunk(d: DacrtData, t: DacrtTask, slot: int, k: int, chunk: int):
-    """One chunk of segment k (sec. 5.2, PPS1 and PPS2: the 32-ary PPS of sec. 4.1):
-    up-sweep (level 1 marks and counts) or down-sweep."""
-    is_tri = t.seg.is_tri[k]
+    """One PPS chunk of segment k: level 1 marks, then the pool's up-sweep and down-sweep on
+    the segment's scan array."""
     base = t.seg.start[k]
     n = t.seg.size[k]
     levels = level_count(n)
-    top = segment_levels(t)
-    if t.step < levels:
-        level = t.step + 1
-        total = int(0)
-        if level == 1:
-            first = base + chunk * CHUNK
-            neg = int(0)
-            for i in range(first, wp.min(first + CHUNK, base + n)):
-                code = mark_item(d, t, t.seg.role[k], i)
-                total += code & 1
-                neg += code >> 1
-            if neg > 0:  # one atomic per chunk, not per ray
-                shared_add(d.neg, slot, neg)
+    if t.step == 0:
+        mark_chunk(d, t, slot, k, chunk)
+    elif t.step < levels:
+        if t.seg.is_tri[k] != 0:
+            pps_up_chunk(d.tri_scan, base, n, t.step + 1, chunk)
         else:
-            src = level_base(base, n, level - 1)
-            m = level_size(n, level - 1)
-            for i in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, m)):
-                total += get_scan(d, is_tri, src + i)
-        set_scan(d, is_tri, level_base(base, n, level) + chunk, total)
+            pps_up_chunk(d.ray_scan, base, n, t.step + 1, chunk)
     else:
-        level = 2 * top - 1 - t.step
-        src = level_base(base, n, level)
-        m = level_size(n, level)
-        running = get_scan(d, is_tri, level_base(base, n, level + 1) + chunk)
-        for i in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, m)):
-            x = get_scan(d, is_tri, src + i)
-            set_scan(d, is_tri, src + i, running)
-            running += x
-
-
-@wp.func
-def ones_before(d: DacrtData, is_tri: int, base: int, n: int, local: int) -> int:
-    """Marked items before local position `local` of a segment, from the PPS result."""
-    c = local / CHUNK
-    ones = int(0)
-    if c < ceil_div(n, CHUNK):
-        ones = get_scan(d, is_tri, base + c)
-    for i in range(base + c * CHUNK, base + local):
-        ones += get_mark(d, is_tri, i)
-    return ones
+        level = 2 * segment_levels(t) - 1 - t.step
+        if t.seg.is_tri[k] != 0:
+            pps_down_chunk(d.tri_scan, base, n, level, chunk)
+        else:
+            pps_down_chunk(d.ray_scan, base, n, level, chunk)
 
 
 @wp.func
 def pps_top(d: DacrtData, t: DacrtTask) -> DacrtTask:
-    """After the up-sweep: each segment's pivot; its top becomes the 0 offset."""
+    """After the up-sweep: each segment's pivot (its unmarked items)."""
     for k in range(t.seg.count):
         n = t.seg.size[k]
-        top = level_base(t.seg.start[k], n, level_count(n))
-        t.seg.pivot[k] = n - get_scan(d, t.seg.is_tri[k], top)
-        set_scan(d, t.seg.is_tri[k], top, 0)
+        if t.seg.is_tri[k] != 0:
+            t.seg.pivot[k] = n - pps_total(d.tri_scan, t.seg.start[k], n)
+        else:
+            t.seg.pivot[k] = n - pps_total(d.ray_scan, t.seg.start[k], n)
     return t
-
-# ---------------------------------------------------------------- Swap1 / Swap2
 
 
 @wp.func
-def swap_chunks(t: DacrtTask, k: int) -> int:
-    n = t.seg.size[k]
-    if t.step == 0:
-        return ceil_div(n, CHUNK) - t.seg.pivot[k] / CHUNK
-    return ceil_div(t.seg.pivot[k], CHUNK)
+def pps_end(d: DacrtData, t: DacrtTask) -> DacrtTask:
+    """After the down-sweep: each segment's marked items in front of its pivot."""
+    for k in range(t.seg.count):
+        base = t.seg.start[k]
+        n = t.seg.size[k]
+        if t.seg.is_tri[k] != 0:
+            t.seg.ones_left[k] = ones_before(d.tri_scan, d.tri_mark, base, n, t.seg.pivot[k])
+        else:
+            t.seg.ones_left[k] = ones_before(d.ray_scan, d.ray_mark, base, n, t.seg.pivot[k])
+    return t
 
 
 @wp.func
 def swap_chunk(d: DacrtData, t: DacrtTask, k: int, chunk: int):
-    """Step 0 gathers the unmarked items behind the pivot into the separate index array,
-    step 1 trades them for the marked items in front of it (as Swap of sec. 4.1)."""
-    is_tri = t.seg.is_tri[k]
+    """One Swap chunk of segment k (the pool's Swap, on the ray or triangle ids)."""
     base = t.seg.start[k]
+    n = t.seg.size[k]
     pivot = t.seg.pivot[k]
-    if t.step == 0:
-        c = pivot / CHUNK + chunk
-        ones = get_scan(d, is_tri, base + c)
-        zeros_left = pivot - t.seg.ones_left[k]
-        for j in range(c * CHUNK, wp.min(c * CHUNK + CHUNK, t.seg.size[k])):
-            if get_mark(d, is_tri, base + j) != 0:
-                ones += 1
-            elif j >= pivot:
-                r = base + (j - ones) - zeros_left
-                if is_tri != 0:
-                    d.tri_swap_id[r] = d.tri_ids[base + j]
-                    d.tri_swap_pos[r] = base + j
-                else:
-                    d.ray_swap_id[r] = d.ray_ids[base + j]
-                    d.ray_swap_pos[r] = base + j
+    if t.seg.is_tri[k] != 0:
+        if t.step == 0:
+            swap_gather_chunk(d.tri_ids, d.tri_swap_id, d.tri_swap_pos, d.tri_mark, d.tri_scan,
+                              base, n, pivot, t.seg.ones_left[k], chunk)
+        else:
+            swap_exchange_chunk(d.tri_ids, d.tri_swap_id, d.tri_swap_pos, d.tri_mark,
+                                d.tri_scan, base, pivot, chunk)
+    elif t.step == 0:
+        swap_gather_chunk(d.ray_ids, d.ray_swap_id, d.ray_swap_pos, d.ray_mark, d.ray_scan,
+                          base, n, pivot, t.seg.ones_left[k], chunk)
     else:
-        ones = get_scan(d, is_tri, base + chunk)
-        for j in range(chunk * CHUNK, wp.min(chunk * CHUNK + CHUNK, pivot)):
-            if get_mark(d, is_tri, base + j) != 0:
-                item = get_id(d, is_tri, base + j)
-                if is_tri != 0:
-                    d.tri_ids[base + j] = d.tri_swap_id[base + ones]
-                    d.tri_ids[d.tri_swap_pos[base + ones]] = item
-                else:
-                    d.ray_ids[base + j] = d.ray_swap_id[base + ones]
-                    d.ray_ids[d.ray_swap_pos[base + ones]] = item
-                ones += 1
-
-# ---------------------------------------------------------------- AABB
+        swap_exchange_chunk(d.ray_ids, d.ray_swap_id, d.ray_swap_pos, d.ray_mark, d.ray_scan,
+                            base, pivot, chunk)
 
 
 @wp.func
 def aabb_chunk(d: DacrtData, t: DacrtTask, k: int, chunk: int):
-    """Box reduction of one triangle interval, one level per step (sec. 5.2, AABB)."""
+    """Box reduction of triangle interval k, one level per step (sec. 5.2, AABB): level 1
+    from the triangles' boxes, above it the pool's reduction."""
     base = t.seg.start[k]
     n = t.seg.size[k]
-    level = t.step + 1
+    if t.step > 0:
+        reduce_boxes(d.box_lo, d.box_hi, base, n, t.step + 1, chunk)
+        return
     lo = wp.vec3(INF)
     hi = wp.vec3(-INF)
-    if level == 1:
-        first = base + chunk * CHUNK
-        for i in range(first, wp.min(first + CHUNK, base + n)):
-            tri = d.tri_ids[i]
-            lo = min3(lo, d.io.tri_lo[tri])
-            hi = max3(hi, d.io.tri_hi[tri])
-    else:
-        src = level_base(base, n, level - 1)
-        first = src + chunk * CHUNK
-        for i in range(first, wp.min(first + CHUNK, src + level_size(n, level - 1))):
-            lo = min3(lo, d.box_lo[i])
-            hi = max3(hi, d.box_hi[i])
-    dst = level_base(base, n, level) + chunk
-    d.box_lo[dst] = lo
-    d.box_hi[dst] = hi
+    first = base + chunk * CHUNK
+    for i in range(first, wp.min(first + CHUNK, base + n)):
+        tri = d.tri_ids[i]
+        lo = min3(lo, d.io.tri_lo[tri])
+        hi = max3(hi, d.io.tri_hi[tri])
+    store_box(d.box_lo, d.box_hi, base, n, 1, chunk, lo, hi)
 
 
 @wp.func
-def aabb_chunks(t: DacrtTask, k: int) -> int:
+def segment_chunks(t: DacrtTask, k: int, top: int) -> int:
+    """Chunks of segment k at the task's step (`top`: segment_levels(t))."""
     n = t.seg.size[k]
-    if t.step < level_count(n):
-        return level_size(n, t.step + 1)
-    return 0
+    if t.phase == PH_PPS1 or t.phase == PH_PPS2:
+        return pps_chunks(n, level_count(n), top, t.step)
+    if t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
+        return swap_chunks(n, t.seg.pivot[k], t.step)
+    return aabb_chunks(n, t.step + 1)
+
 
 # ---------------------------------------------------------------- steps and tasks
 
@@ -424,12 +371,7 @@ def step_chunks(d: DacrtData, t: DacrtTask) -> int:
     total = int(0)
     top = segment_levels(t)
     for k in range(t.seg.count):
-        if t.phase == PH_PPS1 or t.phase == PH_PPS2:
-            total += pps_chunks(t.seg.size[k], level_count(t.seg.size[k]), top, t.step)
-        elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
-            total += swap_chunks(t, k)
-        elif t.phase == PH_AABB:
-            total += aabb_chunks(t, k)
+        total += segment_chunks(t, k, top)
     return total
 
 
@@ -473,9 +415,10 @@ def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
 
 
 @wp.func(inline=False)  # inlined into both callers, the worker's PPS and Swap ran ~2x slower
-def run_chunks(d: DacrtData, t: DacrtTask, slot: int, first: int, count: int):
-    """Chunks first.. of the task's step. One call per batch, as the call copies the
-    structs."""
+def run_chunks(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask, first: int,
+               count: int):
+    """Chunks first.. of the task's step (the worker's `run_chunks`). One call per batch, as
+    the call copies the structs."""
     if t.phase == PH_INTERSECT:
         intersect_chunks(d, t, first, count)
         return
@@ -489,13 +432,7 @@ def run_chunks(d: DacrtData, t: DacrtTask, slot: int, first: int, count: int):
             c = chunk
             top = segment_levels(t)
             for k in range(t.seg.count):
-                n = int(0)
-                if t.phase == PH_PPS1 or t.phase == PH_PPS2:
-                    n = pps_chunks(t.seg.size[k], level_count(t.seg.size[k]), top, t.step)
-                elif t.phase == PH_SWAP1 or t.phase == PH_SWAP2:
-                    n = swap_chunks(t, k)
-                else:
-                    n = aabb_chunks(t, k)
+                n = segment_chunks(t, k, top)
                 if c >= 0 and c < n:
                     if t.phase == PH_PPS1 or t.phase == PH_PPS2:
                         pps_chunk(d, t, slot, k, c)
@@ -575,7 +512,8 @@ def new_task(d: DacrtData, ray_start: int, ray_count: int, tri_start: int, tri_c
 
 @wp.func
 def complete_step(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
-    """The last finisher interprets the step's results and moves the task on."""
+    """The last finisher interprets the step's results and moves the task on (the worker's
+    `complete_step`)."""
     if t.phase == PH_INTERSECT:
         t.phase = PH_DONE
         return t
@@ -590,10 +528,7 @@ def complete_step(d: DacrtData, t: DacrtTask, slot: int) -> DacrtTask:
         if t.step == top - 1:
             t = pps_top(d, t)
         if t.step == 2 * top - 2:
-            for k in range(t.seg.count):
-                t.seg.ones_left[k] = ones_before(d, t.seg.is_tri[k], t.seg.start[k],
-                                                 t.seg.size[k], t.seg.pivot[k])
-            return enter(d, t, t.phase + 1)
+            return enter(d, pps_end(d, t), t.phase + 1)
     elif t.phase == PH_SWAP1 and t.step == 1:
         return enter_pps2(d, t)
     elif t.phase == PH_SWAP2 and t.step == 1:
@@ -752,13 +687,13 @@ def aabb_result(d: DacrtData, t: DacrtTask) -> DacrtTask:
         t.box_lo[k] = wp.vec3(INF)
         t.box_hi[k] = wp.vec3(-INF)
     for k in range(t.seg.count):
-        n = t.seg.size[k]
-        top = level_base(t.seg.start[k], n, level_count(n))
+        box = reduced_box(d.box_lo, d.box_hi, t.seg.start[k], t.seg.size[k])
         which = t.seg.role[k] - ROLE_BOX
-        t.box_lo[which] = d.box_lo[top]
-        t.box_hi[which] = d.box_hi[top]
+        t.box_lo[which] = box[0]
+        t.box_hi[which] = box[1]
     t.phase = PH_DONE
     return t
+
 
 # ---------------------------------------------------------------- children (sec. 5.3)
 
@@ -871,62 +806,13 @@ def spawn_children(d: DacrtData, pool: Pool, t: DacrtTask, slot: int) -> int:
     shared_max(d.counters, C_MAX_DEPTH, depth)
     return keep
 
+
 # ---------------------------------------------------------------- the worker
 
 
-@wp.func
-def add_cycles(d: DacrtData, worker: int, phase: int, since: wp.int64):
-    i = worker * PHASES + phase
-    d.phase_cycles[i] = d.phase_cycles[i] + (cycles() - since)
-
-
-@wp.func
-def advance(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask):
-    """Run steps inline while they have fewer than K chunks (2012 paper, sec. 3.4), finishing
-    tasks and continuing with a child or an activated dependant; publish the first step big
-    enough for the pool."""
-    s = slot
-    task = t
-    while True:
-        phase = task.phase
-        since = cycles()
-        task = complete_step(d, task, s)
-        if task.phase == PH_DONE:
-            next_slot = finish_task(d, pool, task, s)
-            add_cycles(d, worker, phase, since)
-            if next_slot < 0:
-                return
-            s = next_slot
-            task = d.tasks[s]
-        else:
-            add_cycles(d, worker, phase, since)
-        if task.chunks >= pool.min_chunks:
-            d.tasks[s] = task
-            pool_hand_over(pool, s, task.chunks)
-            return
-        since = cycles()
-        run_chunks(d, task, s, 0, task.chunks)
-        add_cycles(d, worker, task.phase, since)
-
-
-@wp.kernel
-def dacrt_worker(d: DacrtData, pool: Pool, first_worker: int):
-    """The persistent worker of Algorithm 1 (2012 paper, sec. 3.3)."""
-    worker = first_worker + wp.tid()
-    idle_since = wp.int64(-1)
-    while pool_running(pool):
-        got = pool_acquire(pool)
-        slot = got[0]
-        if slot < 0:
-            idle_since = pool_idle(pool, idle_since)
-            continue
-        idle_since = wp.int64(-1)
-        t = d.tasks[slot]
-        since = cycles()
-        run_chunks(d, t, slot, got[1], got[2])
-        add_cycles(d, worker, t.phase, since)
-        if pool_finish(pool, slot, got[2]):
-            advance(d, pool, worker, slot, d.tasks[slot])
+dacrt_worker = make_worker(Application(
+    data=DacrtData, task=DacrtTask, run_chunks=run_chunks, complete_step=complete_step,
+    finish_task=finish_task, done=PH_DONE, module=__name__, name="dacrt"))
 
 
 @wp.kernel
@@ -973,7 +859,7 @@ def pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, d
                       data=table.flat_table())
     d.counters = mem.new(COUNTERS, wp.int32, fill=0)
     workers = default_workers(device) if workers is None else max(1, int(workers))
-    d.phase_cycles = mem.new(workers * PHASES, wp.int64, fill=0)
+    d.phase_cycles = mem.new(workers * CYCLE_ROW, wp.int64, fill=0)
     d.split_method = SPLITS[split]
     d.rdh_min_rays = rdh_min_rays
     if small_items is None:
@@ -1005,7 +891,8 @@ def pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, d
 
     t0 = time.perf_counter()
     hits = unpack_hits(mem, io, r)
-    spent = d.phase_cycles.numpy().reshape(workers, PHASES).sum(axis=0).astype(np.float64)
+    spent = d.phase_cycles.numpy().reshape(workers, CYCLE_ROW)[:, : len(PHASE_NAMES)]
+    spent = spent.sum(axis=0).astype(np.float64)
     share = spent / spent.sum() if spent.sum() > 0 else np.zeros_like(spent)
     info.update({
         "variant": "pool",

@@ -32,7 +32,6 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -41,7 +40,7 @@ import warp as wp
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
 from ..bvh.traverse import closest_hit, traverse
-from ..core.launch import host_threads, launch_split
+from ..core.launch import host_threads, launch_split, run_parts
 from ..core.ray import make_ray
 from ..core.validate import as_rays, per_ray
 from ..dacrt.api import dacrt_trace
@@ -463,11 +462,7 @@ def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dis
                           int(first), int(count), sampler_id, seed, dist, 1],
                   outputs=[out, out_half], device=device)
 
-    if parts == 1:
-        run(0)
-    else:
-        with ThreadPoolExecutor(min(parts, nthreads)) as ex:
-            list(ex.map(run, range(parts)))
+    run_parts(run, parts, nthreads)
     return out.numpy().astype(np.int64), out_half.numpy().astype(np.int64)
 
 

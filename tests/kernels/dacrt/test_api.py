@@ -226,7 +226,8 @@ def test_pool_workers_and_splits_agree_and_report_phases():
             runs.append(dacrt_trace(v, f, o, d, split=split, workers=workers, stats=stats,
                                     **SMALL))
             assert set(stats["phase_ms"]) == {"SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2",
-                                              "AABB", "Intersect", "Sort"}
+                                              "AABB", "Intersect", "Sort", "Children"}
+            assert stats["phase_ms"]["Children"] > 0
             assert (stats["phase_ms"]["SplitPlane"] > 0) == (split == "rdh")
             assert stats["tasks"] > 7 and stats["intersection_tasks"] > 1
             # the root task alone sorts every ray and every triangle once
