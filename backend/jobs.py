@@ -365,7 +365,9 @@ def render_camera(
         job.add_timing(phase, 1000.0 * (time.perf_counter() - start))
         return out
 
-    bvh, _ = timed("bvh", lambda: get_or_build_bvh(store, scene, method, leaf_size, device))
+    bvh, cached = timed("bvh", lambda: get_or_build_bvh(store, scene, method, leaf_size, device))
+    if not cached:  # of "bvh", the part that was Warp compiling (as "ao.compile" of "ao")
+        job.add_timing("bvh.compile", float(bvh.stats.get("compile_ms", 0.0)))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     ao, spp_used = timed(
         "ao", lambda: _render_ao(job, bvh, origins, directions, tmin, tmax, params)

@@ -67,7 +67,8 @@ class BvhInfo(Strict):
     method: Literal["sah", "median"]
     leaf_size: int
     cached: bool = Field(description="true when an earlier build was reused")
-    timings_ms: dict[str, float] = Field(description="total and one entry per build phase")
+    timings_ms: dict[str, float] = Field(
+        description="total and one entry per build phase; compile: Warp's, not in total")
     stats: BvhStats
 
 

@@ -10,7 +10,15 @@ import numpy as np
 import warp as wp
 
 from ..core.hits import Hits
-from ..core.launch import get_device, host_threads, launch_split, sync_ms, to_device
+from ..core.launch import (
+    get_device,
+    host_threads,
+    launch_split,
+    load_modules,
+    sync_ms,
+    to_device,
+)
+from ..core.mesh import DeviceMesh
 from ..core.validate import as_rays, as_triangle_mesh, per_ray
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
@@ -41,7 +49,7 @@ class Bvh:
     arrays: BvhArrays  # device-side view for kernels
     bounds: np.ndarray  # (2, 3) float32
     stats: dict = field(default_factory=dict)
-    _keep: tuple = ()  # the device arrays `arrays` points into
+    mesh: DeviceMesh | None = None  # the mesh on the device, reused by AO and DACRT
 
     def nodes(self) -> np.ndarray:
         """The node array as a numpy structured array (lo, first, hi, count)."""
@@ -75,7 +83,7 @@ def build_bvh(
         raise ValueError(f"min_chunks must be >= 1, got {min_chunks}")
     device = get_device(device)
     phase_ms: dict[str, float] = {}
-    wp.load_module(bb.build_worker.module, device=device)  # compile time is not build time
+    compile_ms = load_modules(device, *bb.WARP_MODULES)  # compile time is not build time
     t_total = t0 = time.perf_counter()
     vertices, indices = as_triangle_mesh(vertices, indices)
     phase_ms["validate"] = (time.perf_counter() - t0) * 1e3
@@ -83,8 +91,8 @@ def build_bvh(
     t0 = time.perf_counter()
     m = len(indices)
     workers = default_workers(device) if workers is None else int(workers)
-    v_wp = wp.array(vertices, dtype=wp.vec3, device=device)
-    f_wp = wp.array(indices, dtype=wp.vec3i, device=device)
+    mesh = DeviceMesh(vertices, indices, device, validated=True)
+    v_wp, f_wp = mesh.v, mesh.f
     b = BuildData()
     lo, hi = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(2))
     valid = wp.empty(m, dtype=int, device=device)
@@ -150,14 +158,16 @@ def build_bvh(
     phase_ms["reorder"] = sync_ms(device, t0)
     total_ms = (time.perf_counter() - t_total) * 1e3
 
-    bvh = Bvh(vertices=vertices, indices=indices, method=method, leaf_size=int(leaf_size),
-              device=device, arrays=arrays, bounds=box[:2].copy(), _keep=(v_wp, f_wp))
+    bvh = Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
+              leaf_size=int(leaf_size), device=device, arrays=arrays, bounds=box[:2].copy(),
+              mesh=mesh)
     node_count = node_count if n > 0 else 1
     nodes = bvh.nodes()[:node_count]
     bvh.arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
     leaves = int(np.count_nonzero(nodes["count"]))
     bvh.stats = {
         "build_ms": total_ms,
+        "compile_ms": compile_ms,  # Warp's, apart: seconds on first use, then ~ms
         "phase_ms": phase_ms,
         "nodes": node_count,
         "leaves": leaves if n > 0 else 0,

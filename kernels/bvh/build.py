@@ -24,6 +24,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..core.box import INF, max3, median_plane, min3
+from ..core.mesh import triangle_corners
 from ..core.triangle import is_degenerate
 from ..pool.atomics import shared_add, shared_max
 from ..pool.chunks import CHUNK, ceil_div, level_count
@@ -393,17 +394,14 @@ def triangle_boxes(
     float64 cross product of the float32 edges), which the build leaves out. bounds[0..3]
     get the scene's box and centroid box over the valid ones."""
     i = wp.tid()
-    f = indices[i]
-    a = vertices[f[0]]
-    bb = vertices[f[1]]
-    c = vertices[f[2]]
-    lo = min3(min3(a, bb), c)
-    hi = max3(max3(a, bb), c)
+    t = triangle_corners(vertices, indices, i)
+    lo = min3(min3(t[0], t[1]), t[2])
+    hi = max3(max3(t[0], t[1]), t[2])
     mid = 0.5 * (lo + hi)
     tri_lo[i] = lo
     tri_hi[i] = hi
     valid[i] = 0
-    if not is_degenerate(a, bb, c):
+    if not is_degenerate(t[0], t[1], t[2]):
         valid[i] = 1
         wp.atomic_min(bounds, 0, lo)
         wp.atomic_max(bounds, 1, hi)
@@ -442,7 +440,10 @@ def gather_leaf_triangles(
     i = wp.tid()
     tri = items[i].tri
     tri_ids[i] = tri
-    f = indices[tri]
-    tri_verts[3 * i] = vertices[f[0]]
-    tri_verts[3 * i + 1] = vertices[f[1]]
-    tri_verts[3 * i + 2] = vertices[f[2]]
+    t = triangle_corners(vertices, indices, tri)
+    tri_verts[3 * i] = t[0]
+    tri_verts[3 * i + 1] = t[1]
+    tri_verts[3 * i + 2] = t[2]
+
+
+WARP_MODULES = (build_worker.module,)  # this module's kernels (see core.launch.load_modules)

@@ -6,10 +6,18 @@ Nothing here imports another package of `kernels`.
 
 from .device_arrays import DeviceArrays
 from .hits import Hits
-from .launch import cpu_cores, get_device, host_threads, launch_split, sync_ms, to_device
-from .mesh import count_degenerate, degenerate_mask
+from .launch import (
+    cpu_cores,
+    get_device,
+    host_threads,
+    launch_split,
+    load_modules,
+    sync_ms,
+    to_device,
+)
+from .mesh import DeviceMesh, count_degenerate, degenerate_mask
 
 __all__ = [
-    "DeviceArrays", "Hits", "count_degenerate", "cpu_cores", "degenerate_mask", "get_device",
-    "host_threads", "launch_split", "sync_ms", "to_device",
+    "DeviceArrays", "DeviceMesh", "Hits", "count_degenerate", "cpu_cores", "degenerate_mask",
+    "get_device", "host_threads", "launch_split", "load_modules", "sync_ms", "to_device",
 ]

@@ -27,6 +27,12 @@ class DeviceArrays:
         self.peak = max(self.peak, self.bytes)
         return a
 
+    def hold(self, *arrays: wp.array) -> None:
+        """Count arrays made elsewhere (a mesh's) that the call holds while it runs."""
+        for a in arrays:
+            self.bytes += a.capacity
+        self.peak = max(self.peak, self.bytes)
+
     def free(self, *arrays: wp.array) -> None:
         for a in arrays:
             self.bytes -= a.capacity

@@ -24,12 +24,16 @@ import numpy as np
 import warp as wp
 from warp.utils import array_scan, radix_sort_pairs, runlength_encode
 
+from ..core import mesh as core_mesh
 from ..core.box import INF, median_plane
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
+from ..core.mesh import DeviceMesh
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle
+from . import records
 from .classify import CLS_LEFT, CLS_RIGHT, ray_side, ray_span, side_of, widened_range
+from .options import DacrtOptions
 from .records import (
     KEY_NONE,
     TraceArrays,
@@ -37,7 +41,6 @@ from .records import (
     rays_and_triangles,
     scene_box,
     unpack_hits,
-    write_hits,
 )
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -350,23 +353,25 @@ def _scan_total(a: wp.array, out: wp.array) -> int:
     return int(out[-1:].numpy()[0]) + last
 
 
-def breadth_first_trace(vertices, indices, ids, origins, directions, tmin, tmax, margin, device,
-                 info: dict, alpha: int, beta: int, max_depth: int,
-                 buffer_entries: int = 1 << 20) -> Hits:
-    """The level loop of Algorithm 1 (sec. 2); arguments validated by `dacrt_trace`."""
-    wp.load_module(filter_rays.module, device=device)
-    wp.load_module(write_hits.module, device=device)
+def breadth_first_trace(mesh: DeviceMesh, origins, directions, tmin, tmax, margin: float,
+                        info: dict, opts: DacrtOptions) -> Hits:
+    """The level loop of Algorithm 1 (sec. 2) on validated rays (`opts` resolved for the
+    mesh's device); fills `info` with its statistics."""
+    device = mesh.device
+    ids = mesh.valid_ids()
+    alpha, beta, max_depth = int(opts.alpha), int(opts.beta), int(opts.max_depth)
+    buffer_entries = max(int(opts.buffer_entries), 1)
     t_start = time.perf_counter()
     mem = DeviceArrays(device)
-    r, m, n = len(origins), len(indices), len(ids)
-    d = rays_and_triangles(mem, vertices, indices, origins, directions, tmin, tmax)
+    r, m, n = len(origins), len(mesh.indices), len(ids)
+    d = rays_and_triangles(mem, mesh, origins, directions, tmin, tmax)
     d.margin = margin
     d.best = mem.new(max(r, 1), wp.uint64, fill=KEY_NONE)
     levels = 0
     peak_nodes = 0
     phase_s = dict.fromkeys(("filter", "sort", "reduce", "children", "gather", "intersect"), 0.0)
     if r and n:
-        box_lo, box_hi = scene_box(vertices, indices, ids, margin)
+        box_lo, box_hi = scene_box(mesh.vertices, mesh.indices, ids, margin)
         lv = _new_level(mem, 1, device)
         lv.lo.assign(wp.array([box_lo], dtype=wp.vec3, device=device))
         lv.hi.assign(wp.array([box_hi], dtype=wp.vec3, device=device))
@@ -503,3 +508,7 @@ def _new_children(mem, count: int, device) -> Children:
 
 def _free_struct(mem, s) -> None:
     mem.free(*(getattr(s, k) for k in s._cls.vars))
+
+
+# the Warp modules a trace runs (loaded first: Warp's compile time is reported apart)
+WARP_MODULES = (filter_rays.module, *records.WARP_MODULES, *core_mesh.WARP_MODULES)

@@ -16,6 +16,7 @@ from ..core.box import INF
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
 from ..core.launch import host_threads, launch_split
+from ..core.mesh import DeviceMesh
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle, refine_hit
 
@@ -90,26 +91,6 @@ def shared_min_u64(a: wp.array(dtype=wp.uint64), i: int, v: wp.uint64): ...
 
 
 @wp.kernel
-def prepare_triangles(
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.vec3i),
-    tri_verts: wp.array(dtype=wp.vec3),
-    tri_lo: wp.array(dtype=wp.vec3),
-    tri_hi: wp.array(dtype=wp.vec3),
-):
-    i = wp.tid()
-    f = indices[i]
-    a = vertices[f[0]]
-    b = vertices[f[1]]
-    c = vertices[f[2]]
-    tri_verts[3 * i] = a
-    tri_verts[3 * i + 1] = b
-    tri_verts[3 * i + 2] = c
-    tri_lo[i] = wp.min(wp.min(a, b), c)
-    tri_hi[i] = wp.max(wp.max(a, b), c)
-
-
-@wp.kernel
 def prepare_rays(
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
@@ -181,11 +162,11 @@ def scene_box(vertices: np.ndarray, indices: np.ndarray, ids: np.ndarray,
     return columns.min(axis=1) - margin, columns.max(axis=1) + margin
 
 
-def rays_and_triangles(mem: DeviceArrays, vertices, indices, origins, directions, tmin,
+def rays_and_triangles(mem: DeviceArrays, mesh: DeviceMesh, origins, directions, tmin,
                        tmax) -> TraceArrays:
-    """The DacrtData fields both variants share: the rays, and per triangle its vertices
-    and box (the vertex and index uploads are freed once those are made)."""
-    r, m = len(origins), len(indices)
+    """The rays as both variants read them, and the mesh's triangles by id with their boxes
+    (made once per mesh, and counted here as held)."""
+    r = len(origins)
     d = TraceArrays()
     d.directions = mem.new(max(r, 1), wp.vec3, data=directions if r else None)
     d.rays = mem.new(max(r, 1), RayRecord)
@@ -194,15 +175,8 @@ def rays_and_triangles(mem: DeviceArrays, vertices, indices, origins, directions
     launch_split(prepare_rays, r, [], [per_ray[0], d.directions, *per_ray[1:]], [],
                  [d.rays], mem.device, host_threads(mem.device, None))
     mem.free(*per_ray)
-    v_wp = mem.new(len(vertices), wp.vec3, data=vertices)
-    f_wp = mem.new(m, wp.vec3i, data=indices)
-    d.tri_verts = mem.new(max(3 * m, 1), wp.vec3)
-    d.tri_lo = mem.new(max(m, 1), wp.vec3)
-    d.tri_hi = mem.new(max(m, 1), wp.vec3)
-    if m:
-        wp.launch(prepare_triangles, dim=m,
-                  inputs=[v_wp, f_wp, d.tri_verts, d.tri_lo, d.tri_hi], device=mem.device)
-    mem.free(v_wp, f_wp)
+    d.tri_verts, d.tri_lo, d.tri_hi = mesh.soup()
+    mem.hold(mesh.v, mesh.f, d.tri_verts, d.tri_lo, d.tri_hi)
     return d
 
 
@@ -213,3 +187,6 @@ def unpack_hits(mem: DeviceArrays, d: TraceArrays, r: int) -> Hits:
                  mem.device, host_threads(mem.device, None))
     t, tri, u, v = (a.numpy()[:r] for a in out)
     return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
+
+
+WARP_MODULES = (prepare_rays.module,)  # this module's kernels (see core.launch.load_modules)

@@ -23,9 +23,11 @@ import time
 import numpy as np
 import warp as wp
 
+from ..core import mesh as core_mesh
 from ..core.box import INF, max3, median_plane, min3
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
+from ..core.mesh import DeviceMesh
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle
 from ..pool.atomics import shared_add, shared_max
@@ -57,7 +59,7 @@ from ..pool.state import (
     pool_wait,
 )
 from ..pool.worker import CYCLE_ROW, Application, launch_workers, make_worker
-from . import table
+from . import records, table
 from .classify import (
     CLS_CLIPPED,
     CLS_LEFT,
@@ -69,13 +71,13 @@ from .classify import (
     widen,
     widened_range,
 )
+from .options import DacrtOptions
 from .rdh import choose_rdh_split, rdh_children, sample_counts, split_plane_chunk
 from .records import (
     KEY_NONE,
     RayRecord,
     hit_key,
     key_t,
-    margin_for,
     rays_and_triangles,
     scene_box,
     shared_min_u64,
@@ -829,16 +831,18 @@ def start_trace(d: DacrtData, pool: Pool, lo: wp.vec3, hi: wp.vec3, rays: int, t
 # ---------------------------------------------------------------- host side
 
 
-def pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, device,
-                info, workers, min_chunks, capacity, max_depth, c_sort, c_inters, min_rays,
-                min_tris, rdh_min_rays, small_items) -> Hits:
-    wp.load_module(dacrt_worker.module, device=device)  # compile time is not trace time
+def pool_trace(mesh: DeviceMesh, origins, directions, tmin, tmax, margin: float, split: str,
+               info: dict, opts: DacrtOptions, capacity: int) -> Hits:
+    """The task-pool trace of validated rays with `capacity` pool slots (`opts` resolved for
+    the mesh's device); fills `info` with its statistics."""
+    device = mesh.device
+    ids = mesh.valid_ids()
     t_start = time.perf_counter()
     mem = DeviceArrays(device)
-    r, m, n = len(origins), len(indices), len(ids)
-    io = rays_and_triangles(mem, vertices, indices, origins, directions, tmin, tmax)
+    r, m, n = len(origins), len(mesh.indices), len(ids)
+    io = rays_and_triangles(mem, mesh, origins, directions, tmin, tmax)
     io.best = mem.new(max(r, 1), wp.uint64, fill=KEY_NONE)
-    io.margin = margin_for(vertices, origins)
+    io.margin = margin
     d = DacrtData()
     d.io = io
     d.ray_ids = mem.new(max(r, 1), int, data=np.arange(max(r, 1), dtype=np.int32))
@@ -855,29 +859,29 @@ def pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, d
     d.cand_hi = mem.new(capacity * CAND_BOXES, wp.vec3, fill=wp.vec3(-np.inf))
     d.neg = mem.new(capacity, wp.int32, fill=0)
     d.tasks = mem.new(capacity, DacrtTask)
-    d.table = mem.new(table.MASKS * table.ROW, wp.int32,
-                      data=table.flat_table())
+    d.table = mem.new(table.MASKS * table.ROW, wp.int32, data=table.flat_table())
     d.counters = mem.new(COUNTERS, wp.int32, fill=0)
-    workers = default_workers(device) if workers is None else max(1, int(workers))
+    workers = default_workers(device) if opts.workers is None else max(1, int(opts.workers))
     d.phase_cycles = mem.new(workers * CYCLE_ROW, wp.int64, fill=0)
     d.split_method = SPLITS[split]
-    d.rdh_min_rays = rdh_min_rays
+    d.rdh_min_rays = int(opts.rdh_min_rays)
+    small_items = opts.small_items
     if small_items is None:
         small_items = max(SMALL_ITEMS_CPU, (r + n) // workers) if device.is_cpu else 0
-    d.small_items = small_items
-    d.max_depth = max_depth
-    d.c_inters = c_inters  # sec. 6.2: C_INTERS = 1, C_SORT = 80
-    d.c_sort = c_sort
-    d.min_rays = min_rays  # sec. 6.2: 32 rays, 16 triangles
-    d.min_tris = min_tris
-    pool = make_pool(capacity, workers, min_chunks, device)
+    d.small_items = int(small_items)
+    d.max_depth = int(opts.max_depth)
+    d.c_inters = float(opts.c_inters)  # sec. 6.2: C_INTERS = 1, C_SORT = 80 (CUDA)
+    d.c_sort = float(opts.c_sort)
+    d.min_rays = int(opts.min_rays)  # sec. 6.2: 32 rays (CUDA), 16 triangles
+    d.min_tris = int(opts.min_tris)
+    pool = make_pool(capacity, workers, int(opts.min_chunks), device)
     mem.bytes += 2 * capacity * 4
     mem.peak = max(mem.peak, mem.bytes)
     prepare_ms = (time.perf_counter() - t_start) * 1e3
 
     t0 = time.perf_counter()
     if r and n:
-        box_lo, box_hi = scene_box(vertices, indices, ids, io.margin)
+        box_lo, box_hi = scene_box(mesh.vertices, mesh.indices, ids, margin)
         wp.launch(start_trace, dim=1,
                   inputs=[d, pool, wp.vec3(*box_lo), wp.vec3(*box_hi), r, n], device=device)
         launch_workers(dacrt_worker, workers, [d, pool], device)
@@ -917,3 +921,7 @@ def pool_trace(vertices, indices, ids, origins, directions, tmin, tmax, split, d
         "degenerate": int(m - n),
     })
     return hits
+
+
+# the Warp modules a trace runs (loaded first: Warp's compile time is reported apart)
+WARP_MODULES = (dacrt_worker.module, *records.WARP_MODULES, *core_mesh.WARP_MODULES)

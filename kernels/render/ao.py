@@ -40,10 +40,11 @@ import warp as wp
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
 from ..bvh.traverse import closest_hit, traverse
-from ..core.launch import host_threads, launch_split, run_parts
+from ..core.launch import host_threads, launch_split, load_modules, run_parts
+from ..core.mesh import DeviceMesh, triangle_corners
 from ..core.ray import make_ray
 from ..core.validate import as_rays, per_ray
-from ..dacrt.api import dacrt_trace
+from ..dacrt.api import dacrt_trace_mesh, dacrt_warp_modules
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -67,7 +68,8 @@ Progress = Callable[[float, str], None]
 class AoResult:
     ao: np.ndarray  # (R,) float32 in [0, 1]
     spp_used: np.ndarray  # (R,) int32 occlusion samples per ray (0 where the ray missed)
-    timings_ms: dict[str, float] = field(default_factory=dict)  # setup, primary, occlusion, total
+    # compile (Warp's, not in total), setup, primary, occlusion, total
+    timings_ms: dict[str, float] = field(default_factory=dict)
     rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion
 
 
@@ -105,10 +107,10 @@ def spawn_point(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, u: float, v: float, n: wp
 def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i), d: wp.vec3,
             triangle: int, u: float, v: float) -> wp.mat33:
     """Rows: the spawn point and the geometric normal (turned toward the viewer) of a hit."""
-    f = indices[triangle]
-    v0 = vertices[f[0]]
-    v1 = vertices[f[1]]
-    v2 = vertices[f[2]]
+    t = triangle_corners(vertices, indices, triangle)
+    v0 = t[0]
+    v1 = t[1]
+    v2 = t[2]
     # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
     n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
     if wp.dot(n, wp.vec3d(d)) > wp.float64(0.0):
@@ -242,6 +244,13 @@ def box_candidates(bounds: np.ndarray, o: np.ndarray, d: np.ndarray, tmin: np.nd
     return np.flatnonzero(enter <= leave).astype(np.int32)
 
 
+def scene_mesh(bvh: Bvh) -> DeviceMesh:
+    """The BVH's mesh on the device (made here for a `Bvh` put together by hand)."""
+    if bvh.mesh is None:
+        bvh.mesh = DeviceMesh(bvh.vertices, bvh.indices, bvh.device)
+    return bvh.mesh
+
+
 def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
                   tmax=np.inf, threads: int | None = None, engine: str = "bvh") -> PrimaryHits:
     """Closest hits of the primary rays that enter the scene box, as spawn points and
@@ -254,11 +263,10 @@ def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.
     device = bvh.device
     cand = box_candidates(bvh.bounds, origins, directions, tmin_a, tmax_a)
     m = len(cand)
-    verts = wp.array(bvh.vertices, dtype=wp.vec3, device=device)
-    tris = wp.array(bvh.indices, dtype=wp.vec3i, device=device)
+    mesh = scene_mesh(bvh)
+    verts, tris = mesh.v, mesh.f  # on the device since the build: no copy per render
     if engine == "dacrt":
-        h = dacrt_trace(bvh.vertices, bvh.indices, origins[cand], directions[cand],
-                        tmin_a[cand], tmax_a[cand], device=device)
+        h = dacrt_trace_mesh(mesh, origins[cand], directions[cand], tmin_a[cand], tmax_a[cand])
         keep = np.flatnonzero(h.triangle >= 0)
         n = len(keep)
         pts = wp.empty(n, dtype=wp.vec3, device=device)
@@ -370,13 +378,14 @@ def render_ao(
     `progress(fraction, phase)` is called between rounds; an exception it raises cancels
     the render.
     """
-    wp.load_module(occlusion_kernel.module, device=bvh.device)  # compiling is not rendering
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    modules = WARP_MODULES + (dacrt_warp_modules("pool") if engine == "dacrt" else ())
+    compile_ms = load_modules(bvh.device, *modules)  # compiling is not rendering
     t_start = time.perf_counter()
     min_spp = max(int(spp), MIN_ADAPTIVE_SPP) if target_error is not None else int(spp)
     _check_args(spp, distance, seed, target_error, (min_spp, int(max_spp)))
     sampler_id = _sampler(sampler)
-    if engine not in ENGINES:
-        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
     origins, directions = as_rays(origins, directions)
     r = len(origins)
     dist = default_distance(bvh) if distance is None else float(distance)
@@ -389,7 +398,8 @@ def render_ao(
         if progress is not None:
             progress(last[0], phase)
 
-    timings: dict[str, float] = {"setup": (time.perf_counter() - t_start) * 1e3}
+    timings: dict[str, float] = {"compile": compile_ms,
+                                 "setup": (time.perf_counter() - t_start) * 1e3}
 
     report(0.0, "primary")
     t0 = time.perf_counter()
@@ -478,8 +488,8 @@ def _occlusion_round_dacrt(bvh, hits, pix, active, first, count, sampler_id, see
               inputs=[wp.array(hits.normals.numpy()[active], dtype=wp.vec3, device=device),
                       wp.array(hits.pixels[active], dtype=int, device=device), int(first),
                       int(count), sampler_id, seed], outputs=[dirs], device=device)
-    h = dacrt_trace(bvh.vertices, bvh.indices, np.repeat(points, count, axis=0), dirs.numpy(),
-                    0.0, dist, device=device)
+    h = dacrt_trace_mesh(scene_mesh(bvh), np.repeat(points, count, axis=0), dirs.numpy(), 0.0,
+                         dist)
     opened = (h.triangle < 0).reshape(m, count)
     return opened.sum(axis=1), opened[:, : count // 2].sum(axis=1)
 
@@ -553,3 +563,6 @@ def ambient_occlusion(
     return render_ao(bvh, origins, directions, spp, distance, seed, target_error, tmin=tmin,
                      tmax=tmax, threads=threads, max_spp=max_spp, sampler=sampler,
                      engine=engine).ao
+
+
+WARP_MODULES = (occlusion_kernel.module,)  # this module's kernels (core.launch.load_modules)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from kernels.core import DeviceArrays
+from kernels.core import DeviceArrays, DeviceMesh
 from kernels.core.box import INF
 from kernels.dacrt import classify, rdh
 from kernels.dacrt import task as dk
@@ -84,7 +84,7 @@ def test_rdh_samples_equal_the_plane_by_plane_count(seed, snap):
     o, d = random_rays(rng, 4000, -0.2, 1.2)
     r, n = len(o), len(f)
     mem = DeviceArrays(wp.get_device("cpu"))
-    io = rays_and_triangles(mem, v, f, o, d, np.zeros(r, np.float32),
+    io = rays_and_triangles(mem, DeviceMesh(v, f, "cpu"), o, d, np.zeros(r, np.float32),
                             np.full(r, np.inf, np.float32))
     io.margin = margin_for(v, o)
     data = dk.DacrtData()

@@ -340,3 +340,16 @@ def test_bad_arguments_name_the_field(kwargs, field):
     d = np.float32([[0, 0, -1]])
     with pytest.raises(ValueError, match=field):
         kernels.ambient_occlusion(bvh, o, d, **kwargs)
+
+
+def test_compile_time_is_reported_apart(monkeypatch):
+    """Warp's compile time (loading the render's modules first) is its own entry of
+    `timings_ms`, not part of the render's total."""
+    from kernels.render import ao as ao_module
+
+    monkeypatch.setattr(ao_module, "load_modules", lambda device, *modules: 1.0e6)
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
+    bvh = kernels.build_bvh(v, np.array([[0, 1, 2]], np.int32), device="cpu")
+    result = kernels.render_ao(bvh, np.array([[0.2, 0.2, 1.0]], np.float32),
+                               np.array([[0.0, 0.0, -1.0]], np.float32), spp=2)
+    assert result.timings_ms["compile"] == 1.0e6 and result.timings_ms["total"] < 1.0e5
