@@ -9,6 +9,8 @@ from pathlib import Path
 
 import pytest
 
+pytestmark = pytest.mark.host_only  # the source files
+
 ROOT = Path(__file__).resolve().parents[2] / "kernels"
 # a package may import from the packages before it in this order
 ORDER = ("core", "pool", "bvh", "dacrt", "render")

@@ -15,6 +15,8 @@ from kernels.core.launch import host_pool, launch_split, load_modules, run_parts
 
 from ..reference import random_rays, random_soup
 
+pytestmark = pytest.mark.host_only  # host threads: CPU launches
+
 
 def test_split_launches_reuse_the_same_host_threads():
     """Many traces start no thread after the first (a new pool per launch cost ~0.5 ms a

@@ -12,11 +12,11 @@ from kernels.render import ao
 from ..reference import degenerate_triangles, random_rays, random_soup
 
 
-def test_valid_ids_and_soup_are_made_once():
+def test_valid_ids_and_soup_are_made_once(device):
     rng = np.random.default_rng(4)
     v, f = random_soup(rng, 300)
     f = np.vstack([f, [[0, 0, 1], [2, 3, 3], [4, 4, 4]]]).astype(np.int32)  # zero area
-    mesh = DeviceMesh(v, f, "cpu")
+    mesh = DeviceMesh(v, f, device)
     ids = mesh.valid_ids()
     assert np.array_equal(ids, np.flatnonzero(~degenerate_triangles(v, f)))
     assert np.array_equal(ids, np.flatnonzero(~degenerate_mask(v, f, "cpu")))
@@ -30,20 +30,20 @@ def test_valid_ids_and_soup_are_made_once():
     assert mesh.nbytes == sum(a.capacity for a in (mesh.v, mesh.f, *soup))
 
 
-def test_bad_meshes_are_rejected_when_made():
+def test_bad_meshes_are_rejected_when_made(device):
     v, f = random_soup(np.random.default_rng(1), 10)
     with pytest.raises(ValueError, match="indices must lie in"):
-        DeviceMesh(v, f + 100, "cpu")
+        DeviceMesh(v, f + 100, device)
 
 
 @pytest.mark.parametrize("engine", ["bvh", "dacrt"])
-def test_renders_reuse_the_bvh_mesh(engine, monkeypatch):
+def test_renders_reuse_the_bvh_mesh(engine, monkeypatch, device):
     """AO copies no mesh to the device per render: the BVH's arrays serve every call (with
     DACRT its triangle arrays too, made at the first round)."""
     rng = np.random.default_rng(2)
     v, f = random_soup(rng, 400)
     o, d = random_rays(rng, 500, -0.5, 1.5)
-    bvh = kernels.build_bvh(v, f, device="cpu")
+    bvh = kernels.build_bvh(v, f, device=device)
     made = []
     real_init = DeviceMesh.__init__
 

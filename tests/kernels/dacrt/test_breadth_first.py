@@ -16,13 +16,13 @@ from kernels.dacrt import breadth_first as bf
 from ..reference import assert_same_hits, random_rays, random_soup
 
 
-def test_triangle_status_codes():
+def test_triangle_status_codes(device):
     """Node number in the upper 30 bits, none/left/both/right = 0..3 in the lower 2."""
-    mem = DeviceArrays("cpu")
-    lv = bf._new_level(mem, 2, "cpu")
+    mem = DeviceArrays(wp.get_device(device))
+    lv = bf._new_level(mem, 2, device)
     lv.lo.assign(np.array([[0, 0, 0], [10, 0, 0]], np.float32))
     lv.hi.assign(np.array([[4, 1, 1], [14, 1, 1]], np.float32))
-    wp.launch(bf.split_level, dim=2, inputs=[lv], device="cpu")
+    wp.launch(bf.split_level, dim=2, inputs=[lv], device=device)
     assert list(lv.axis.numpy()) == [0, 0] and list(lv.split.numpy()) == [2.0, 12.0]
     tri_lo = np.array([[0.5, 0, 0], [2.5, 0, 0], [1.5, 0, 0], [2, 0, 0], [20, 0, 0]], np.float32)
     tri_hi = tri_lo + np.float32(0.5)
@@ -34,7 +34,7 @@ def test_triangle_status_codes():
     wp.launch(bf.filter_tris, dim=5,
               inputs=[lv, wp.array(np.arange(5), dtype=int), node_of,
                       wp.array(tri_lo, dtype=wp.vec3), wp.array(tri_hi, dtype=wp.vec3), keys,
-                      values], device="cpu")
+                      values], device=device)
     k = keys.numpy()
     assert list(k >> 2) == [0, 0, 0, 0, 1]
     assert list(k & 3) == [bf.LEFT, bf.RIGHT, bf.BOTH, bf.BOTH, bf.NONE]

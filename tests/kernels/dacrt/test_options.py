@@ -19,6 +19,7 @@ class _Cuda:  # what for_device reads of a device
     is_cpu = False
 
 
+@pytest.mark.host_only
 def test_device_defaults_fill_only_what_is_left_open():
     cpu = DacrtOptions().for_device(wp.get_device("cpu"))
     assert (cpu.c_sort, cpu.min_rays, cpu.alpha, cpu.beta) == (4.0, 16, 32, 128)
@@ -29,6 +30,7 @@ def test_device_defaults_fill_only_what_is_left_open():
     assert set(DEVICE_DEFAULTS["cpu"]) == set(DEVICE_DEFAULTS["cuda"])
 
 
+@pytest.mark.host_only
 def test_options_are_frozen_and_checked():
     opts = DacrtOptions()
     with pytest.raises(dataclasses.FrozenInstanceError):

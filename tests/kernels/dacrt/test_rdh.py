@@ -69,7 +69,7 @@ def _rdh_both_ways(d: dk.DacrtData, t: dk.DacrtTask):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("snap", [False, True])
-def test_rdh_samples_equal_the_plane_by_plane_count(seed, snap):
+def test_rdh_samples_equal_the_plane_by_plane_count(seed, snap, device):
     """The binary searches over the monotone child boxes count every sampled triangle and
     ray in exactly the children that testing each candidate plane in turn does, with the
     same child boxes; `snap` puts half the vertex coordinates exactly on candidate planes
@@ -83,8 +83,8 @@ def test_rdh_samples_equal_the_plane_by_plane_count(seed, snap):
             v[:, a] = np.where(rng.random(len(v)) < 0.5, near, v[:, a])
     o, d = random_rays(rng, 4000, -0.2, 1.2)
     r, n = len(o), len(f)
-    mem = DeviceArrays(wp.get_device("cpu"))
-    io = rays_and_triangles(mem, DeviceMesh(v, f, "cpu"), o, d, np.zeros(r, np.float32),
+    mem = DeviceArrays(wp.get_device(device))
+    io = rays_and_triangles(mem, DeviceMesh(v, f, device), o, d, np.zeros(r, np.float32),
                             np.full(r, np.inf, np.float32))
     io.margin = margin_for(v, o)
     data = dk.DacrtData()
@@ -98,7 +98,7 @@ def test_rdh_samples_equal_the_plane_by_plane_count(seed, snap):
     task.ray_count, task.tri_count = r, n
     task.lo = wp.vec3(0.0, 0.0, 0.0)  # the soup lies in the unit cube
     task.hi = wp.vec3(1.0, 1.0, 1.0)
-    wp.launch(_rdh_both_ways, dim=1, inputs=[data, task], device="cpu")
+    wp.launch(_rdh_both_ways, dim=1, inputs=[data, task], device=device)
     counts = data.cand.numpy().reshape(2, dk.PLANES, 4)
     assert np.array_equal(counts[0], counts[1])
     assert counts[1, :, 2:].sum() > 0 and counts[1, :, :2].min() >= 0  # rays were counted
@@ -114,7 +114,7 @@ def _sample_positions(t: dk.DacrtTask, step: int, out: wp.array(dtype=int)):
 
 
 @pytest.mark.parametrize("width", [512, 1024])
-def test_rdh_ray_samples_do_not_alias_with_image_rows(width):
+def test_rdh_ray_samples_do_not_alias_with_image_rows(width, device):
     """The root of a width² image holds its rays in row order and samples sqrt(width²) =
     width of them: with a fixed stride of width rays every sample was a pixel of column 0.
     One sample per stratum, at a hashed place: the samples spread over the columns and stay
@@ -125,7 +125,7 @@ def test_rdh_ray_samples_do_not_alias_with_image_rows(width):
     for step, count in ((1, width * width), (0, 100_000)):
         n = int(np.sqrt(count))
         out = wp.empty(n, dtype=int)
-        wp.launch(_sample_positions, dim=n, inputs=[task, step, out], device="cpu")
+        wp.launch(_sample_positions, dim=n, inputs=[task, step, out], device=device)
         pos = out.numpy()
         stride = count // n
         assert np.array_equal(pos // stride, np.arange(n))  # one in each stratum, in range

@@ -9,6 +9,8 @@ import pytest
 
 from kernels.dacrt import table as tb
 
+pytestmark = pytest.mark.host_only  # numpy
+
 TABLE = tb.flat_table().reshape(tb.MASKS, tb.ROW)
 
 

@@ -55,32 +55,33 @@ def toy_setup(pool: Pool, chunks_a: int, dependencies_b: int):
     pool_publish(pool, a, chunks_a)
 
 
-def run_toy(chunks_a: int, chunks_b: int, dependencies_b: int = 1, min_chunks: int = 4):
-    pool = make_pool(8, workers=1, min_chunks=min_chunks, device="cpu")
-    order = wp.zeros(1, dtype=int, device="cpu")
-    log = wp.full(2 * (chunks_a + chunks_b + 1), -1, dtype=int, device="cpu")
-    wp.launch(toy_setup, dim=1, inputs=[pool, chunks_a, dependencies_b], device="cpu")
-    wp.launch(toy_worker, dim=1, inputs=[pool, chunks_b, order, log], device="cpu")
+def run_toy(chunks_a: int, chunks_b: int, dependencies_b: int = 1, min_chunks: int = 4,
+            device: str = "cpu"):
+    pool = make_pool(8, workers=1, min_chunks=min_chunks, device=device)
+    order = wp.zeros(1, dtype=int, device=device)
+    log = wp.full(2 * (chunks_a + chunks_b + 1), -1, dtype=int, device=device)
+    wp.launch(toy_setup, dim=1, inputs=[pool, chunks_a, dependencies_b], device=device)
+    wp.launch(toy_worker, dim=1, inputs=[pool, chunks_b, order, log], device=device)
     return pool, log.numpy().reshape(-1, 2)[: int(order.numpy()[0])]
 
 
-def test_dependent_task_runs_after_the_task_it_waits_for():
-    pool, log = run_toy(chunks_a=20, chunks_b=7)
+def test_dependent_task_runs_after_the_task_it_waits_for(device):
+    pool, log = run_toy(chunks_a=20, chunks_b=7, device=device)
     check_pool(pool)
     assert list(log[:, 0]) == [0] * 20 + [1] * 7
     assert sorted(log[:20, 1]) == list(range(20)) and sorted(log[20:, 1]) == list(range(7))
 
 
-def test_chunks_are_taken_k_at_a_time():
+def test_chunks_are_taken_k_at_a_time(device):
     """Eq. 3.1 with W = 1: N_w = max(S, K) takes the whole step in one acquisition."""
-    pool, log = run_toy(chunks_a=3, chunks_b=30, min_chunks=14)
+    pool, log = run_toy(chunks_a=3, chunks_b=30, min_chunks=14, device=device)
     check_pool(pool)
     # One acquisition per task: chunks come in one descending-start block each.
     assert list(log[:3, 1]) == [0, 1, 2] and list(log[3:, 1]) == list(range(30))
 
 
-def test_never_activated_dependency_is_reported_not_hung():
-    pool, _ = run_toy(chunks_a=5, chunks_b=5, dependencies_b=2)
+def test_never_activated_dependency_is_reported_not_hung(device):
+    pool, _ = run_toy(chunks_a=5, chunks_b=5, dependencies_b=2, device=device)
     with pytest.raises(PoolError, match="stuck with 1 unfinished tasks"):
         check_pool(pool)
 

@@ -159,13 +159,13 @@ def segment_sums(values: np.ndarray, counts: list[int], workers: int, min_chunks
 
 @pytest.mark.parametrize("workers", [1, 2])
 @pytest.mark.parametrize("min_chunks", [1, 14, 1 << 20])
-def test_segment_sums_on_the_pool_worker(workers, min_chunks):
+def test_segment_sums_on_the_pool_worker(workers, min_chunks, device):
     """Segments from 1 to 40,000 values (one to three levels; big steps through the pool,
     small ones inline, or everything inline with a huge K) give numpy's sums."""
     rng = np.random.default_rng(workers + min_chunks)
     counts = [1, 31, 32, 33, 1024, 1025, 40_000, *rng.integers(1, 5000, 20).tolist()]
     values = rng.integers(-1000, 1000, sum(counts)).astype(np.int32)
-    totals, grand, state, spent = segment_sums(values, counts, workers, min_chunks)
+    totals, grand, state, spent = segment_sums(values, counts, workers, min_chunks, device)
     bounds = np.cumsum([0, *counts])
     expect = [int(values[a:b].sum()) for a, b in zip(bounds[:-1], bounds[1:], strict=True)]
     assert totals.tolist() == expect

@@ -127,20 +127,28 @@ def test_inside_closed_sphere_is_zero():
 # --- a real scene against an independent reference ---------------------------------------
 
 
-@pytest.fixture(scope="module")
-def sponza(shared_scene):
-    scene = shared_scene("sponza")
-    bvh = kernels.build_bvh(scene.vertices, scene.indices)
-    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 40, 30)
-    o, d, _, _ = cam.rays()
-    return scene, bvh, o, d
+_PER_DEVICE: dict = {}  # (what, device) -> made once per test session
 
 
-@pytest.fixture(scope="module")
-def sponza_reference(sponza):
+@pytest.fixture
+def sponza(shared_scene, device):
+    if ("sponza", device) not in _PER_DEVICE:
+        scene = shared_scene("sponza")
+        bvh = kernels.build_bvh(scene.vertices, scene.indices, device=device)
+        cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 40, 30)
+        o, d, _, _ = cam.rays()
+        _PER_DEVICE["sponza", device] = scene, bvh, o, d
+    return _PER_DEVICE["sponza", device]
+
+
+@pytest.fixture
+def sponza_reference(sponza, device):
     """Our own AO at 2048 Sobol samples per pixel, a seed no other test uses."""
-    _, bvh, o, d = sponza
-    return kernels.ambient_occlusion(bvh, o, d, spp=2048, seed=999)
+    if ("reference", device) not in _PER_DEVICE:
+        _, bvh, o, d = sponza
+        _PER_DEVICE["reference", device] = kernels.ambient_occlusion(bvh, o, d, spp=2048,
+                                                                     seed=999)
+    return _PER_DEVICE["reference", device]
 
 
 def embree_ao(vertices, indices, o, d, spp, distance, seed):
@@ -342,14 +350,14 @@ def test_bad_arguments_name_the_field(kwargs, field):
         kernels.ambient_occlusion(bvh, o, d, **kwargs)
 
 
-def test_compile_time_is_reported_apart(monkeypatch):
+def test_compile_time_is_reported_apart(monkeypatch, device):
     """Warp's compile time (loading the render's modules first) is its own entry of
     `timings_ms`, not part of the render's total."""
     from kernels.render import ao as ao_module
 
     monkeypatch.setattr(ao_module, "load_modules", lambda device, *modules: 1.0e6)
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
-    bvh = kernels.build_bvh(v, np.array([[0, 1, 2]], np.int32), device="cpu")
+    bvh = kernels.build_bvh(v, np.array([[0, 1, 2]], np.int32), device=device)
     result = kernels.render_ao(bvh, np.array([[0.2, 0.2, 1.0]], np.float32),
                                np.array([[0.0, 0.0, -1.0]], np.float32), spp=2)
     assert result.timings_ms["compile"] == 1.0e6 and result.timings_ms["total"] < 1.0e5

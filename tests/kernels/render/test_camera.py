@@ -10,6 +10,8 @@ import pytest
 
 from kernels import Camera
 
+pytestmark = pytest.mark.host_only  # numpy and bpy
+
 # --- helpers -----------------------------------------------------------------------
 
 
