@@ -43,11 +43,11 @@ METHODS = ("sah", "median")
 
 def compile_seconds() -> dict[str, float]:
     """First-use cost of each engine module in an empty kernel cache."""
-    from kernels.bvh import build, traverse
+    from kernels.bvh import build, traversal
 
     out = {}
     for name, module in (("bvh_build", build.build_worker.module),
-                         ("bvh_trace", traverse.trace_kernel.module)):
+                         ("bvh_trace", traversal.trace_kernel.module)):
         start = time.perf_counter()
         wp.load_module(module, device="cpu")
         out[name] = time.perf_counter() - start

@@ -3,7 +3,7 @@ paper, sec. 4), the node layout, and closest-hit / any-hit traversal."""
 
 from .api import METHODS, Bvh, build_bvh, trace
 from .node import BvhArrays, BvhNode
-from .traverse import STACK_SIZE, closest_hit, traverse
+from .traversal import STACK_SIZE, closest_hit, traverse
 
 __all__ = [
     "METHODS", "STACK_SIZE", "Bvh", "BvhArrays", "BvhNode", "build_bvh", "closest_hit", "trace",

@@ -33,7 +33,7 @@ from .build_data import (
     BuildTask,
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
-from .traverse import STACK_SIZE, trace_kernel
+from .traversal import STACK_SIZE, trace_kernel
 
 Method = Literal["sah", "median"]
 METHODS: dict[str, int] = {"median": int(METHOD_MEDIAN), "sah": int(METHOD_SAH)}

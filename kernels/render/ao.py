@@ -39,7 +39,7 @@ import warp as wp
 
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
-from ..bvh.traverse import closest_hit, traverse
+from ..bvh.traversal import closest_hit, traverse
 from ..core.launch import host_threads, launch_split, load_modules, run_parts
 from ..core.mesh import DeviceMesh, triangle_corners
 from ..core.ray import make_ray
