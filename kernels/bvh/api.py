@@ -19,7 +19,7 @@ from ..core.launch import (
     to_device,
 )
 from ..core.mesh import DeviceMesh
-from ..core.validate import as_rays, as_triangle_mesh, per_ray
+from ..core.validate import as_rays, as_triangle_mesh, ray_range
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
 from . import build as bb
@@ -201,10 +201,7 @@ def trace(
     launching its share: a Warp CPU launch runs on one thread."""
     origins, directions = as_rays(origins, directions)
     r = len(origins)
-    tmin_a = per_ray(tmin, r, "tmin", keep_scalar=True)
-    tmax_a = per_ray(tmax, r, "tmax", keep_scalar=True)
-    if np.any(tmax_a < tmin_a):
-        raise ValueError("tmax must be >= tmin for every ray")
+    tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)
     device = bvh.device
     t, tri, u, v = (np.empty(r, dt) for dt in (np.float32, np.int32, np.float32, np.float32))
     outputs = [to_device(x, dt, device) for x, dt in ((t, float), (tri, int), (u, float),

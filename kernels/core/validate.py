@@ -75,3 +75,12 @@ def per_ray(value, count: int, name: str, *, keep_scalar: bool = False) -> np.nd
     if np.isnan(a).any():
         raise ValueError(f"{name} contains NaN")
     return np.ascontiguousarray(a)
+
+
+def ray_range(tmin, tmax, count: int, *, keep_scalar: bool = False) -> tuple[np.ndarray, ...]:
+    """`per_ray` of both ends of the rays' [tmin, tmax], checked to be in order."""
+    tmin = per_ray(tmin, count, "tmin", keep_scalar=keep_scalar)
+    tmax = per_ray(tmax, count, "tmax", keep_scalar=keep_scalar)
+    if np.any(tmax < tmin):
+        raise ValueError("tmax must be >= tmin for every ray")
+    return tmin, tmax

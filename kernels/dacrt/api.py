@@ -9,7 +9,7 @@ import numpy as np
 from ..core.hits import Hits
 from ..core.launch import load_modules
 from ..core.mesh import DeviceMesh
-from ..core.validate import as_rays, per_ray
+from ..core.validate import as_rays, ray_range
 from ..pool.state import PoolOverflow
 from . import breadth_first, task_pool
 from .breadth_first import breadth_first_trace
@@ -75,11 +75,7 @@ def dacrt_trace_mesh(
     if split not in SPLITS:
         raise ValueError(f"split must be one of {sorted(SPLITS)}, got {split!r}")
     origins, directions = as_rays(origins, directions)
-    r = len(origins)
-    tmin_a = per_ray(tmin, r, "tmin")
-    tmax_a = per_ray(tmax, r, "tmax")
-    if np.any(tmax_a < tmin_a):
-        raise ValueError("tmax must be >= tmin for every ray")
+    tmin_a, tmax_a = ray_range(tmin, tmax, len(origins))
     device = mesh.device
     opts = (options or DacrtOptions()).for_device(device)
     info = stats if stats is not None else {}

@@ -43,7 +43,7 @@ from ..bvh.traversal import closest_hit, traverse
 from ..core.launch import host_threads, launch_split, load_modules, run_parts
 from ..core.mesh import DeviceMesh, triangle_corners
 from ..core.ray import make_ray
-from ..core.validate import as_rays, per_ray
+from ..core.validate import as_rays, ray_range
 from ..dacrt.api import dacrt_trace_mesh, dacrt_warp_modules
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 
@@ -255,11 +255,7 @@ def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.
                   tmax=np.inf, threads: int | None = None, engine: str = "bvh") -> PrimaryHits:
     """Closest hits of the primary rays that enter the scene box, as spawn points and
     normals for occlusion rays."""
-    r = len(origins)
-    tmin_a = per_ray(tmin, r, "tmin")
-    tmax_a = per_ray(tmax, r, "tmax")
-    if np.any(tmax_a < tmin_a):
-        raise ValueError("tmax must be >= tmin for every ray")
+    tmin_a, tmax_a = ray_range(tmin, tmax, len(origins))
     device = bvh.device
     cand = box_candidates(bvh.bounds, origins, directions, tmin_a, tmax_a)
     m = len(cand)
