@@ -100,11 +100,10 @@ def host_pool(threads: int) -> ThreadPoolExecutor:
     global _pool, _pool_size
     with _pool_lock:
         if _pool is None or _pool_size < threads:
-            old = _pool
+            # The old pool is not shut down: a caller may still be submitting to it; its
+            # idle threads cost nothing (and growing is rare: more workers than cores).
             _pool_size = max(threads, cpu_cores())
             _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="kernels-host")
-            if old is not None:
-                old.shutdown(wait=False)  # its threads finish what they hold, then exit
         return _pool
 
 
