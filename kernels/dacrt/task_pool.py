@@ -12,8 +12,13 @@ before its entry into the node box is clipped too (ordered early termination). B
 ray spans are widened by `margin`, so no hit that the watertight test reports is lost to
 rounding.
 
-PPS, Swap and AABB work on up to three segments at once (PPS2: the left and right ray parts
-and the left triangle part); a step's chunks are the segments' chunks one after another.
+PPS, Swap and AABB are the pool's chunk phases (`pool.phases`), here on up to three
+segments at once (PPS2: the left and right ray parts and the left triangle part); a step's
+chunks are the segments' chunks one after another. Level 1 of PPS (classifying and marking
+rays and triangles) and of AABB (the triangles' boxes) is this module's. The worker is the
+pool's (`pool.worker.make_worker`); this module supplies `run_chunks`, `complete_step` and
+`finish_task` (store the children, or release an intersection task and activate its
+dependants).
 """
 
 from __future__ import annotations
