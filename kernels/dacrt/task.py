@@ -10,10 +10,10 @@ from . import table as tb
 from .records import TraceArrays
 
 CANDIDATES = wp.constant(32)  # RDH candidate planes over the three axes (sec. 5.2)
-PLANES = wp.constant(33)  # ... and the spatial median as one more, so RDH can choose it
+PLANES = wp.constant(CANDIDATES + 1)  # ... and the spatial median, so RDH can choose it
 MEDIAN_TRUST = wp.constant(0.6)  # RDH keeps the median unless a candidate is 40% cheaper
-CAND_INTS = 33 * 4  # per pool slot and plane: tris, then rays, of the left and right child
-CAND_BOXES = 33 * 2  # per pool slot and plane: the sampled children's boxes
+CAND_INTS = PLANES * 4  # per pool slot, per plane: tris, then rays, of the left and right child
+CAND_BOXES = PLANES * 2  # per pool slot, per plane: the sampled children's boxes
 
 SPLIT_MEDIAN = wp.constant(0)
 SPLIT_RDH = wp.constant(1)
