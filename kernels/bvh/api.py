@@ -123,6 +123,7 @@ def build_bvh(
     b.nodes = wp.empty(max(2 * n - 1, 1), dtype=BvhNode, device=device)
     b.counters = wp.zeros(2, dtype=int, device=device)
     b.phase_cycles = wp.zeros(workers * CYCLE_ROW, dtype=wp.int64, device=device)
+    b.worker_bins = capacity
     b.method = METHODS[method]
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)

@@ -210,12 +210,11 @@ def run_chunk(b: BuildData, t: BuildTask, slot: int, chunk: int):
 
 
 @wp.func
-def run_chunks(b: BuildData, pool: Pool, worker: int, slot: int, t: BuildTask, first: int,
-               count: int):
+def run_chunks(b: BuildData, worker: int, slot: int, t: BuildTask, first: int, count: int):
     """Chunks of a step (the worker's `run_chunks`). A SplitPlane step shared with other
     workers is binned into this worker's own bins first and merged once (sec. 4.1)."""
     if t.phase == PHASE_SPLIT_PLANE and count < t.chunks:
-        own = pool.capacity + worker
+        own = b.worker_bins + worker
         for c in range(first, first + count):
             split_plane_chunk(b, t, own, c)
         merge_bins(b, own, slot)

@@ -83,7 +83,7 @@ class BuildData:
     box_hi: wp.array(dtype=wp.vec3)
     cbox_lo: wp.array(dtype=wp.vec3)  # ... and of the centroids' boxes
     cbox_hi: wp.array(dtype=wp.vec3)
-    bin_count: wp.array(dtype=int)  # BINS per pool slot, then per worker
+    bin_count: wp.array(dtype=int)  # BINS per pool slot, then per worker (from worker_bins)
     bin_lo: wp.array(dtype=wp.vec3)  # box of the bin's triangles
     bin_hi: wp.array(dtype=wp.vec3)
     bin_clo: wp.array(dtype=wp.vec3)  # box of their centroids
@@ -92,6 +92,7 @@ class BuildData:
     nodes: wp.array(dtype=BvhNode)
     counters: wp.array(dtype=int)
     phase_cycles: wp.array(dtype=wp.int64)  # per worker and phase (pool.worker.CYCLE_ROW)
+    worker_bins: int  # the first worker's bins: after the pool slots' (the pool's capacity)
     method: int
     leaf_size: int
     max_depth: int

@@ -422,8 +422,7 @@ def intersect_chunks(d: DacrtData, t: DacrtTask, first: int, count: int):
 
 
 @wp.func(inline=False)  # inlined into both callers, the worker's PPS and Swap ran ~2x slower
-def run_chunks(d: DacrtData, pool: Pool, worker: int, slot: int, t: DacrtTask, first: int,
-               count: int):
+def run_chunks(d: DacrtData, worker: int, slot: int, t: DacrtTask, first: int, count: int):
     """Chunks first.. of the task's step (the worker's `run_chunks`). One call per batch, as
     the call copies the structs."""
     if t.phase == PH_INTERSECT:

@@ -51,8 +51,9 @@ class Application:
     data: a `@wp.struct` with `tasks` (an array of `task`, one per pool slot) and
         `phase_cycles` (int64, CYCLE_ROW per worker), and whatever else the steps need.
     task: a `@wp.struct` with `phase` (< CYCLE_ROW) and `chunks` (of the current step).
-    run_chunks(data, pool, worker, slot, task, first, count): run chunks first ..
-        first + count - 1 of the task's current step.
+    run_chunks(data, worker, slot, task, first, count): run chunks first ..
+        first + count - 1 of the task's current step (`worker`: this worker's index, for
+        what a worker keeps of its own; the pool itself is not for chunks to touch).
     complete_step(data, task, slot) -> task: the last finisher's work at the end of a
         step: the next step (its `phase` and `chunks`), or phase `done`.
     finish_task(data, pool, task, slot) -> int: a task in phase `done`: store its children
@@ -110,7 +111,7 @@ def make_worker(app: Application) -> wp.Kernel:
                 pool_hand_over(pool, s, task.chunks)
                 return
             since = cycles()
-            run_chunks(d, pool, worker, s, task, 0, task.chunks)
+            run_chunks(d, worker, s, task, 0, task.chunks)
             add_cycles(d, worker, task.phase, since)
 
     advance = wp.func(advance, module=app.module, name=f"{app.name}_advance")
@@ -128,7 +129,7 @@ def make_worker(app: Application) -> wp.Kernel:
             idle_since = wp.int64(-1)
             t = d.tasks[slot]
             since = cycles()
-            run_chunks(d, pool, worker, slot, t, got[1], got[2])
+            run_chunks(d, worker, slot, t, got[1], got[2])
             add_cycles(d, worker, t.phase, since)
             if pool_finish(pool, slot, got[2]):
                 advance(d, pool, worker, slot, d.tasks[slot])

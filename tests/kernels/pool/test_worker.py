@@ -64,8 +64,7 @@ def sum_chunks(t: SumTask) -> int:
 
 
 @wp.func
-def run_chunks(d: SumData, pool: Pool, worker: int, slot: int, t: SumTask, first: int,
-               count: int):
+def run_chunks(d: SumData, worker: int, slot: int, t: SumTask, first: int, count: int):
     for c in range(first, first + count):
         if t.phase == PH_TOTAL:
             s = int(0)
