@@ -16,13 +16,19 @@ Measurements, all through the public API with explicit constants (defaults may d
 between the checkouts): `build` (binned SAH, every core), `trace` (closest hit, the scene's
 camera at size x size), `anyhit` (one occlusion ray per primary hit, within 0.1 of the box
 diagonal), `dacrt_pool` (RDH, C_SORT 4, 16 rays: the CPU constants), `dacrt_bf`
-(breadth-first, alpha 32, beta 128, at small x small), `ao` (8 spp at small x small).
+(breadth-first, alpha 32, beta 128, at small x small), `ao` (8 spp at small x small);
+and on one thread (one worker): `build1`, `trace1`, `anyhit1`, `dacrt_pool1` (the tasks
+that two workers would sort in one worker likewise), `ao1`. Every figure comes as wall
+time and as the process's CPU time (`<what> cpu`): on one thread the CPU time is the
+steadiest figure on a shared machine (another process's load does not count in it); with
+several workers it also counts the time idle workers spin.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import statistics
 import subprocess
 import sys
@@ -30,6 +36,7 @@ import time
 from pathlib import Path
 
 WHAT = ("build", "trace", "anyhit", "dacrt_pool", "dacrt_bf", "ao")
+ONE_THREAD = ("build1", "trace1", "anyhit1", "dacrt_pool1", "ao1")  # also: --what
 
 
 def measure(args: argparse.Namespace) -> None:
@@ -55,7 +62,15 @@ def measure(args: argparse.Namespace) -> None:
     diag = float(np.linalg.norm(bvh.bounds[1] - bvh.bounds[0]))
     p = (o[hit] + h.t[hit, None] * d[hit]).astype(np.float32)
     ao_o = (p + 1e-4 * diag * w / np.linalg.norm(w, axis=1, keepdims=True)).astype(np.float32)
+    pool = {"c_sort": 4.0, "min_rays": 16}
+    one = {"workers": 1, "small_items": max(32768, (len(o) + len(f)) // 2)}  # as two workers
     jobs = {
+        "build1": lambda: kernels.build_bvh(v, f, workers=1),
+        "trace1": lambda: kernels.trace(bvh, o, d, tmin, tmax, threads=1),
+        "anyhit1": lambda: kernels.trace(bvh, ao_o, w, 0.0, 0.1 * diag, any_hit=True,
+                                         threads=1),
+        "dacrt_pool1": lambda: kernels.dacrt_trace(v, f, o, d, tmin, tmax, **pool, **one),
+        "ao1": lambda: kernels.render_ao(bvh, so, sd, spp=8, tmin=stmin, tmax=stmax, threads=1),
         "build": lambda: kernels.build_bvh(v, f),
         "trace": lambda: kernels.trace(bvh, o, d, tmin, tmax),
         "anyhit": lambda: kernels.trace(bvh, ao_o, w, 0.0, 0.1 * diag, any_hit=True),
@@ -69,12 +84,16 @@ def measure(args: argparse.Namespace) -> None:
     for name in what:
         jobs[name]()
     ms: dict[str, list[float]] = {name: [] for name in what}
+    cpu: dict[str, list[float]] = {name: [] for name in what}
     for _ in range(args.repeat):
         for name in what:
-            t0 = time.perf_counter()
+            c0, t0 = time.process_time(), time.perf_counter()
             jobs[name]()
             ms[name].append((time.perf_counter() - t0) * 1e3)
-    print(json.dumps({name: statistics.median(x) for name, x in ms.items()}))
+            cpu[name].append((time.process_time() - c0) * 1e3)
+    out = {name: statistics.median(x) for name, x in ms.items()}
+    out.update({f"{name} cpu": statistics.median(x) for name, x in cpu.items()})
+    print(json.dumps(out))
 
 
 def main() -> int:
@@ -97,6 +116,9 @@ def main() -> int:
         p.error("--old is required")
     child = [str(Path(__file__).resolve()), "--size", str(args.size), "--small",
              str(args.small), "--repeat", str(args.repeat), "--what", args.what]
+    # numpy's BLAS threads spin after a call: one thread, so CPU times are the engine's
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1",
+           "MKL_NUM_THREADS": "1"}
     rounds: dict[tuple[str, str], list[tuple[float, float]]] = {}
     for r in range(args.rounds):
         for scene in args.scenes.split(","):
@@ -105,7 +127,7 @@ def main() -> int:
             for tag, root in order if r % 2 == 0 else order[::-1]:
                 root = root.resolve()
                 proc = subprocess.run([str(root / ".venv/bin/python"), *child, "--scene", scene],
-                                      cwd=root, capture_output=True, text=True)
+                                      cwd=root, capture_output=True, text=True, env=env)
                 lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("{")]
                 if proc.returncode != 0 or not lines:
                     print(proc.stderr[-3000:], file=sys.stderr)
