@@ -1,5 +1,5 @@
 """The scene camera and film as a render job's view: the camera description of the
-service's jobs API (`kernels/camera.py`'s wire form, Blender's camera model), the
+service's jobs API (`kernels/render/camera.py`'s wire form, Blender's camera model), the
 border's window and the pixel aspect. The service makes the rays;
 tests/addon/test_camera.py checks its model against Blender's own camera frame.
 """

@@ -72,6 +72,9 @@ def _draw_timings(layout: bpy.types.UILayout, props) -> None:  # noqa: ANN001
     for phase in props.build_phases:
         grid.label(text=f"  {phase.name}")
         grid.label(text=f"{phase.ms:.2f} ms")
+    if props.build_compile_ms >= 1.0:  # Warp compiled kernels first (not in the total)
+        grid.label(text="Compile (first use)")
+        grid.label(text=f"{props.build_compile_ms:.0f} ms")
     if len(props.build_history):
         hist = layout.box()
         hist.label(text="Earlier builds (method, leaf, triangles, ms)")

@@ -92,6 +92,7 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
     # The last build, filled by scenesort.build_bvh and scenesort.render_ao.
     has_build: BoolProperty(default=False)  # type: ignore[valid-type]
     build_total_ms: FloatProperty(name="Total ms")  # type: ignore[valid-type]
+    build_compile_ms: FloatProperty(name="Compile ms")  # type: ignore[valid-type]
     build_cached: BoolProperty(name="Cached")  # type: ignore[valid-type]
     build_method: StringProperty(name="Method")  # type: ignore[valid-type]
     build_leaf_size: IntProperty(name="Leaf size")  # type: ignore[valid-type]

@@ -15,6 +15,9 @@ def _number(source: dict, *names: str) -> float:
     return 0.0
 
 
+NOT_PHASES = {"total", "phases", "phase_ms", "compile"}  # compile: Warp's, apart from the build
+
+
 def phases(timings: dict[str, Any]) -> list[tuple[str, float]]:
     """Per-phase milliseconds from `timings_ms` (flat, or nested under 'phases')."""
     nested = timings.get("phases") or timings.get("phase_ms")
@@ -22,7 +25,7 @@ def phases(timings: dict[str, Any]) -> list[tuple[str, float]]:
     return [
         (str(name), float(ms))
         for name, ms in source.items()
-        if name not in {"total", "phases", "phase_ms"} and isinstance(ms, int | float)
+        if name not in NOT_PHASES and isinstance(ms, int | float)
     ]
 
 
@@ -34,6 +37,7 @@ def apply_build(props: Any, answer: dict[str, Any], method: str, leaf_size: int)
     triangles = int(_number(stats, "triangles") or _number(answer, "triangles"))
     props.has_build = True
     props.build_total_ms = total
+    props.build_compile_ms = _number(timings, "compile") or _number(stats, "compile_ms")
     props.build_cached = bool(answer.get("cached", False))
     props.build_method = str(answer.get("method", method))
     props.build_leaf_size = int(answer.get("leaf_size", leaf_size))

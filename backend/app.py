@@ -240,6 +240,7 @@ def _bvh_info(scene_id: str, method: str, leaf_size: int, bvh: Any, cached: bool
     stats = dict(bvh.stats)
     timings = {"total": float(stats["build_ms"])}
     timings.update({k: float(v) for k, v in stats.get("phase_ms", {}).items()})
+    timings["compile"] = float(stats.get("compile_ms", 0.0))  # Warp's, not part of total
     fields = BvhStats.model_fields
     return BvhInfo(
         scene_id=scene_id,
@@ -581,7 +582,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 422,
                 "camera",
                 str(exc),
-                "correct the camera field named in the message (see kernels/camera.py)",
+                "correct the camera field named in the message (see kernels/render/camera.py)",
                 "invalid_camera",
             ) from None
         if camera.width * camera.height > MAX_JOB_PIXELS:

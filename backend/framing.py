@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from kernels.camera import Camera
+from kernels import Camera
 
 
 @dataclass(frozen=True)

@@ -74,12 +74,13 @@ class BvhInfo(Strict):
     method: Literal["sah", "median"]
     leaf_size: int
     cached: bool = Field(description="true when an earlier build was reused")
-    timings_ms: dict[str, float] = Field(description="total and one entry per build phase")
+    timings_ms: dict[str, float] = Field(
+        description="total and one entry per build phase; compile: Warp's, not in total")
     stats: BvhStats
 
 
 class CameraModel(Strict):
-    """Blender's camera model: the wire form of kernels.Camera (kernels/camera.py)."""
+    """Blender's camera model: the wire form of kernels.Camera (kernels/render/camera.py)."""
 
     matrix_world: Annotated[
         list[Annotated[list[float], Field(min_length=4, max_length=4)]],

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from kernels.camera import Camera
+from kernels import Camera
 
 SCENES_ENV = "SCENESORT_SCENES"
 DEFAULT_WIDTH, DEFAULT_HEIGHT = 640, 480

@@ -83,7 +83,7 @@ def _check_finite(parameter: str, values: np.ndarray, what: str) -> None:
 
 def count_degenerate(vertices: np.ndarray, indices: np.ndarray) -> int:
     """Zero-area triangles (kept, never hit), counted by the engine on every core."""
-    from kernels.api import count_degenerate as engine_count  # Warp only where it is needed
+    from kernels.core import count_degenerate as engine_count  # Warp only where it is needed
 
     return engine_count(vertices, indices, device="cpu")
 

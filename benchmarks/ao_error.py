@@ -46,8 +46,8 @@ from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.pat
 import kernels  # noqa: E402
 from backend import peers  # noqa: E402
 from backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
-from kernels import ao  # noqa: E402
-from kernels.api import _threads  # noqa: E402
+from kernels.core import host_threads  # noqa: E402
+from kernels.render import ao  # noqa: E402
 
 RMSE_GOAL = 0.02
 FIXED_SPP = (1, 2, 4, 8, 16, 32, 64, 128, 256)
@@ -156,7 +156,7 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
     bvh = kernels.build_bvh(scene.vertices, scene.indices)
     build_ours = time.perf_counter() - t
     dist = ao.default_distance(bvh)
-    threads = _threads(bvh.device, args.threads)
+    threads = host_threads(bvh.device, args.threads)
     print(f"{name}: {scene.triangles:,} triangles, {width}x{height}, distance {dist:.4g}")
     ref, var, hit = reference(name, scene, bvh, o, d, tmin, tmax, dist, args.ref_spp,
                               REPO / ".cache" / "ao_ref")

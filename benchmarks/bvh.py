@@ -34,8 +34,8 @@ from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.pat
 import kernels  # noqa: E402
 from backend import peers  # noqa: E402
 from backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
-from kernels.ao import default_distance  # noqa: E402
-from kernels.pool import cpu_cores  # noqa: E402
+from kernels.core import cpu_cores  # noqa: E402
+from kernels.render import default_distance  # noqa: E402
 
 LEAVES = (8, 16, 32)
 METHODS = ("sah", "median")
@@ -43,11 +43,11 @@ METHODS = ("sah", "median")
 
 def compile_seconds() -> dict[str, float]:
     """First-use cost of each engine module in an empty kernel cache."""
-    from kernels import bvh_build, bvh_trace
+    from kernels.bvh import build, traversal
 
     out = {}
-    for name, module in (("bvh_build", bvh_build.build_worker.module),
-                         ("bvh_trace", bvh_trace.trace_kernel.module)):
+    for name, module in (("bvh_build", build.build_worker.module),
+                         ("bvh_trace", traversal.trace_kernel.module)):
         start = time.perf_counter()
         wp.load_module(module, device="cpu")
         out[name] = time.perf_counter() - start

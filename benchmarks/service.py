@@ -31,7 +31,7 @@ sys.path.insert(0, str(REPO))
 
 import kernels  # noqa: E402
 from backend.scenes import load_mesh, shared_scenes_dir  # noqa: E402
-from kernels.camera import Camera  # noqa: E402
+from kernels import Camera  # noqa: E402
 
 OCTET = {"Content-Type": "application/octet-stream"}
 

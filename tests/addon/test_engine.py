@@ -115,7 +115,7 @@ def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
     """AO and coverage of the scene's camera rays from the engine itself (no add-on, no
     service): `kernels.render_ao` on the exported triangles."""
     import kernels
-    from kernels.camera import Camera
+    from kernels import Camera
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
     mesh = export.export_scene(depsgraph)

@@ -148,7 +148,7 @@ def test_install_from_zip_then_render_with_no_other_step(
     assert info["service_exit"] is not None  # disabling the add-on stopped it
 
     import kernels
-    from kernels.camera import Camera
+    from kernels import Camera
 
     data = np.load(tmp_path / "render.npz")
     s = info["settings"]

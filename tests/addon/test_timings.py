@@ -49,3 +49,13 @@ def test_phases_replace_the_previous_build(registered: bpy.types.Scene) -> None:
     answer["timings_ms"] = {"total": 5.0, "build": 5.0}
     timings.apply_build(props, answer, "sah", 8)
     assert [p.name for p in props.build_phases] == ["build"]
+
+
+def test_compile_time_is_shown_apart_from_the_build(registered: bpy.types.Scene) -> None:
+    """Warp's first-use compile time is in the answer but is neither a phase nor total."""
+    props = registered.scenesort
+    answer = _answer("sah", 8, 71.0)
+    answer["timings_ms"]["compile"] = 7024.0
+    timings.apply_build(props, answer, "sah", 8)
+    assert props.build_total_ms == 71.0 and props.build_compile_ms == 7024.0
+    assert "compile" not in [p.name for p in props.build_phases]

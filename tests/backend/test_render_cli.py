@@ -12,7 +12,7 @@ from PIL import Image
 import kernels
 from backend.cli import main
 from backend.scenes import shared_scene, shared_scenes_dir
-from kernels.camera import Camera
+from kernels import Camera
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +30,8 @@ def test_no_arguments_renders_the_default_scene(tmp_path, monkeypatch, capsys):
     assert image.shape == (480, 640) and image.dtype == np.uint8
     assert image.min() < 128 < image.max()  # corners and contacts are dark, open floor light
     out = capsys.readouterr().out
-    for word in ("default", "load", "build", "primary", "occlusion", "total", "MRays/s"):
+    for word in ("default", "load", "compile", "build", "primary", "occlusion", "total",
+                 "MRays/s"):
         assert word in out
 
 

@@ -11,7 +11,7 @@ import warp as wp
 
 from backend import scenes
 from backend.scenes import Scene, default_scene, load_mesh, shared_scene, shared_scenes_dir
-from kernels.camera import Camera
+from kernels import Camera
 
 SHARED = shared_scenes_dir()
 INFOS = scenes.shared_scene_infos()

@@ -12,7 +12,7 @@ import pytest
 from PIL import Image
 
 import kernels
-from kernels.camera import Camera
+from kernels import Camera
 
 POLL_LIMIT_S = 120.0
 

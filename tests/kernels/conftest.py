@@ -4,6 +4,7 @@ import pytest
 
 from backend.scenes import shared_scene as load_shared_scene
 from backend.scenes import shared_scenes_dir
+from tests.devices import device, pytest_configure, pytest_generate_tests  # noqa: F401
 
 
 @pytest.fixture(scope="session")

@@ -126,3 +126,14 @@ def axis_aligned_cube_rays():
     return (np.asarray(box.vertices, np.float32), np.asarray(box.faces, np.int32),
             np.vstack(origins), np.vstack(directions))
 
+
+def assert_same_hits(hits, ref_t, ref_tri, rel=1e-6):
+    """Hit/miss identical; t within `rel`; a different triangle only where t is equal."""
+    ours = hits.triangle >= 0
+    theirs = ref_tri >= 0
+    assert np.array_equal(ours, theirs), f"{int((ours != theirs).sum())} hit/miss mismatches"
+    both = ours & theirs
+    err = np.abs(hits.t[both] - ref_t[both]) / np.maximum(np.abs(ref_t[both]), 1e-30)
+    assert err.max(initial=0) <= rel, f"t differs by {err.max():.3g} relative"
+    other = both & (hits.triangle != ref_tri)
+    assert np.all(np.abs(hits.t[other] - ref_t[other]) <= rel * np.abs(ref_t[other]))

@@ -10,6 +10,7 @@ from hypothesis import HealthCheck, settings
 # The service fixtures live in tests/backend/conftest.py; importing them here makes them
 # available to this folder's tests without a second copy of the launcher.
 from tests.backend.conftest import api, service, start_service  # noqa: F401
+from tests.devices import device, pytest_configure, pytest_generate_tests  # noqa: F401
 
 # CI runs a fixed, derandomized set of examples so a failure reproduces on every run;
 # SCENESORT_HYPOTHESIS_EXAMPLES=2000 (say) explores further on a developer's machine.

@@ -178,7 +178,7 @@ def test_single_triangle_at_every_scale():
         assert np.all(h.t[:2] == 1.0), (scale, h.t)
 
 
-def test_median_build_of_huge_and_tiny_triangles_does_not_corrupt_memory():
+def test_median_build_of_huge_and_tiny_triangles_does_not_corrupt_memory(device):
     """Guards the median builder against writing outside its arrays: one 2e4-wide triangle
     over 1200 triangles of size 1e-5 aborted the process ("corrupted double-linked list",
     heap corruption) inside build_bvh(method="median"); 1000 tiny triangles, or no huge
@@ -192,10 +192,10 @@ def test_median_build_of_huge_and_tiny_triangles_does_not_corrupt_memory():
         huge = [[-1e4, 0, -1e4], [1e4, 0, -1e4], [0, 0, 2e4]]
         v = np.vstack([huge, tiny]).astype(np.float32)
         f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
-        bvh = kernels.build_bvh(v, f, method="median")
+        bvh = kernels.build_bvh(v, f, method="median", device=DEVICE)
         check_bvh(bvh, 8)
         print("built", bvh.stats["nodes"])
-    """)
+    """).replace("DEVICE", repr(device))
     root = Path(__file__).resolve().parents[2]
     proc = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True,
                           text=True, timeout=300)

@@ -118,6 +118,7 @@ def _assert_4xx(response, field: str) -> None:
     assert field in response.text
 
 
+@pytest.mark.host_only  # the HTTP layer, on the service's own device
 def test_service_rejects_non_finite_and_out_of_range_input(api: Api):
     """Guards the HTTP path end to end: NaN/Inf vertices, out-of-range indices, NaN or
     zero-length rays and a body of the wrong size get a 4xx naming the problem (never a

@@ -1,0 +1,11 @@
+"""Bounding volume hierarchies: the task-pool builders (spatial median and binned SAH, 2012
+paper, sec. 4), the node layout, and closest-hit / any-hit traversal."""
+
+from .api import METHODS, Bvh, build_bvh, trace
+from .node import BvhArrays, BvhNode
+from .traversal import STACK_SIZE, closest_hit, traverse
+
+__all__ = [
+    "METHODS", "STACK_SIZE", "Bvh", "BvhArrays", "BvhNode", "build_bvh", "closest_hit", "trace",
+    "traverse",
+]

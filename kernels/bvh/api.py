@@ -1,0 +1,216 @@
+"""numpy in, numpy out: `build_bvh` and `trace` (contract in docs/kernels-api.md)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+import warp as wp
+
+from ..core.hits import Hits
+from ..core.launch import (
+    get_device,
+    host_threads,
+    launch_split,
+    load_modules,
+    sync_ms,
+    to_device,
+)
+from ..core.mesh import DeviceMesh
+from ..core.validate import as_rays, as_triangle_mesh, ray_range
+from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
+from ..pool.worker import CYCLE_ROW, launch_workers
+from . import build as bb
+from .build_data import (
+    BINS,
+    METHOD_MEDIAN,
+    METHOD_SAH,
+    PHASE_NAMES,
+    BuildData,
+    BuildItem,
+    BuildTask,
+)
+from .node import BvhArrays, BvhNode, empty_root, sah_cost
+from .traversal import STACK_SIZE, trace_kernel
+
+Method = Literal["sah", "median"]
+METHODS: dict[str, int] = {"median": int(METHOD_MEDIAN), "sah": int(METHOD_SAH)}
+
+
+@dataclass
+class Bvh:
+    vertices: np.ndarray
+    indices: np.ndarray
+    method: str
+    leaf_size: int
+    device: wp.context.Device
+    arrays: BvhArrays  # device-side view for kernels
+    bounds: np.ndarray  # (2, 3) float32
+    stats: dict = field(default_factory=dict)
+    mesh: DeviceMesh | None = None  # the mesh on the device, reused by AO and DACRT
+
+    def nodes(self) -> np.ndarray:
+        """The node array as a numpy structured array (lo, first, hi, count)."""
+        return self.arrays.nodes.numpy()
+
+    def permutation(self) -> np.ndarray:
+        """Caller's triangle index of each leaf position."""
+        return self.arrays.tri_ids.numpy()
+
+
+def build_bvh(
+    vertices: np.ndarray,
+    indices: np.ndarray,
+    method: Method = "sah",
+    leaf_size: int = 8,
+    max_depth: int = STACK_SIZE,
+    device=None,
+    *,
+    min_chunks: int = DEFAULT_MIN_CHUNKS,
+    workers: int | None = None,
+    pool_capacity: int | None = None,
+) -> Bvh:
+    """Build a BVH with the task pool in one persistent launch (2012 paper, sec. 4)."""
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {sorted(METHODS)}, got {method!r}")
+    if not 1 <= int(leaf_size) <= 64:
+        raise ValueError(f"leaf_size must be in 1..64 (8, 16 or 32 are usual), got {leaf_size}")
+    if not 1 <= int(max_depth) <= STACK_SIZE:
+        raise ValueError(f"max_depth must be in 1..{STACK_SIZE}, got {max_depth}")
+    if int(min_chunks) < 1:
+        raise ValueError(f"min_chunks must be >= 1, got {min_chunks}")
+    device = get_device(device)
+    phase_ms: dict[str, float] = {}
+    compile_ms = load_modules(device, *bb.WARP_MODULES)  # compile time is not build time
+    t_total = t0 = time.perf_counter()
+    vertices, indices = as_triangle_mesh(vertices, indices)
+    phase_ms["validate"] = (time.perf_counter() - t0) * 1e3
+
+    t0 = time.perf_counter()
+    m = len(indices)
+    workers = default_workers(device) if workers is None else int(workers)
+    mesh = DeviceMesh(vertices, indices, device, validated=True)
+    v_wp, f_wp = mesh.v, mesh.f
+    b = BuildData()
+    lo, hi = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(2))
+    valid = wp.empty(m, dtype=int, device=device)
+    inf = np.float32(np.inf)
+    bounds = wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
+                      dtype=wp.vec3, device=device)
+    wp.launch(bb.triangle_boxes, dim=m,
+              inputs=[v_wp, f_wp, lo, hi, valid, bounds], device=device)
+    offsets = wp.empty(m, dtype=int, device=device)
+    if m:
+        wp.utils.array_scan(valid, offsets, inclusive=False)
+    n = int(offsets.numpy()[-1] + valid.numpy()[-1]) if m else 0
+    box = bounds.numpy()
+
+    capacity = pool_capacity or (256 * workers if device.is_cpu else max(4096, 2 * n // leaf_size))
+    b.items, b.spare = (wp.empty(max(n, 1), dtype=BuildItem, device=device) for _ in range(2))
+    b.spare_pos, b.scan = (wp.empty(max(n, 1), dtype=int, device=device) for _ in range(2))
+    b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
+    b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
+        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
+    )
+    bins = (capacity + workers) * int(BINS)  # per slot, then per worker
+    b.bin_count = wp.empty(bins, dtype=int, device=device)
+    b.bin_lo, b.bin_hi, b.bin_clo, b.bin_chi = (
+        wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(4)
+    )
+    b.tasks = wp.empty(capacity, dtype=BuildTask, device=device)
+    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=BvhNode, device=device)
+    b.counters = wp.zeros(2, dtype=int, device=device)
+    b.phase_cycles = wp.zeros(workers * CYCLE_ROW, dtype=wp.int64, device=device)
+    b.worker_bins = capacity
+    b.method = METHODS[method]
+    b.leaf_size = int(leaf_size)
+    b.max_depth = int(max_depth)
+    pool = make_pool(capacity, workers, int(min_chunks), device)
+    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, b],
+              device=device)
+    wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
+    phase_ms["prepare"] = sync_ms(device, t0)
+
+    t0 = time.perf_counter()
+    if n > 0:
+        wp.launch(bb.start_build, dim=1,
+                  inputs=[b, pool, *(wp.vec3(*row) for row in box), n], device=device)
+        launch_workers(bb.build_worker, workers, [b, pool], device)
+    pool_state = check_pool(pool)
+    build_ms = sync_ms(device, t0)
+    spent = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(PHASE_NAMES)]
+    spent = spent.sum(axis=0).astype(np.float64)
+    share = spent / spent.sum() if spent.sum() > 0 else np.zeros_like(spent)
+    for name, s in zip(PHASE_NAMES, share, strict=True):
+        phase_ms[name] = float(build_ms * s)
+
+    t0 = time.perf_counter()
+    node_count, depth = (int(x) for x in b.counters.numpy())
+    tri_verts = wp.empty(max(3 * n, 1), dtype=wp.vec3, device=device)
+    tri_ids = wp.empty(n, dtype=int, device=device)
+    wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, b.items, tri_ids, tri_verts],
+              device=device)
+    arrays = BvhArrays()
+    arrays.nodes = b.nodes if n > 0 else empty_root(device)
+    arrays.tri_verts = tri_verts
+    arrays.tri_ids = tri_ids
+    phase_ms["reorder"] = sync_ms(device, t0)
+    total_ms = (time.perf_counter() - t_total) * 1e3
+
+    bvh = Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
+              leaf_size=int(leaf_size), device=device, arrays=arrays, bounds=box[:2].copy(),
+              mesh=mesh)
+    node_count = node_count if n > 0 else 1
+    nodes = bvh.nodes()[:node_count]
+    bvh.arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
+    leaves = int(np.count_nonzero(nodes["count"]))
+    bvh.stats = {
+        "build_ms": total_ms,
+        "compile_ms": compile_ms,  # Warp's, apart: seconds on first use, then ~ms
+        "phase_ms": phase_ms,
+        "nodes": node_count,
+        "leaves": leaves if n > 0 else 0,
+        "depth": depth,
+        "sah_cost": sah_cost(nodes) if n > 0 else 0.0,
+        "triangles": m,
+        "degenerate": int(m - n),
+        "pool_slots_used": int(pool_state[2]),
+        "pool_steps_published": int(pool_state[3]),
+        "workers": workers,
+        "method": method,
+        "leaf_size": int(leaf_size),
+        "device": str(device),
+    }
+    return bvh
+
+
+def trace(
+    bvh: Bvh,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    any_hit: bool = False,
+    *,
+    threads: int | None = None,
+) -> Hits:
+    """Closest hit (or, with any_hit, some hit) per ray in [tmin, tmax].
+
+    On CPU the rays are split between `threads` host threads (default: every core), each
+    launching its share: a Warp CPU launch runs on one thread."""
+    origins, directions = as_rays(origins, directions)
+    r = len(origins)
+    tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)
+    device = bvh.device
+    t, tri, u, v = (np.empty(r, dt) for dt in (np.float32, np.int32, np.float32, np.float32))
+    outputs = [to_device(x, dt, device) for x, dt in ((t, float), (tri, int), (u, float),
+                                                       (v, float))]
+    inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
+              to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
+    launch_split(trace_kernel, r, [bvh.arrays], inputs, [int(any_hit)], outputs, device,
+                 host_threads(device, threads))
+    if not device.is_cpu:
+        t, tri, u, v = (a.numpy() for a in outputs)
+    return Hits(t=t, triangle=tri, u=u, v=v)

@@ -1,0 +1,45 @@
+"""The BVH's layout in memory: 32-byte nodes in one flat array, and the device view that
+traversal kernels read (Output of the build, 2012 paper, sec. 4.2)."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+@wp.struct
+class BvhNode:
+    """32 bytes. Inner nodes: children at `first` and `first + 1`, `count` 0."""
+
+    lo: wp.vec3  # 12 bytes
+    first: int  # 4: leaf: first triangle position in leaf order; inner: left child index
+    hi: wp.vec3  # 12
+    count: int  # 4: leaf: triangles (> 0); inner: 0
+
+
+@wp.struct
+class BvhArrays:
+    nodes: wp.array(dtype=BvhNode)
+    tri_verts: wp.array(dtype=wp.vec3)  # v0, v1, v2 per triangle, in leaf order
+    tri_ids: wp.array(dtype=int)  # the caller's triangle index per leaf position
+
+
+def empty_root(device) -> wp.array:
+    """The BVH of a mesh with no triangles: a root whose box, a point at infinity, no ray
+    enters (an inverted box would look like all of space to the slab test)."""
+    node = np.zeros(1, dtype=BvhNode.numpy_dtype())
+    node["lo"] = np.inf
+    node["hi"] = np.inf
+    return wp.array(node, dtype=BvhNode, device=device)
+
+
+def sah_cost(nodes: np.ndarray) -> float:
+    """SAH cost with traversal and intersection cost 1: sum over nodes of A(node)/A(root)
+    times 1 for inner nodes and times the triangle count for leaves."""
+    raw = np.ascontiguousarray(nodes).view(np.float32).reshape(len(nodes), 8)  # 32-byte rows
+    count = raw.view(np.int32)[:, 7]
+    e = np.maximum(raw[:, 4:7] - raw[:, 0:3], np.float32(0.0))
+    area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]  # float32: a statistic
+    if area[0] <= 0:
+        return float(count[0]) if len(nodes) == 1 else float(len(nodes))
+    return float(np.dot(area.astype(np.float64), np.maximum(count, 1)) / float(area[0]))

@@ -1,0 +1,140 @@
+"""Host-side launch helpers: the device, host threads, numpy views, split launches.
+
+A Warp CPU launch is one serial loop on one thread (WARP_FACTS.md), so on CPU independent
+work is split into parts that host threads launch side by side (the launch releases the
+Python lock); on CUDA one launch covers everything. The host threads are one persistent
+pool for the whole process (`host_pool`): starting threads for every call cost about
+0.5 ms per thread.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+import warp as wp
+
+PARTS_PER_THREAD = 8  # launch_split: parts per host thread, for load balance
+MIN_PART = 4096  # launch_split: fewest items worth a launch of their own
+
+
+def get_device(device) -> wp.context.Device:
+    """Warp's device for `device` (None: Warp's default), initialising Warp first."""
+    wp.init()
+    return wp.get_device(device)
+
+
+def load_modules(device, *modules) -> float:
+    """Load these Warp modules on the device, compiling those the kernel cache lacks;
+    returns the milliseconds it took. Called before a call's clock starts, so that Warp's
+    compile time (seconds on first use) is reported apart from the work's."""
+    start = time.perf_counter()
+    for module in modules:
+        wp.load_module(module, device=device)
+    return (time.perf_counter() - start) * 1e3
+
+
+def sync_ms(device, start: float) -> float:
+    """Milliseconds since `start` (a perf_counter reading) once the device is idle."""
+    wp.synchronize_device(device)
+    return (time.perf_counter() - start) * 1e3
+
+
+def cpu_cores() -> int:
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+
+
+def host_threads(device, threads: int | None) -> int:
+    """Host threads that split a launch: every core on CPU unless told; one on CUDA."""
+    if not device.is_cpu:
+        return 1
+    return cpu_cores() if threads is None else max(1, int(threads))
+
+
+def to_device(a: np.ndarray, dtype, device) -> wp.array:
+    """A Warp view of a contiguous numpy array on CPU (no copy), a copy elsewhere."""
+    return wp.array(a, dtype=dtype, device=device, copy=not device.is_cpu)
+
+
+def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, outputs: list,
+                 device, threads: int) -> None:
+    """Launch `kernel` over n items, split into contiguous parts run by `threads` host
+    threads (only on CPU, where a launch is serial). Arrays in `per_item` and `outputs`
+    of length n are sliced per part; shorter ones (a broadcast scalar) are passed whole."""
+    if n == 0:
+        return
+    # More parts than threads, taken in turn by the pool's threads: camera rays cost very
+    # different amounts in different parts of the image (sky against geometry).
+    parts = min(threads * PARTS_PER_THREAD, max(1, n // MIN_PART)) if threads > 1 else 1
+    if parts <= 1:
+        wp.launch(kernel, dim=n, inputs=[*shared, *per_item, *scalars], outputs=outputs,
+                  device=device)
+        return
+    wp.load_module(kernel.module, device=device)  # compile once, not in every thread
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+
+    def part(x: wp.array, a: int, b: int) -> wp.array:
+        return x[a:b] if x.shape[0] == n else x
+
+    def run(k: int) -> None:
+        a, b = int(bounds[k]), int(bounds[k + 1])
+        wp.launch(kernel, dim=b - a, inputs=[*shared, *(part(x, a, b) for x in per_item),
+                                             *scalars],
+                  outputs=[part(x, a, b) for x in outputs], device=device)
+
+    run_parts(run, parts, threads)
+
+
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+_pool_lock = threading.Lock()
+
+
+def host_pool(threads: int) -> ThreadPoolExecutor:
+    """The process's persistent host threads, at least `threads` of them (and one per core):
+    made on first use, grown (replaced) when a caller needs more at once."""
+    global _pool, _pool_size
+    with _pool_lock:
+        if _pool is None or _pool_size < threads:
+            # The old pool is not shut down: a caller may still be submitting to it; its
+            # idle threads cost nothing (and growing is rare: more workers than cores).
+            _pool_size = max(threads, cpu_cores())
+            _pool = ThreadPoolExecutor(_pool_size, thread_name_prefix="kernels-host")
+        return _pool
+
+
+def _forget_pool() -> None:  # a forked child has the parent's pool object, not its threads
+    global _pool, _pool_size
+    _pool, _pool_size = None, 0
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def run_parts(fn: Callable[[int], None], parts: int, threads: int) -> None:
+    """fn(0) .. fn(parts - 1) on `threads` of the persistent host threads, each taking the
+    next part when it is done with one (as `ThreadPoolExecutor(threads).map` would); the
+    first exception is raised here."""
+    if threads <= 1 or parts <= 1:
+        for k in range(parts):
+            fn(k)
+        return
+    next_part = iter(range(parts))
+    lock = threading.Lock()
+
+    def runner() -> None:
+        while True:
+            with lock:
+                k = next(next_part, None)
+            if k is None:
+                return
+            fn(k)
+
+    pool = host_pool(threads)
+    for f in [pool.submit(runner) for _ in range(min(threads, parts))]:
+        f.result()

@@ -1,0 +1,121 @@
+"""Triangle meshes on the device, made once per scene and reused by every call.
+
+`DeviceMesh` holds a validated mesh (numpy) and its vertex and index arrays on the device;
+what a tracer derives from it is computed on first use and kept: the triangles that have
+an area (degenerate ones are legal input that no ray hits, so every engine leaves them
+out) and the triangles by id with their boxes (what DACRT reads). A `Bvh` keeps the mesh
+it was built from, so AO and DACRT on the same scene upload nothing again.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .box import max3, min3
+from .launch import get_device, host_threads, launch_split, to_device
+from .triangle import is_degenerate
+from .validate import as_triangle_mesh
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+
+@wp.func
+def triangle_corners(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+                     i: int) -> wp.mat33:
+    """Rows: the three vertices of triangle i."""
+    f = indices[i]
+    return wp.matrix_from_rows(vertices[f[0]], vertices[f[1]], vertices[f[2]])
+
+
+@wp.kernel
+def degenerate_flags(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+                     out: wp.array(dtype=wp.int8)):
+    t = triangle_corners(vertices, indices, wp.tid())
+    out[wp.tid()] = wp.int8(wp.where(is_degenerate(t[0], t[1], t[2]), 1, 0))
+
+
+@wp.kernel
+def triangle_soup(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    tri_verts: wp.array(dtype=wp.vec3),
+    tri_lo: wp.array(dtype=wp.vec3),
+    tri_hi: wp.array(dtype=wp.vec3),
+):
+    """Per triangle id: its three vertices one after the other, and its box."""
+    i = wp.tid()
+    t = triangle_corners(vertices, indices, i)
+    tri_verts[3 * i] = t[0]
+    tri_verts[3 * i + 1] = t[1]
+    tri_verts[3 * i + 2] = t[2]
+    tri_lo[i] = min3(min3(t[0], t[1]), t[2])
+    tri_hi[i] = max3(max3(t[0], t[1]), t[2])
+
+
+def degenerate_mask(vertices: np.ndarray, indices: np.ndarray, device=None,
+                    threads: int | None = None) -> np.ndarray:
+    """Zero-area triangles of a validated mesh, as `build_bvh` skips them (the float64 cross
+    product of the float32 edges is exactly zero): a bool mask, computed on every core."""
+    device = get_device(device)
+    m = len(indices)
+    flags = np.empty(m, np.int8)
+    out = to_device(flags, wp.int8, device)
+    launch_split(degenerate_flags, m, [to_device(vertices, wp.vec3, device)],
+                 [to_device(np.ascontiguousarray(indices, np.int32), wp.vec3i, device)], [],
+                 [out], device, host_threads(device, threads))
+    return (flags if device.is_cpu else out.numpy()).view(bool)
+
+
+def count_degenerate(vertices: np.ndarray, indices: np.ndarray, device=None,
+                     threads: int | None = None) -> int:
+    """How many triangles `degenerate_mask` flags."""
+    return int(np.count_nonzero(degenerate_mask(vertices, indices, device, threads)))
+
+
+class DeviceMesh:
+    """A validated triangle mesh and its arrays on one device.
+
+    vertices, indices: the validated numpy arrays ((N, 3) float32, (M, 3) int32).
+    v, f: the same on the device (`wp.vec3`, `wp.vec3i`).
+    """
+
+    def __init__(self, vertices, indices, device=None, *, validated: bool = False):
+        self.device = get_device(device)
+        if not validated:  # `validated`: the caller passed as_triangle_mesh's output
+            vertices, indices = as_triangle_mesh(vertices, indices)
+        self.vertices, self.indices = vertices, indices
+        self.v = wp.array(self.vertices, dtype=wp.vec3, device=self.device)
+        self.f = wp.array(self.indices, dtype=wp.vec3i, device=self.device)
+        self._valid_ids: np.ndarray | None = None
+        self._soup: tuple[wp.array, wp.array, wp.array] | None = None
+
+    def valid_ids(self) -> np.ndarray:
+        """The ids of the triangles with an area (int32, ascending), found once."""
+        if self._valid_ids is None:
+            mask = degenerate_mask(self.vertices, self.indices, "cpu")
+            self._valid_ids = np.flatnonzero(~mask).astype(np.int32)
+        return self._valid_ids
+
+    def soup(self) -> tuple[wp.array, wp.array, wp.array]:
+        """(tri_verts, tri_lo, tri_hi): every triangle's vertices (three `vec3` per id) and
+        box, made on the device once."""
+        if self._soup is None:
+            m = len(self.indices)
+            soup = (wp.empty(max(3 * m, 1), dtype=wp.vec3, device=self.device),
+                    wp.empty(max(m, 1), dtype=wp.vec3, device=self.device),
+                    wp.empty(max(m, 1), dtype=wp.vec3, device=self.device))
+            if m:
+                wp.launch(triangle_soup, dim=m, inputs=[self.v, self.f, *soup],
+                          device=self.device)
+            self._soup = soup
+        return self._soup
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes held: the vertex and index arrays and what was derived from them."""
+        arrays = [self.v, self.f, *(self._soup or ())]
+        return sum(a.capacity for a in arrays)
+
+
+WARP_MODULES = (triangle_soup.module,)  # this module's kernels (see core.launch.load_modules)

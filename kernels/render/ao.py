@@ -1,0 +1,564 @@
+"""Ambient occlusion per primary ray, with fixed or adaptive sample counts.
+
+Definition (issue 4): for a primary ray's closest hit p with geometric normal n turned
+toward the ray's origin, AO(p) = (1/pi) * integral over the hemisphere around n of
+V(p, w) cos(theta) dw, where V = 1 when no triangle lies within `distance` along w. It is
+estimated with cosine-weighted directions, so each sample is V itself (0 or 1) and the
+estimate is the fraction of unoccluded occlusion rays. A primary ray that misses gets 1.0.
+
+Guarantees:
+- Occlusion rays start at p pushed off the surface along n by OFFSET_ULPS float32 ulps of
+  the hit's local scale (max of |p| and the triangle's extent around p), computed in
+  float64 and rounded once: a flat surface never occludes itself, at any scale or offset.
+- Every sample is a pure function of (seed, ray index, sample index): the result is
+  bit-identical for any thread count, round split or device.
+- Skipped work: primary rays that miss the scene box are not traced, missed pixels get no
+  occlusion rays, and (with `target_error`) converged pixels get no more samples.
+
+Adaptive sampling (`target_error`): every hit pixel gets the minimum spp, then the pixels
+whose 95% half-width z * sqrt(efficiency * s^2 / n) is still >= the target double their
+samples (so a pixel's samples are always a power-of-two prefix of its Sobol sequence
+when the minimum is one), up to `max_spp`. s^2 is the sample variance; where all n
+samples agreed it is p(1-p) at the Jeffreys posterior mean p = (k + 1/2) / (n + 1)
+instead of 0, so a pixel is not declared exact on the strength of a few samples that
+missed a small occluder. Owen-scrambled Sobol samples have less variance than
+independent ones: `efficiency` is the sampler's variance ratio, measured in every round
+on the pixels whose samples disagree from the spread between each pixel's estimate
+after half and after all of its new samples (`sampler_efficiency`); independent: ~1.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from ..bvh.api import Bvh
+from ..bvh.node import BvhArrays
+from ..bvh.traversal import closest_hit, traverse
+from ..core.launch import host_threads, launch_split, load_modules, run_parts
+from ..core.mesh import DeviceMesh, triangle_corners
+from ..core.ray import make_ray
+from ..core.validate import as_rays, ray_range
+from ..dacrt.api import dacrt_trace_mesh, dacrt_warp_modules
+from .sampling import SAMPLERS, cosine_direction, pixel_key
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+DISTANCE_FRACTION = 0.1  # distance=None: this fraction of the scene box's diagonal
+OFFSET_ULPS = 128.0  # occlusion-ray origin offset, in float32 ulps of the local scale
+Z95 = 1.959963984540054  # two-sided 95% normal quantile
+MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
+DEFAULT_MAX_SPP = 1024
+EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
+EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in a round
+ROUND_RAYS = 1 << 21  # occlusion rays per round (between progress calls) in fixed mode
+PART_RAYS = 4096  # fewest occlusion rays worth a host thread of their own
+LAUNCH_RAYS = 1 << 30  # most rays per launch (a launch's thread index is int32)
+ENGINES = ("bvh", "dacrt")
+
+Progress = Callable[[float, str], None]
+
+
+@dataclass
+class AoResult:
+    ao: np.ndarray  # (R,) float32 in [0, 1]
+    spp_used: np.ndarray  # (R,) int32 occlusion samples per ray (0 where the ray missed)
+    # compile (Warp's, not in total), setup, primary, occlusion, total
+    timings_ms: dict[str, float] = field(default_factory=dict)
+    rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion
+
+
+@dataclass
+class PrimaryHits:
+    """The hit pixels of a batch of primary rays, ready to spawn occlusion rays."""
+
+    pixels: np.ndarray  # (H,) int32 index of each hit ray in the caller's arrays
+    points: wp.array  # (H,) vec3 offset occlusion-ray origins
+    normals: wp.array  # (H,) vec3 unit geometric normals facing the primary ray's origin
+    traced: int  # primary rays traced (those that entered the scene box)
+
+
+@wp.func
+def spawn_point(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, u: float, v: float, n: wp.vec3d) -> wp.vec3:
+    # Robust spawn point (Ray Tracing Gems ch. 6, Waechter and Binder; PBR 4th ed. 6.8.6):
+    # p from barycentrics in float64 lies on the triangle's plane; it is pushed along n by
+    # OFFSET_ULPS float32 ulps of its local scale, which bounds both the float32 rounding
+    # of the result and the watertight test's error in t for triangles this size.
+    a = wp.vec3d(v0)
+    b = wp.vec3d(v1)
+    c = wp.vec3d(v2)
+    bu = wp.float64(u)
+    bv = wp.float64(v)
+    p = a + (b - a) * bu + (c - a) * bv
+    scale = wp.max(wp.max(wp.abs(p[0]), wp.abs(p[1])), wp.abs(p[2]))
+    for k in range(3):
+        reach = wp.max(wp.max(wp.abs(a[k] - p[k]), wp.abs(b[k] - p[k])), wp.abs(c[k] - p[k]))
+        scale = wp.max(scale, reach)
+    offset = scale * wp.float64(OFFSET_ULPS * 5.9604645e-08)
+    return wp.vec3(p + n * offset)
+
+
+@wp.func
+def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i), d: wp.vec3,
+            triangle: int, u: float, v: float) -> wp.mat33:
+    """Rows: the spawn point and the geometric normal (turned toward the viewer) of a hit."""
+    t = triangle_corners(vertices, indices, triangle)
+    v0 = t[0]
+    v1 = t[1]
+    v2 = t[2]
+    # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
+    n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
+    if wp.dot(n, wp.vec3d(d)) > wp.float64(0.0):
+        n = -n
+    return wp.matrix_from_rows(spawn_point(v0, v1, v2, u, v, n), wp.vec3(n), wp.vec3(0.0))
+
+
+@wp.kernel
+def primary_kernel(
+    bvh: BvhArrays,
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),
+    tmax: wp.array(dtype=float),
+    out_point: wp.array(dtype=wp.vec3),
+    out_normal: wp.array(dtype=wp.vec3),
+    out_hit: wp.array(dtype=int),
+):
+    i = wp.tid()
+    h = closest_hit(bvh, origins[i], directions[i], tmin[i], tmax[i])
+    out_hit[i] = 0
+    if h.triangle >= 0:
+        s = surface(vertices, indices, directions[i], h.triangle, h.u, h.v)
+        out_point[i] = s[0]
+        out_normal[i] = s[1]
+        out_hit[i] = 1
+
+
+@wp.kernel
+def surface_kernel(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    directions: wp.array(dtype=wp.vec3),
+    triangle: wp.array(dtype=int),
+    u: wp.array(dtype=float),
+    v: wp.array(dtype=float),
+    out_point: wp.array(dtype=wp.vec3),
+    out_normal: wp.array(dtype=wp.vec3),
+):
+    """Spawn points and normals of hits found by another tracer (engine="dacrt")."""
+    i = wp.tid()
+    s = surface(vertices, indices, directions[i], triangle[i], u[i], v[i])
+    out_point[i] = s[0]
+    out_normal[i] = s[1]
+
+
+@wp.kernel
+def occlusion_kernel(
+    bvh: BvhArrays,
+    points: wp.array(dtype=wp.vec3),
+    normals: wp.array(dtype=wp.vec3),
+    pixels: wp.array(dtype=int),
+    active: wp.array(dtype=int),  # hit-pixel index of each slot of this round
+    slot0: int,  # the first slot of this launch
+    first: int,  # the first sample index of this round (the same for every slot)
+    count: int,  # samples per slot this round
+    sampler: int,
+    seed: int,
+    distance: float,
+    find_any: int,  # always 1; see below
+    out_open: wp.array(dtype=int),  # per slot: open samples (accumulated)
+    out_open_half: wp.array(dtype=int),  # per slot: open among the first count / 2
+):
+    # One occlusion ray per thread, slot-major, so the rays (not the pixels) are split
+    # between host threads. A slot's rays never straddle two launches: the plain
+    # read-modify-write adds below need no atomics (Warp's are not atomic on CPU).
+    # Cosine-weighted estimator (PBR 4th ed. 13.6.3 / A.5.3): each sample is V(p, w).
+    t = wp.tid()
+    s = t % count
+    j = slot0 + t // count
+    k = active[j]
+    w = cosine_direction(normals[k], sampler, pixel_key(pixels[k], seed), first + s)
+    # traverse() with a run-time any-hit flag, as trace_kernel calls it: measured 25-30%
+    # faster on CPU than bvh_trace.any_hit, whose flag is the literal True.
+    if traverse(bvh, make_ray(points[k], w), 0.0, distance, find_any != 0).triangle < 0:
+        out_open[j] += 1
+        if s < count / 2:
+            out_open_half[j] += 1
+
+
+@wp.kernel
+def directions_kernel(
+    normals: wp.array(dtype=wp.vec3),
+    pixels: wp.array(dtype=int),
+    first: int,
+    count: int,
+    sampler: int,
+    seed: int,
+    out_dir: wp.array(dtype=wp.vec3),
+):
+    i, s = wp.tid()
+    key = pixel_key(pixels[i], seed)
+    out_dir[i * count + s] = cosine_direction(normals[i], sampler, key, first + s)
+
+
+# --- host side ---------------------------------------------------------------------------
+
+
+def default_distance(bvh: Bvh) -> float:
+    """distance=None: DISTANCE_FRACTION of the scene box's diagonal (1.0 for an empty scene)."""
+    diag = float(np.linalg.norm(bvh.bounds[1].astype(np.float64) - bvh.bounds[0]))
+    return DISTANCE_FRACTION * diag if math.isfinite(diag) and diag > 0.0 else 1.0
+
+
+def box_candidates(bounds: np.ndarray, o: np.ndarray, d: np.ndarray, tmin: np.ndarray,
+                   tmax: np.ndarray) -> np.ndarray:
+    """Indices of rays whose [tmin, tmax] segment may touch the box (conservative: the box
+    is widened by 1e-5 of its size so float error never drops a ray that hits)."""
+    lo = bounds[0].astype(np.float64)
+    hi = bounds[1].astype(np.float64)
+    if not np.all(np.isfinite(lo)):
+        return np.zeros(0, dtype=np.int32)
+    pad = 1e-5 * (np.abs(hi - lo).max() + np.abs(lo).max() + np.abs(hi).max()) + 1e-30
+    lo, hi = lo - pad, hi + pad
+    o64 = o.astype(np.float64)
+    d64 = d.astype(np.float64)
+    t0 = tmin.astype(np.float64)
+    t1 = tmax.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = 1.0 / d64
+        a = (lo - o64) * inv
+        b = (hi - o64) * inv
+    near = np.where(d64 == 0.0, np.where((o64 >= lo) & (o64 <= hi), -np.inf, np.inf),
+                    np.minimum(a, b))
+    far = np.where(d64 == 0.0, np.where((o64 >= lo) & (o64 <= hi), np.inf, -np.inf),
+                   np.maximum(a, b))
+    enter = np.maximum(t0, near.max(axis=1))
+    leave = np.minimum(t1, far.min(axis=1))
+    return np.flatnonzero(enter <= leave).astype(np.int32)
+
+
+def scene_mesh(bvh: Bvh) -> DeviceMesh:
+    """The BVH's mesh on the device (made here for a `Bvh` put together by hand)."""
+    if bvh.mesh is None:
+        bvh.mesh = DeviceMesh(bvh.vertices, bvh.indices, bvh.device)
+    return bvh.mesh
+
+
+def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
+                  tmax=np.inf, threads: int | None = None, engine: str = "bvh") -> PrimaryHits:
+    """Closest hits of the primary rays that enter the scene box, as spawn points and
+    normals for occlusion rays."""
+    tmin_a, tmax_a = ray_range(tmin, tmax, len(origins))
+    device = bvh.device
+    cand = box_candidates(bvh.bounds, origins, directions, tmin_a, tmax_a)
+    m = len(cand)
+    mesh = scene_mesh(bvh)
+    verts, tris = mesh.v, mesh.f  # on the device since the build: no copy per render
+    if engine == "dacrt":
+        h = dacrt_trace_mesh(mesh, origins[cand], directions[cand], tmin_a[cand], tmax_a[cand])
+        keep = np.flatnonzero(h.triangle >= 0)
+        n = len(keep)
+        pts = wp.empty(n, dtype=wp.vec3, device=device)
+        nrm = wp.empty(n, dtype=wp.vec3, device=device)
+        if n:
+            wp.launch(surface_kernel, dim=n, inputs=[
+                verts, tris, wp.array(directions[cand][keep], dtype=wp.vec3, device=device),
+                *(wp.array(x[keep], device=device) for x in (h.triangle, h.u, h.v)),
+            ], outputs=[pts, nrm], device=device)
+        return PrimaryHits(pixels=cand[keep], points=pts, normals=nrm, traced=m)
+    pts = wp.empty(m, dtype=wp.vec3, device=device)
+    nrm = wp.empty(m, dtype=wp.vec3, device=device)
+    hit = wp.empty(m, dtype=int, device=device)
+    if m:
+        per_item = [wp.array(x[cand], dtype=dt, device=device)
+                    for x, dt in ((origins, wp.vec3), (directions, wp.vec3),
+                                  (tmin_a, float), (tmax_a, float))]
+        launch_split(primary_kernel, m, [bvh.arrays, verts, tris], per_item, [],
+                     [pts, nrm, hit], device, host_threads(device, threads))
+    keep = np.flatnonzero(hit.numpy())
+    sel = wp.array(keep.astype(np.int32), dtype=int, device=device)
+    return PrimaryHits(
+        pixels=cand[keep],
+        points=_gather(pts, sel, wp.vec3),
+        normals=_gather(nrm, sel, wp.vec3),
+        traced=m,
+    )
+
+
+@wp.kernel
+def _gather_vec3(src: wp.array(dtype=wp.vec3), sel: wp.array(dtype=int),
+                 dst: wp.array(dtype=wp.vec3)):
+    i = wp.tid()
+    dst[i] = src[sel[i]]
+
+
+def _gather(src: wp.array, sel: wp.array, dtype) -> wp.array:
+    dst = wp.empty(len(sel), dtype=dtype, device=src.device)
+    if len(sel):
+        wp.launch(_gather_vec3, dim=len(sel), inputs=[src, sel, dst], device=src.device)
+    return dst
+
+
+def occlusion_directions(hits: PrimaryHits, first: int, count: int, seed: int = 0,
+                         sampler: str = "sobol") -> np.ndarray:
+    """The unit directions of samples first..first+count-1 of every hit pixel, (H*count, 3)
+    float32, pixel-major: exactly those `render_ao` traces (for peers in benchmarks/tests)."""
+    sampler_id = _sampler(sampler)
+    h = len(hits.pixels)
+    device = hits.points.device
+    out = wp.empty(h * count, dtype=wp.vec3, device=device)
+    if h and count:
+        pix = wp.array(hits.pixels, dtype=int, device=device)
+        wp.launch(directions_kernel, dim=(h, count),
+                  inputs=[hits.normals, pix, int(first), int(count), sampler_id, int(seed)],
+                  outputs=[out], device=device)
+    return out.numpy().reshape(-1, 3)
+
+
+def _sampler(sampler: str) -> int:
+    if sampler not in SAMPLERS:
+        raise ValueError(f"sampler must be one of {sorted(SAMPLERS)}, got {sampler!r}")
+    return SAMPLERS[sampler]
+
+
+def _check_args(spp, distance, seed, target_error, min_spp_max) -> None:
+    if isinstance(spp, bool) or not isinstance(spp, int | np.integer) or spp < 1:
+        raise ValueError(f"spp must be an integer >= 1, got {spp!r}")
+    if distance is not None and not (float(distance) > 0.0):
+        raise ValueError(f"distance must be > 0 (or None for the scene default), got {distance!r}")
+    if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
+    if target_error is not None and not (0.0 < float(target_error) < 1.0):
+        raise ValueError(f"target_error must be in (0, 1) or None, got {target_error!r}")
+    if target_error is not None and min_spp_max[1] < min_spp_max[0]:
+        raise ValueError(
+            f"max_spp ({min_spp_max[1]}) must be >= the minimum spp ({min_spp_max[0]}): "
+            "raise max_spp or lower spp"
+        )
+
+
+def render_ao(
+    bvh: Bvh,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    spp: int = 16,
+    distance: float | None = None,
+    seed: int = 0,
+    target_error: float | None = None,
+    *,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    threads: int | None = None,
+    max_spp: int = DEFAULT_MAX_SPP,
+    sampler: str = "sobol",
+    engine: str = "bvh",
+    progress: Progress | None = None,
+) -> AoResult:
+    """AO per primary ray (see the module docstring for the definition and guarantees).
+
+    Fixed mode (`target_error=None`): `spp` samples per hit pixel. Adaptive mode: each hit
+    pixel gets at least max(spp, MIN_ADAPTIVE_SPP) samples, then doubles them in rounds
+    until the half-width of its 95% confidence interval (`half_width`) is below
+    `target_error` or it has `max_spp`. `distance=None` is DISTANCE_FRACTION of the scene
+    box diagonal. `sampler`: "sobol" (Owen-scrambled, default) or "random"; both unbiased.
+    `engine`: "bvh" traces through `bvh`; "dacrt" traces the same rays (primary, then each
+    round's occlusion rays) with the task-pool DACRT, without using the BVH: the same result
+    to float32 rounding.
+    `progress(fraction, phase)` is called between rounds; an exception it raises cancels
+    the render.
+    """
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    modules = WARP_MODULES + (dacrt_warp_modules("pool") if engine == "dacrt" else ())
+    compile_ms = load_modules(bvh.device, *modules)  # compiling is not rendering
+    t_start = time.perf_counter()
+    min_spp = max(int(spp), MIN_ADAPTIVE_SPP) if target_error is not None else int(spp)
+    _check_args(spp, distance, seed, target_error, (min_spp, int(max_spp)))
+    sampler_id = _sampler(sampler)
+    origins, directions = as_rays(origins, directions)
+    r = len(origins)
+    dist = default_distance(bvh) if distance is None else float(distance)
+    device = bvh.device
+    nthreads = host_threads(device, threads)
+    last = [0.0]
+
+    def report(fraction: float, phase: str) -> None:
+        last[0] = max(last[0], fraction)  # adaptive estimates may dip; the bar never does
+        if progress is not None:
+            progress(last[0], phase)
+
+    timings: dict[str, float] = {"compile": compile_ms,
+                                 "setup": (time.perf_counter() - t_start) * 1e3}
+
+    report(0.0, "primary")
+    t0 = time.perf_counter()
+    hits = trace_primary(bvh, origins, directions, tmin, tmax, threads, engine)
+    wp.synchronize_device(device)
+    timings["primary"] = (time.perf_counter() - t0) * 1e3
+
+    t0 = time.perf_counter()
+    h = len(hits.pixels)
+    n_done = np.zeros(h, dtype=np.int64)
+    n_open = np.zeros(h, dtype=np.int64)
+    pix = wp.array(hits.pixels, dtype=int, device=device)
+    rounds = 0
+    active = np.arange(h)
+    # Every active pixel has the same sample count, so a round is (first, count) for all.
+    count = max(1, min(min_spp, ROUND_RAYS // max(h, 1))) if target_error is None else min_spp
+    while h and len(active):
+        first = int(n_done[active[0]])
+        report(_fraction(n_done, min_spp, target_error is None, len(active), count), "occlusion")
+        trace_round = _occlusion_round if engine == "bvh" else _occlusion_round_dacrt
+        opened, opened_half = trace_round(bvh, hits, pix, active, first, count, sampler_id,
+                                          int(seed), dist, nthreads)
+        n_open[active] += opened
+        n_done[active] += count
+        rounds += 1
+        n = first + count
+        if target_error is None:
+            count = min(count, min_spp - n)
+            active = active if count > 0 else active[:0]
+        else:
+            efficiency = sampler_efficiency(n_open[active] - opened + opened_half,
+                                            np.full(len(active), first + count // 2),
+                                            n_open[active], n_done[active])
+            half = half_width(n_open[active], n_done[active], efficiency)
+            active = active[half >= float(target_error)] if n < max_spp else active[:0]
+            count = min(n, int(max_spp) - n)  # doubling: Sobol prefixes of 2^k samples
+    timings["occlusion"] = (time.perf_counter() - t0) * 1e3
+
+    ao = np.ones(r, dtype=np.float32)
+    spp_used = np.zeros(r, dtype=np.int32)
+    if h:
+        ao[hits.pixels] = (n_open / n_done).astype(np.float32)
+        spp_used[hits.pixels] = n_done.astype(np.int32)
+    timings["total"] = (time.perf_counter() - t_start) * 1e3
+    report(1.0, "done")
+    return AoResult(
+        ao=ao,
+        spp_used=spp_used,
+        timings_ms=timings,
+        rays={"primary": hits.traced, "occlusion": int(n_done.sum()), "rounds": rounds},
+    )
+
+
+def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
+                     nthreads) -> tuple[np.ndarray, np.ndarray]:
+    """Trace samples first..first+count-1 of the `active` hit pixels: (open samples, open
+    among the first count // 2) per active pixel. The rays are split between host threads
+    at pixel boundaries (a CPU launch runs on one thread)."""
+    device = bvh.device
+    m = len(active)
+    act = wp.array(active.astype(np.int32), dtype=int, device=device)
+    out = wp.zeros(m, dtype=int, device=device)
+    out_half = wp.zeros(m, dtype=int, device=device)
+    parts = max(1, min(nthreads, m * count // PART_RAYS, m), -(-m * count // LAUNCH_RAYS))
+    bounds = np.linspace(0, m, parts + 1).astype(int)
+
+    def run(p: int) -> None:
+        wp.launch(occlusion_kernel, dim=int(bounds[p + 1] - bounds[p]) * count,
+                  inputs=[bvh.arrays, hits.points, hits.normals, pix, act, int(bounds[p]),
+                          int(first), int(count), sampler_id, seed, dist, 1],
+                  outputs=[out, out_half], device=device)
+
+    run_parts(run, parts, nthreads)
+    return out.numpy().astype(np.int64), out_half.numpy().astype(np.int64)
+
+
+def _occlusion_round_dacrt(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
+                           nthreads) -> tuple[np.ndarray, np.ndarray]:
+    """`_occlusion_round` with the round's rays traced by DACRT (closest hit within the AO
+    distance: occluded if there is one)."""
+    device = bvh.device
+    m = len(active)
+    points = hits.points.numpy()[active]
+    dirs = wp.empty(m * count, dtype=wp.vec3, device=device)
+    wp.launch(directions_kernel, dim=(m, count),
+              inputs=[wp.array(hits.normals.numpy()[active], dtype=wp.vec3, device=device),
+                      wp.array(hits.pixels[active], dtype=int, device=device), int(first),
+                      int(count), sampler_id, seed], outputs=[dirs], device=device)
+    h = dacrt_trace_mesh(scene_mesh(bvh), np.repeat(points, count, axis=0), dirs.numpy(), 0.0,
+                         dist)
+    opened = (h.triangle < 0).reshape(m, count)
+    return opened.sum(axis=1), opened[:, : count // 2].sum(axis=1)
+
+
+def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
+                       n_end: np.ndarray) -> float:
+    """The sampler's variance relative to independent samples, pooled over pixels.
+
+    For nested estimates m_mid (first n_mid samples) and m_end (all n_end), independent
+    samples give E[(m_mid - m_end)^2] = Var(m_end) (n_end - n_mid) / n_mid; a stratified
+    (Sobol) sequence gives less. The ratio of the summed squared differences to the summed
+    Bernoulli variances p(1-p)(n_end - n_mid)/(n_mid n_end) estimates Var(sampler) /
+    Var(independent) at this sample count. Only pixels whose samples disagree take part
+    (fully open or occluded ones would pull it toward 0). Clipped to [EFFICIENCY_MIN, 1]:
+    1 when too few pixels disagree to tell."""
+    p = open_end / n_end
+    mixed = (open_end > 0) & (open_end < n_end) & (n_mid > 0) & (n_end > n_mid)
+    if mixed.sum() < EFFICIENCY_PIXELS:
+        return 1.0
+    p, n_mid, n_end = p[mixed], n_mid[mixed].astype(np.float64), n_end[mixed]
+    diff2 = (open_mid[mixed] / n_mid - p) ** 2
+    bernoulli = p * (1.0 - p) * (n_end - n_mid) / (n_mid * n_end)
+    return float(np.clip(diff2.sum() / bernoulli.sum(), EFFICIENCY_MIN, 1.0))
+
+
+def half_width(open_count: np.ndarray, n: np.ndarray, efficiency: float) -> np.ndarray:
+    """95% half-width of each pixel's estimate, z * sqrt(efficiency * s^2 / n).
+
+    s^2 is the sample variance of the n 0/1 samples. Where they all agreed it would be 0;
+    there it is p(1-p) at the Jeffreys posterior mean p = (k + 1/2) / (n + 1) (Brown, Cai
+    and DasGupta 2001), about 1/(2n): an occluder smaller than ~1/n of the hemisphere is
+    still possible. `efficiency` (<= 1) is the sampler's variance relative to
+    independent samples (`sampler_efficiency`)."""
+    k = open_count.astype(np.float64)
+    n = n.astype(np.float64)
+    p = k / n
+    sample_var = p * (1.0 - p) * n / np.maximum(n - 1.0, 1.0)
+    q = (k + 0.5) / (n + 1.0)
+    agree = (open_count == 0) | (open_count == n)
+    var = np.where(agree, q * (1.0 - q), sample_var)
+    return Z95 * np.sqrt(efficiency * var / n)
+
+
+def _fraction(n_done, min_spp, fixed, active, count) -> float:
+    """Progress: samples done over samples planned (adaptive: planned grows, so this is an
+    estimate, never above 1)."""
+    done = float(n_done.sum())
+    if fixed:
+        return done / (min_spp * len(n_done))
+    planned = done + float(active * count)
+    return min(done / planned, 1.0) if planned > 0 else 0.0
+
+
+def ambient_occlusion(
+    bvh: Bvh,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    spp: int = 16,
+    distance: float | None = None,
+    seed: int = 0,
+    target_error: float | None = None,
+    *,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    threads: int | None = None,
+    max_spp: int = DEFAULT_MAX_SPP,
+    sampler: str = "sobol",
+    engine: str = "bvh",
+) -> np.ndarray:
+    """AO per primary ray, (R,) float32: `render_ao(...).ao` (see there)."""
+    return render_ao(bvh, origins, directions, spp, distance, seed, target_error, tmin=tmin,
+                     tmax=tmax, threads=threads, max_spp=max_spp, sampler=sampler,
+                     engine=engine).ao
+
+
+WARP_MODULES = (occlusion_kernel.module,)  # this module's kernels (core.launch.load_modules)
