@@ -397,7 +397,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         responses={200: {"model": SceneInfo, "description": "already known"}, **common},
         openapi_extra=binary_body(
             "V*3 little-endian float32 positions, then T*3 little-endian int32 indices "
-            "(0-based), no header or padding: exactly 12*V + 12*T bytes."
+            "(0-based), then with normals=true T*9 float32 shading normals (three corners "
+            "per triangle), then with terminator_offsets=true T float32 shadow terminator "
+            "offsets; no header or padding: exactly 12*V + 12*T (+ 36*T) (+ 4*T) bytes."
         ),
     )
     async def upload_scene(
@@ -405,10 +407,15 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         response: Response,
         vertices: Annotated[int, Query(ge=1, le=wire.MAX_INDEXABLE_VERTICES)],
         triangles: Annotated[int, Query(ge=1, le=2**31 - 1)],
+        normals: Annotated[bool, Query(description="the body ends with T*9 float32 "
+                                       "corner normals (smooth shading)")] = False,
+        terminator_offsets: Annotated[bool, Query(description="after the normals, T float32 "
+                                                  "shadow terminator offsets")] = False,
     ) -> SceneInfo:
         """Upload a triangle mesh; its content hash is its id (201 new, 200 known)."""
         t0 = time.perf_counter()
-        expected = 12 * (vertices + triangles)
+        wire.check_blocks(normals, terminator_offsets)
+        expected = wire.scene_body_length(vertices, triangles, normals, terminator_offsets)
         body = await read_body(request, expected)
         t1 = time.perf_counter()
         scene_id = await run_in_threadpool(wire.scene_hash, vertices, triangles, body)
@@ -417,7 +424,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if scene is None:  # only new scenes pay for decoding and validation
             try:
                 scene = await run_in_threadpool(
-                    wire.decode_scene, body, vertices, triangles, scene_id
+                    lambda: wire.decode_scene(body, vertices, triangles, scene_id,
+                                              normals=normals,
+                                              terminator_offsets=terminator_offsets)
                 )
             except (MemoryError, RuntimeError) as exc:
                 raise _out_of_memory(exc) from None
@@ -518,7 +527,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         method: Literal["sah", "median"] | None = None,
         leaf_size: Annotated[int | None, Query(ge=1, le=64)] = None,
     ) -> Response:
-        """AO per ray, identical to `kernels.ambient_occlusion` for the same inputs.
+        """AO per ray, identical to `kernels.ambient_occlusion` for the same inputs (the
+        scene's normals and terminator offsets included).
 
         Uses the BVH built with `method`/`leaf_size` when given, else the scene's most
         recently used BVH, else builds one with the defaults (sah, 8). Stops when the
@@ -548,7 +558,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             w0 = time.perf_counter()
             bvh = jobs.bvh_for_ao(store, scene, method, leaf_size, settings.device)
             w1 = time.perf_counter()
-            ao, engine_ms = jobs.ambient_occlusion(bvh, origins, directions, params, signal)
+            ao, engine_ms = jobs.ambient_occlusion(bvh, scene, origins, directions, params,
+                                                   signal)
             timings.update(bvh=1000 * (w1 - w0), ao=1000 * (time.perf_counter() - w1))
             timings.update({f"ao.{k}": v for k, v in engine_ms.items() if k != "total"})
             return ao
@@ -764,6 +775,7 @@ def _scene_info(scene_id: str, scene: wire.SceneArrays) -> SceneInfo:
         triangles=len(scene.indices),
         bounds=scene.bounds,
         degenerate=scene.degenerate,
+        normals=scene.normals is not None,
         bytes=scene.nbytes,
     )
 

@@ -432,15 +432,17 @@ def adaptive_max_spp() -> int:
 
 
 def ambient_occlusion(
-    bvh: Any, origins: np.ndarray, directions: np.ndarray, params: AoParams, signal: StopSignal
+    bvh: Any, scene: Any, origins: np.ndarray, directions: np.ndarray, params: AoParams,
+    signal: StopSignal,
 ) -> tuple[np.ndarray, dict[str, float]]:
     """AO for explicit rays, exactly `kernels.ambient_occlusion` (which is
-    `render_ao(...).ao`), with the engine's phase timings; `signal` is checked between
-    the engine's rounds (it raises Stopped there)."""
+    `render_ao(...).ao`) with the scene's normals, with the engine's phase timings;
+    `signal` is checked between the engine's rounds (it raises Stopped there)."""
     import kernels
 
     result = kernels.render_ao(
-        bvh, origins, directions, progress=lambda *_: signal.check(), **params.kwargs()
+        bvh, origins, directions, progress=lambda *_: signal.check(), **params.kwargs(),
+        **scene.shading(),
     )
     return np.asarray(result.ao, dtype=np.float32), dict(result.timings_ms)
 
@@ -471,7 +473,7 @@ def render_camera(
         job.add_timing("bvh.compile", float(bvh.stats.get("compile_ms", 0.0)))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     ao, spp_used = timed(
-        "ao", lambda: _render_ao(job, bvh, origins, directions, tmin, tmax, params)
+        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, params)
     )
     shape = (camera.height, camera.width)
     job.ao = ao.reshape(shape)
@@ -502,21 +504,23 @@ def camera_depth(
 def _render_ao(
     job: Job,
     bvh: Any,
+    scene: Any,
     origins: np.ndarray,
     directions: np.ndarray,
     tmin: np.ndarray,
     tmax: np.ndarray,
     params: AoParams,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """`kernels.render_ao` within the camera's clip range, reporting progress between its
-    rounds; (ao, spp used per ray)."""
+    """`kernels.render_ao` within the camera's clip range with the scene's normals,
+    reporting progress between its rounds; (ao, spp used per ray)."""
     import kernels
 
     def progress(fraction: float, phase: str) -> None:
         job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
 
     result = kernels.render_ao(
-        bvh, origins, directions, tmin=tmin, tmax=tmax, progress=progress, **params.kwargs()
+        bvh, origins, directions, tmin=tmin, tmax=tmax, progress=progress, **params.kwargs(),
+        **scene.shading(),
     )
     for name, ms in result.timings_ms.items():
         job.add_timing(f"ao.{name}", float(ms))

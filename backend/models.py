@@ -52,6 +52,7 @@ class SceneInfo(Strict):
     triangles: int
     bounds: list[list[float]] = Field(description="[[xmin, ymin, zmin], [xmax, ymax, zmax]]")
     degenerate: int = Field(description="zero-area triangles (kept, never hit)")
+    normals: bool = Field(description="whether the scene has shading normals (else flat)")
     bytes: int
 
 

@@ -4,7 +4,9 @@ Everything here is plain numpy and raises `ApiError` (backend/problems.py: a 4xx
 the parameter and the fix) for client mistakes, so the routes stay thin and the rules are
 testable without a server. Layouts (also in docs/api.md):
 
-- scene body: V*3 float32 positions, then T*3 int32 indices, little-endian, no padding.
+- scene body: V*3 float32 positions, then T*3 int32 indices, then (with `normals`) T*9
+  float32 shading normals, corner by corner, then (with `terminator_offsets`, only with
+  normals) T float32 shadow terminator offsets; little-endian, no padding.
 - ray body: R*6 float32 (origin xyz, direction xyz per ray), little-endian.
 - AO result: R float32, little-endian.
 """
@@ -27,16 +29,30 @@ MAX_INDEXABLE_VERTICES = 2**31 - 1  # indices are int32
 
 @dataclass(frozen=True)
 class SceneArrays:
-    """A decoded, validated scene: vertices (N,3) float32, indices (M,3) int32."""
+    """A decoded, validated scene: vertices (N,3) float32, indices (M,3) int32, and
+    optionally shading normals (M,3,3) float32 and terminator offsets (M,) float32."""
 
     vertices: np.ndarray
     indices: np.ndarray
     scene_id: str
     degenerate: int
+    normals: np.ndarray | None = None
+    terminator_offsets: np.ndarray | None = None
 
     @property
     def nbytes(self) -> int:
-        return int(self.vertices.nbytes + self.indices.nbytes)
+        extra = (self.normals, self.terminator_offsets)
+        return int(self.vertices.nbytes + self.indices.nbytes
+                   + sum(a.nbytes for a in extra if a is not None))
+
+    def shading(self) -> dict[str, np.ndarray]:
+        """The engine's keyword arguments for the scene's normals (none: flat shading)."""
+        out = {}
+        if self.normals is not None:
+            out["normals"] = self.normals
+        if self.terminator_offsets is not None:
+            out["terminator_offset"] = self.terminator_offsets
+        return out
 
     @cached_property
     def bounds(self) -> list[list[float]]:
@@ -49,7 +65,9 @@ def scene_hash(vertex_count: int, triangle_count: int, body: bytes | memoryview)
     """Content id of a scene: sha256 of b"scenesort-scene-v1 V T\\n" + body, first 32 hex.
 
     The counts are hashed because the same bytes split differently are a different
-    scene. The add-on computes the same value to skip uploading an unchanged scene.
+    scene; the body's length then says which optional blocks it holds (normals: 36*T
+    bytes, terminator offsets: 4*T), so they are covered too. The add-on computes the same
+    value to skip uploading an unchanged scene.
     """
     digest = hashlib.sha256(b"scenesort-scene-v1 %d %d\n" % (vertex_count, triangle_count))
     digest.update(body)
@@ -88,19 +106,37 @@ def count_degenerate(vertices: np.ndarray, indices: np.ndarray) -> int:
     return engine_count(vertices, indices, device="cpu")
 
 
+def scene_body_length(vertex_count: int, triangle_count: int, normals: bool = False,
+                      terminator_offsets: bool = False) -> int:
+    """Bytes of a scene upload with these counts and optional blocks."""
+    return 12 * vertex_count + (12 + 36 * normals + 4 * terminator_offsets) * triangle_count
+
+
+def check_blocks(normals: bool, terminator_offsets: bool) -> None:
+    """Terminator offsets shape the normals' smooth surface: refuse them alone."""
+    if terminator_offsets and not normals:
+        raise ApiError(
+            422, "terminator_offsets",
+            "terminator offsets apply to smooth-shaded triangles, but the upload has no normals",
+            "send normals=true with the normal block, or drop terminator_offsets",
+            "invalid_parameter",
+        )
+
+
 def decode_scene(
-    body: bytes, vertex_count: int, triangle_count: int, scene_id: str | None = None
+    body: bytes, vertex_count: int, triangle_count: int, scene_id: str | None = None, *,
+    normals: bool = False, terminator_offsets: bool = False,
 ) -> SceneArrays:
     """Decode and validate a scene upload; raise `ApiError` naming the bad part.
 
-    `scene_id` is `scene_hash(...)` of the same body when the caller has it already."""
-    expected = 12 * vertex_count + 12 * triangle_count
-    expect_body_length(
-        "vertices and triangles",
-        len(body),
-        expected,
-        f"{vertex_count}*3 float32 + {triangle_count}*3 int32",
-    )
+    `scene_id` is `scene_hash(...)` of the same body when the caller has it already;
+    `normals`, `terminator_offsets`: whether the body holds those blocks."""
+    check_blocks(normals, terminator_offsets)
+    layout = f"{vertex_count}*3 float32 + {triangle_count}*3 int32"
+    layout += f" + {triangle_count}*9 float32 normals" if normals else ""
+    layout += f" + {triangle_count} float32 terminator offsets" if terminator_offsets else ""
+    expected = scene_body_length(vertex_count, triangle_count, normals, terminator_offsets)
+    expect_body_length("vertices and triangles", len(body), expected, layout)
     split = 12 * vertex_count
     vertices = np.frombuffer(body, F32, count=3 * vertex_count).reshape(-1, 3)
     indices = np.frombuffer(body, I32, count=3 * triangle_count, offset=split).reshape(-1, 3)
@@ -121,11 +157,32 @@ def decode_scene(
     # Native-order copies: the engine wants plain float32/int32 and owns its arrays.
     vertices = vertices.astype(np.float32)
     indices = indices.astype(np.int32)
+    at = 12 * (vertex_count + triangle_count)
+    corner_normals = offsets = None
+    if normals:
+        corner_normals = np.frombuffer(body, F32, count=9 * triangle_count, offset=at)
+        corner_normals = corner_normals.reshape(-1, 3, 3)
+        _check_finite("body (normals)", corner_normals, "the normal block of triangle")
+        corner_normals = corner_normals.astype(np.float32)
+        at += 36 * triangle_count
+    if terminator_offsets:
+        offsets = np.frombuffer(body, F32, count=triangle_count, offset=at).astype(np.float32)
+        bad = ~((offsets >= 0.0) & (offsets <= 1.0))  # NaN fails too
+        if bad.any():
+            row = int(np.argmax(bad))
+            raise ApiError(
+                400, "body (terminator offsets)",
+                f"triangle {row} has terminator offset {float(offsets[row])}, outside [0, 1]",
+                "send Blender's Shadow Terminator Geometry Offset (0..1) for every triangle",
+                "bad_terminator_offset",
+            )
     return SceneArrays(
         vertices=vertices,
         indices=indices,
         scene_id=scene_id or scene_hash(vertex_count, triangle_count, body),
         degenerate=count_degenerate(vertices, indices),
+        normals=corner_normals,
+        terminator_offsets=offsets,
     )
 
 

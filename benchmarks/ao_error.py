@@ -92,15 +92,14 @@ def peer_ao(peer, o, d, hits: ao.PrimaryHits, spp: int, dist: float, sampler: st
     start = time.perf_counter()
     peer.closest(o, d, threads=peer.threads)
     seconds = time.perf_counter() - start
-    points = hits.points.numpy()
-    h = len(points)
+    h = len(hits.pixels)
     n_open = np.zeros(h, dtype=np.int64)
     step = max(1, min(spp, PEER_CHUNK // max(h, 1)))
     for first in range(0, spp, step):
         count = min(step, spp - first)
-        dirs = ao.occlusion_directions(hits, first, count, seed, sampler)
+        origins, dirs = ao.occlusion_rays(hits, first, count, seed, sampler)
         start = time.perf_counter()
-        blocked = peer.occluded(np.repeat(points, count, axis=0), dirs, dist, peer.threads)
+        blocked = peer.occluded(origins, dirs, dist, peer.threads)
         seconds += time.perf_counter() - start
         n_open += (~blocked).reshape(h, count).sum(axis=1)
         if progress:

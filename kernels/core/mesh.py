@@ -4,7 +4,8 @@
 what a tracer derives from it is computed on first use and kept: the triangles that have
 an area (degenerate ones are legal input that no ray hits, so every engine leaves them
 out) and the triangles by id with their boxes (what DACRT reads). A `Bvh` keeps the mesh
-it was built from, so AO and DACRT on the same scene upload nothing again.
+it was built from, so AO and DACRT on the same scene upload nothing again. Shading normals
+(`Shading`) are kept beside it the same way, once per set of normals.
 """
 
 from __future__ import annotations
@@ -15,9 +16,24 @@ import warp as wp
 from .box import max3, min3
 from .launch import get_device, host_threads, launch_split, to_device
 from .triangle import is_degenerate
-from .validate import as_triangle_mesh
+from .validate import as_shading, as_triangle_mesh
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+
+@wp.struct
+class Shading:
+    """Per-corner shading normals of a mesh on the device (what Blender renders with).
+
+    normals: three unit `vec3` per triangle id, corner by corner (zero corners: flat);
+    offsets: per triangle, Cycles' shadow terminator geometry offset (0: none);
+    smooth: 0 when the mesh has no shading normals (the arrays then hold one dummy entry:
+    a kernel argument cannot be None), 1 otherwise.
+    """
+
+    normals: wp.array(dtype=wp.vec3)
+    offsets: wp.array(dtype=float)
+    smooth: int
 
 
 @wp.func
@@ -73,6 +89,15 @@ def count_degenerate(vertices: np.ndarray, indices: np.ndarray, device=None,
     return int(np.count_nonzero(degenerate_mask(vertices, indices, device, threads)))
 
 
+def _same(a, b) -> bool:
+    """Whether two shading inputs are the same: equal numbers, else the same object (arrays
+    are taken as read-only: one changed in place is not seen)."""
+    numbers = (int, float, np.number)
+    if isinstance(a, numbers) and isinstance(b, numbers):
+        return float(a) == float(b)
+    return a is b
+
+
 class DeviceMesh:
     """A validated triangle mesh and its arrays on one device.
 
@@ -89,6 +114,8 @@ class DeviceMesh:
         self.f = wp.array(self.indices, dtype=wp.vec3i, device=self.device)
         self._valid_ids: np.ndarray | None = None
         self._soup: tuple[wp.array, wp.array, wp.array] | None = None
+        # ((normals, terminator_offset) as the caller passed them, the device struct)
+        self._shading: tuple[tuple, Shading] | None = None
 
     def valid_ids(self) -> np.ndarray:
         """The ids of the triangles with an area (int32, ascending), found once."""
@@ -111,10 +138,29 @@ class DeviceMesh:
             self._soup = soup
         return self._soup
 
+    def shading(self, normals, terminator_offset) -> Shading:
+        """The device copy of `validate.as_shading(normals, terminator_offset)`: made for
+        the first call with these objects and kept, so renders with the same arrays (a
+        service's cached scene) neither validate nor upload them again."""
+        key = (normals, terminator_offset)
+        cached = self._shading
+        if cached is not None and all(_same(a, b) for a, b in zip(cached[0], key, strict=True)):
+            return cached[1]
+        shading = as_shading(normals, terminator_offset, len(self.indices))
+        out = Shading()
+        out.smooth = int(shading is not None)
+        corners, offsets = shading or (np.zeros((1, 3), np.float32), np.zeros(1, np.float32))
+        out.normals = wp.array(corners.reshape(-1, 3), dtype=wp.vec3, device=self.device)
+        out.offsets = wp.array(offsets, dtype=float, device=self.device)
+        self._shading = (key, out)
+        return out
+
     @property
     def nbytes(self) -> int:
         """Device bytes held: the vertex and index arrays and what was derived from them."""
         arrays = [self.v, self.f, *(self._soup or ())]
+        if self._shading is not None:
+            arrays += [self._shading[1].normals, self._shading[1].offsets]
         return sum(a.capacity for a in arrays)
 
 

@@ -84,3 +84,36 @@ def ray_range(tmin, tmax, count: int, *, keep_scalar: bool = False) -> tuple[np.
     if np.any(tmax < tmin):
         raise ValueError("tmax must be >= tmin for every ray")
     return tmin, tmax
+
+
+def as_shading(normals, terminator_offset, triangles: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """Per-corner shading normals and per-triangle terminator offsets, validated: None for
+    `normals=None` (geometric normals), else (T, 3, 3) float32 normals with every corner
+    scaled to unit length (a zero corner stays zero: three zero corners mark a flat
+    triangle) and (T,) float32 offsets in [0, 1] (a scalar applies to every triangle)."""
+    if normals is None:
+        return None
+    n = np.asarray(normals)
+    if n.shape != (triangles, 3, 3):
+        raise ValueError(f"normals must have shape ({triangles}, 3, 3) (one normal per corner "
+                         f"of each triangle) or be None, got {n.shape}")
+    if not np.issubdtype(n.dtype, np.floating):
+        raise ValueError(f"normals must be a float32 array, got dtype {n.dtype}")
+    n = np.asarray(n, dtype=np.float64)
+    bad = ~np.isfinite(n).reshape(triangles, -1).all(axis=1)
+    if bad.any():
+        raise ValueError(f"normals contains NaN or Inf at {int(bad.sum())} triangles (first: "
+                         f"triangle {int(np.flatnonzero(bad)[0])}); fix them or send zeros")
+    length = np.linalg.norm(n, axis=2, keepdims=True)
+    unit = np.divide(n, length, out=np.zeros_like(n), where=length > 0.0)
+    offsets = np.asarray(terminator_offset, dtype=np.float64)
+    if offsets.ndim == 0:
+        offsets = np.full(triangles, offsets)
+    if offsets.shape != (triangles,):
+        raise ValueError(f"terminator_offset must be a number or have shape ({triangles},), "
+                         f"got {offsets.shape}")
+    if not (np.isfinite(offsets).all() and (offsets >= 0.0).all() and (offsets <= 1.0).all()):
+        raise ValueError("terminator_offset must lie in [0, 1] (Blender's Shadow Terminator "
+                         "Geometry Offset), got values outside it")
+    return (np.ascontiguousarray(unit, dtype=np.float32),
+            np.ascontiguousarray(offsets, dtype=np.float32))

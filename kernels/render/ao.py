@@ -1,15 +1,30 @@
 """Ambient occlusion per primary ray, with fixed or adaptive sample counts.
 
-Definition (issue 4): for a primary ray's closest hit p with geometric normal n turned
-toward the ray's origin, AO(p) = (1/pi) * integral over the hemisphere around n of
+Definition (issue 4; Cycles' AO pass since issue 14): for a primary ray's closest hit p
+with shading normal n, AO(p) = (1/pi) * integral over the hemisphere around n of
 V(p, w) cos(theta) dw, where V = 1 when no triangle lies within `distance` along w. It is
 estimated with cosine-weighted directions, so each sample is V itself (0 or 1) and the
 estimate is the fraction of unoccluded occlusion rays. A primary ray that misses gets 1.0.
 
+The shading normal is the geometric normal ng turned toward the ray's origin, or with
+`normals=` (one per triangle corner, as Blender's `Mesh.corner_normals`) the corners
+interpolated at p (Cycles' `triangle_smooth_normal`), flipped with ng on a back face
+(`shader_setup_from_ray`). As in Cycles' `integrate_surface_ao`, every direction of the
+hemisphere about n is traced, also those below the triangle's plane (dot(ng, w) <= 0,
+possible where n differs from ng): they start on the viewer's side and count as occluded
+by whatever they meet, the hit's own triangle included. (Cycles tested dot(Ng, D) > 0
+and dropped such directions until commit 48f7753, "Fix T95969, T91856: bake AO to vertex
+color artifacts after ray offset removal", 2022, in Blender 3.1; 4.2 and 5.0 trace them.)
+For smooth triangles the origin is lifted toward the smooth surface as Cycles'
+`shadow_ray_offset` does (the shadow terminator geometry offset, `terminator_offset`,
+default 0.1 as Blender's objects).
+
 Guarantees:
-- Occlusion rays start at p pushed off the surface along n by OFFSET_ULPS float32 ulps of
+- Occlusion rays start at p pushed off the surface along ng by OFFSET_ULPS float32 ulps of
   the hit's local scale (max of |p| and the triangle's extent around p), computed in
   float64 and rounded once: a flat surface never occludes itself, at any scale or offset.
+  (With shading normals the terminator lift is added to that point.)
+- `normals=None` is the geometric definition, bit for bit as before normals existed.
 - Every sample is a pure function of (seed, ray index, sample index): the result is
   bit-identical for any thread count, round split or device.
 - Skipped work: primary rays that miss the scene box are not traced, missed pixels get no
@@ -41,7 +56,7 @@ from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
 from ..bvh.traversal import closest_hit, traverse
 from ..core.launch import host_threads, launch_split, load_modules, run_parts
-from ..core.mesh import DeviceMesh, triangle_corners
+from ..core.mesh import DeviceMesh, Shading, triangle_corners
 from ..core.ray import make_ray
 from ..core.validate import as_rays, ray_range
 from ..dacrt.api import dacrt_trace_mesh, dacrt_warp_modules
@@ -51,6 +66,7 @@ wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
 DISTANCE_FRACTION = 0.1  # distance=None: this fraction of the scene box's diagonal
 OFFSET_ULPS = 128.0  # occlusion-ray origin offset, in float32 ulps of the local scale
+DEFAULT_TERMINATOR_OFFSET = 0.1  # Blender's Object.shadow_terminator_geometry_offset default
 Z95 = 1.959963984540054  # two-sided 95% normal quantile
 MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
 DEFAULT_MAX_SPP = 1024
@@ -73,13 +89,23 @@ class AoResult:
     rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion
 
 
+@wp.struct
+class Surface:
+    """What occlusion rays need of one primary hit."""
+
+    point: wp.vec3  # the hit pushed off along ng by the spawn offset (spawn_point)
+    ng: wp.vec3  # unit geometric normal, facing the primary ray's origin
+    n: wp.vec3  # unit shading normal (ng where flat or without normals), turned with ng
+    lift: wp.vec3  # Cycles' smooth-surface offset at full strength (0 where flat)
+    cutoff: float  # the triangle's shadow terminator geometry offset (0: never lifted)
+
+
 @dataclass
 class PrimaryHits:
     """The hit pixels of a batch of primary rays, ready to spawn occlusion rays."""
 
     pixels: np.ndarray  # (H,) int32 index of each hit ray in the caller's arrays
-    points: wp.array  # (H,) vec3 offset occlusion-ray origins
-    normals: wp.array  # (H,) vec3 unit geometric normals facing the primary ray's origin
+    surfaces: wp.array  # (H,) Surface of each hit
     traced: int  # primary rays traced (those that entered the scene box)
 
 
@@ -104,18 +130,113 @@ def spawn_point(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, u: float, v: float, n: wp
 
 
 @wp.func
-def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i), d: wp.vec3,
-            triangle: int, u: float, v: float) -> wp.mat33:
-    """Rows: the spawn point and the geometric normal (turned toward the viewer) of a hit."""
+def shading_normal(n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, u: float, v: float, ng: wp.vec3,
+                   backfacing: bool) -> wp.vec3:
+    # Cycles' triangle_smooth_normal (kernel/geom/triangle.h): the corner normals weighted
+    # by the hit's barycentrics, normalised; ng where that is zero (a flat triangle's zero
+    # corners). shader_setup_from_ray flips it with ng on a back face, so that it lies on
+    # the viewer's side of the surface whenever the mesh's normals agree with its winding.
+    n = n0 * (1.0 - u - v) + n1 * u + n2 * v
+    out = ng
+    if wp.length_sq(n) > 0.0:
+        out = wp.normalize(n)
+        if backfacing:
+            out = -out
+    return out
+
+
+@wp.func
+def smooth_surface_offset(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, n0: wp.vec3, n1: wp.vec3,
+                          n2: wp.vec3, u: float, v: float, ng: wp.vec3) -> wp.vec3:
+    # Cycles' shadow_ray_smooth_surface_offset (kernel/light/sample.h; Hanika 2021,
+    # "Hacking the shadow terminator", Ray Tracing Gems II ch. 4): how far the smooth
+    # surface that the corner normals describe lies above the flat triangle at the hit, as
+    # a vector along the interpolated normal. Cycles' names: wu, wv, ww weight the corners.
+    wu = 1.0 - u - v
+    wv = u
+    ww = v
+    p = p0 * wu + p1 * wv + p2 * ww
+    n = n0 * wu + n1 * wv + n2 * ww  # not normalised, as in Cycles
+    # Parabolic approximation
+    a = wp.dot(n2 - n0, p0 - p2)
+    b = wp.dot(n2 - n1, p1 - p2)
+    c = wp.dot(n1 - n0, p1 - p0)
+    h = a * wu * (wu - 1.0) + (a + b + c) * wu * wv + b * wv * (wv - 1.0)
+    if wp.dot(n, ng) > 0.0:
+        # Local linear envelope
+        h0 = wp.max(wp.max(wp.dot(p1 - p0, n0), wp.dot(p2 - p0, n0)), 0.0)
+        h1 = wp.max(wp.max(wp.dot(p0 - p1, n1), wp.dot(p2 - p1, n1)), 0.0)
+        h2 = wp.max(wp.max(wp.dot(p0 - p2, n2), wp.dot(p1 - p2, n2)), 0.0)
+        h0 = wp.max(wp.dot(p0 - p, n0) + h0, 0.0)
+        h1 = wp.max(wp.dot(p1 - p, n1) + h1, 0.0)
+        h2 = wp.max(wp.dot(p2 - p, n2) + h2, 0.0)
+        h = wp.max(wp.min(wp.min(h0, h1), h2), h * 0.5)
+    else:  # seen from behind the normals: the same envelope below
+        h0 = wp.max(wp.max(wp.dot(p0 - p1, n0), wp.dot(p0 - p2, n0)), 0.0)
+        h1 = wp.max(wp.max(wp.dot(p1 - p0, n1), wp.dot(p1 - p2, n1)), 0.0)
+        h2 = wp.max(wp.max(wp.dot(p2 - p0, n2), wp.dot(p2 - p1, n2)), 0.0)
+        h0 = wp.max(wp.dot(p - p0, n0) + h0, 0.0)
+        h1 = wp.max(wp.dot(p - p1, n1) + h1, 0.0)
+        h2 = wp.max(wp.dot(p - p2, n2) + h2, 0.0)
+        h = wp.min(-wp.min(wp.min(h0, h1), h2), h * 0.5)
+    return n * h
+
+
+@wp.func
+def terminator_amount(n: wp.vec3, ng: wp.vec3, w: wp.vec3, cutoff: float) -> float:
+    # Cycles' shadow_ray_offset (kernel/light/sample.h): only rays close to the terminator
+    # (w near ng's horizon, or near n's) are lifted, fully below a dot of `cutoff` and
+    # fading out to 0 above it. AO's directions lie above n (cosine samples about it), so
+    # Cycles' transmission case (dot(n, w) < 0) never arises here.
+    nl = wp.dot(n, w)
+    ngl = wp.dot(ng, w)
+    amount = float(0.0)
+    if cutoff > 0.0:
+        if nl < cutoff:
+            amount = wp.clamp(2.0 - (ngl + nl) / cutoff, 0.0, 1.0)
+        else:
+            amount = wp.clamp(1.0 - ngl / cutoff, 0.0, 1.0)
+    return amount
+
+
+@wp.func
+def occlusion_origin(s: Surface, w: wp.vec3) -> wp.vec3:
+    """Where the occlusion ray in direction w starts: the spawn point, lifted toward the
+    smooth surface by Cycles' terminator amount (unchanged where that is 0)."""
+    o = s.point
+    amount = terminator_amount(s.n, s.ng, w, s.cutoff)
+    if amount > 0.0:
+        o = s.point + s.lift * amount
+    return o
+
+
+@wp.func
+def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+            shading: Shading, d: wp.vec3, triangle: int, u: float, v: float) -> Surface:
+    """The spawn point, normals and terminator lift of a hit (see `Surface`)."""
     t = triangle_corners(vertices, indices, triangle)
     v0 = t[0]
     v1 = t[1]
     v2 = t[2]
     # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
     n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
-    if wp.dot(n, wp.vec3d(d)) > wp.float64(0.0):
+    backfacing = wp.dot(n, wp.vec3d(d)) > wp.float64(0.0)
+    if backfacing:
         n = -n
-    return wp.matrix_from_rows(spawn_point(v0, v1, v2, u, v, n), wp.vec3(n), wp.vec3(0.0))
+    s = Surface()
+    s.point = spawn_point(v0, v1, v2, u, v, n)
+    s.ng = wp.vec3(n)
+    s.n = s.ng
+    s.lift = wp.vec3(0.0)
+    s.cutoff = 0.0
+    if shading.smooth != 0:
+        n0 = shading.normals[3 * triangle]
+        n1 = shading.normals[3 * triangle + 1]
+        n2 = shading.normals[3 * triangle + 2]
+        s.n = shading_normal(n0, n1, n2, u, v, s.ng, backfacing)
+        s.lift = smooth_surface_offset(v0, v1, v2, n0, n1, n2, u, v, s.ng)
+        s.cutoff = shading.offsets[triangle]
+    return s
 
 
 @wp.kernel
@@ -123,21 +244,19 @@ def primary_kernel(
     bvh: BvhArrays,
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
+    shading: Shading,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
     tmin: wp.array(dtype=float),
     tmax: wp.array(dtype=float),
-    out_point: wp.array(dtype=wp.vec3),
-    out_normal: wp.array(dtype=wp.vec3),
+    out_surface: wp.array(dtype=Surface),
     out_hit: wp.array(dtype=int),
 ):
     i = wp.tid()
     h = closest_hit(bvh, origins[i], directions[i], tmin[i], tmax[i])
     out_hit[i] = 0
     if h.triangle >= 0:
-        s = surface(vertices, indices, directions[i], h.triangle, h.u, h.v)
-        out_point[i] = s[0]
-        out_normal[i] = s[1]
+        out_surface[i] = surface(vertices, indices, shading, directions[i], h.triangle, h.u, h.v)
         out_hit[i] = 1
 
 
@@ -145,25 +264,22 @@ def primary_kernel(
 def surface_kernel(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
+    shading: Shading,
     directions: wp.array(dtype=wp.vec3),
     triangle: wp.array(dtype=int),
     u: wp.array(dtype=float),
     v: wp.array(dtype=float),
-    out_point: wp.array(dtype=wp.vec3),
-    out_normal: wp.array(dtype=wp.vec3),
+    out_surface: wp.array(dtype=Surface),
 ):
-    """Spawn points and normals of hits found by another tracer (engine="dacrt")."""
+    """Surfaces of hits found by another tracer (engine="dacrt")."""
     i = wp.tid()
-    s = surface(vertices, indices, directions[i], triangle[i], u[i], v[i])
-    out_point[i] = s[0]
-    out_normal[i] = s[1]
+    out_surface[i] = surface(vertices, indices, shading, directions[i], triangle[i], u[i], v[i])
 
 
 @wp.kernel
 def occlusion_kernel(
     bvh: BvhArrays,
-    points: wp.array(dtype=wp.vec3),
-    normals: wp.array(dtype=wp.vec3),
+    surfaces: wp.array(dtype=Surface),
     pixels: wp.array(dtype=int),
     active: wp.array(dtype=int),  # hit-pixel index of each slot of this round
     slot0: int,  # the first slot of this launch
@@ -184,28 +300,34 @@ def occlusion_kernel(
     s = t % count
     j = slot0 + t // count
     k = active[j]
-    w = cosine_direction(normals[k], sampler, pixel_key(pixels[k], seed), first + s)
+    hit = surfaces[k]
+    w = cosine_direction(hit.n, sampler, pixel_key(pixels[k], seed), first + s)
     # traverse() with a run-time any-hit flag, as trace_kernel calls it: measured 25-30%
     # faster on CPU than bvh_trace.any_hit, whose flag is the literal True.
-    if traverse(bvh, make_ray(points[k], w), 0.0, distance, find_any != 0).triangle < 0:
+    ray = make_ray(occlusion_origin(hit, w), w)
+    if traverse(bvh, ray, 0.0, distance, find_any != 0).triangle < 0:
         out_open[j] += 1
         if s < count / 2:
             out_open_half[j] += 1
 
 
 @wp.kernel
-def directions_kernel(
-    normals: wp.array(dtype=wp.vec3),
+def rays_kernel(
+    surfaces: wp.array(dtype=Surface),
     pixels: wp.array(dtype=int),
     first: int,
     count: int,
     sampler: int,
     seed: int,
+    out_origin: wp.array(dtype=wp.vec3),
     out_dir: wp.array(dtype=wp.vec3),
 ):
     i, s = wp.tid()
     key = pixel_key(pixels[i], seed)
-    out_dir[i * count + s] = cosine_direction(normals[i], sampler, key, first + s)
+    hit = surfaces[i]
+    w = cosine_direction(hit.n, sampler, key, first + s)
+    out_origin[i * count + s] = occlusion_origin(hit, w)
+    out_dir[i * count + s] = w
 
 
 # --- host side ---------------------------------------------------------------------------
@@ -252,74 +374,82 @@ def scene_mesh(bvh: Bvh) -> DeviceMesh:
 
 
 def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
-                  tmax=np.inf, threads: int | None = None, engine: str = "bvh") -> PrimaryHits:
-    """Closest hits of the primary rays that enter the scene box, as spawn points and
-    normals for occlusion rays."""
+                  tmax=np.inf, threads: int | None = None, engine: str = "bvh",
+                  normals: np.ndarray | None = None,
+                  terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
+                  ) -> PrimaryHits:
+    """Closest hits of the primary rays that enter the scene box, as `Surface`s for
+    occlusion rays (`normals`, `terminator_offset`: see `render_ao`)."""
     tmin_a, tmax_a = ray_range(tmin, tmax, len(origins))
     device = bvh.device
     cand = box_candidates(bvh.bounds, origins, directions, tmin_a, tmax_a)
     m = len(cand)
     mesh = scene_mesh(bvh)
     verts, tris = mesh.v, mesh.f  # on the device since the build: no copy per render
+    shading = mesh.shading(normals, terminator_offset)
     if engine == "dacrt":
         h = dacrt_trace_mesh(mesh, origins[cand], directions[cand], tmin_a[cand], tmax_a[cand])
         keep = np.flatnonzero(h.triangle >= 0)
         n = len(keep)
-        pts = wp.empty(n, dtype=wp.vec3, device=device)
-        nrm = wp.empty(n, dtype=wp.vec3, device=device)
+        surfaces = wp.empty(n, dtype=Surface, device=device)
         if n:
             wp.launch(surface_kernel, dim=n, inputs=[
-                verts, tris, wp.array(directions[cand][keep], dtype=wp.vec3, device=device),
+                verts, tris, shading, wp.array(directions[cand][keep], dtype=wp.vec3,
+                                               device=device),
                 *(wp.array(x[keep], device=device) for x in (h.triangle, h.u, h.v)),
-            ], outputs=[pts, nrm], device=device)
-        return PrimaryHits(pixels=cand[keep], points=pts, normals=nrm, traced=m)
-    pts = wp.empty(m, dtype=wp.vec3, device=device)
-    nrm = wp.empty(m, dtype=wp.vec3, device=device)
+            ], outputs=[surfaces], device=device)
+        return PrimaryHits(pixels=cand[keep], surfaces=surfaces, traced=m)
+    surfaces = wp.empty(m, dtype=Surface, device=device)
     hit = wp.empty(m, dtype=int, device=device)
     if m:
         per_item = [wp.array(x[cand], dtype=dt, device=device)
                     for x, dt in ((origins, wp.vec3), (directions, wp.vec3),
                                   (tmin_a, float), (tmax_a, float))]
-        launch_split(primary_kernel, m, [bvh.arrays, verts, tris], per_item, [],
-                     [pts, nrm, hit], device, host_threads(device, threads))
+        launch_split(primary_kernel, m, [bvh.arrays, verts, tris, shading], per_item, [],
+                     [surfaces, hit], device, host_threads(device, threads))
     keep = np.flatnonzero(hit.numpy())
     sel = wp.array(keep.astype(np.int32), dtype=int, device=device)
-    return PrimaryHits(
-        pixels=cand[keep],
-        points=_gather(pts, sel, wp.vec3),
-        normals=_gather(nrm, sel, wp.vec3),
-        traced=m,
-    )
+    kept = wp.empty(len(keep), dtype=Surface, device=device)
+    if len(keep):
+        wp.launch(_gather_surfaces, dim=len(keep), inputs=[surfaces, sel, kept], device=device)
+    return PrimaryHits(pixels=cand[keep], surfaces=kept, traced=m)
 
 
 @wp.kernel
-def _gather_vec3(src: wp.array(dtype=wp.vec3), sel: wp.array(dtype=int),
-                 dst: wp.array(dtype=wp.vec3)):
+def _gather_surfaces(src: wp.array(dtype=Surface), sel: wp.array(dtype=int),
+                     dst: wp.array(dtype=Surface)):
     i = wp.tid()
     dst[i] = src[sel[i]]
 
 
-def _gather(src: wp.array, sel: wp.array, dtype) -> wp.array:
-    dst = wp.empty(len(sel), dtype=dtype, device=src.device)
-    if len(sel):
-        wp.launch(_gather_vec3, dim=len(sel), inputs=[src, sel, dst], device=src.device)
-    return dst
+def occlusion_rays(hits: PrimaryHits, first: int, count: int, seed: int = 0,
+                   sampler: str = "sobol", select: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The origins and unit directions of samples first..first+count-1 of every hit pixel
+    (or of the hit pixels `select` indexes), each (H*count, 3) float32, pixel-major:
+    exactly the rays `render_ao` traces (for DACRT and for peers in benchmarks/tests)."""
+    return _occlusion_rays(hits, first, count, int(seed), _sampler(sampler), select)
 
 
-def occlusion_directions(hits: PrimaryHits, first: int, count: int, seed: int = 0,
-                         sampler: str = "sobol") -> np.ndarray:
-    """The unit directions of samples first..first+count-1 of every hit pixel, (H*count, 3)
-    float32, pixel-major: exactly those `render_ao` traces (for peers in benchmarks/tests)."""
-    sampler_id = _sampler(sampler)
-    h = len(hits.pixels)
-    device = hits.points.device
-    out = wp.empty(h * count, dtype=wp.vec3, device=device)
+def _occlusion_rays(hits, first, count, seed, sampler_id, select) -> tuple[np.ndarray, ...]:
+    device = hits.surfaces.device
+    surfaces, pixels = hits.surfaces, hits.pixels
+    if select is not None:
+        sel = wp.array(np.asarray(select, np.int32), dtype=int, device=device)
+        surfaces = wp.empty(len(select), dtype=Surface, device=device)
+        if len(select):
+            wp.launch(_gather_surfaces, dim=len(select), inputs=[hits.surfaces, sel, surfaces],
+                      device=device)
+        pixels = pixels[select]
+    h = len(pixels)
+    origins = wp.empty(h * count, dtype=wp.vec3, device=device)
+    dirs = wp.empty(h * count, dtype=wp.vec3, device=device)
     if h and count:
-        pix = wp.array(hits.pixels, dtype=int, device=device)
-        wp.launch(directions_kernel, dim=(h, count),
-                  inputs=[hits.normals, pix, int(first), int(count), sampler_id, int(seed)],
-                  outputs=[out], device=device)
-    return out.numpy().reshape(-1, 3)
+        pix = wp.array(pixels, dtype=int, device=device)
+        wp.launch(rays_kernel, dim=(h, count),
+                  inputs=[surfaces, pix, int(first), int(count), sampler_id, seed],
+                  outputs=[origins, dirs], device=device)
+    return origins.numpy().reshape(-1, 3), dirs.numpy().reshape(-1, 3)
 
 
 def _sampler(sampler: str) -> int:
@@ -359,6 +489,8 @@ def render_ao(
     max_spp: int = DEFAULT_MAX_SPP,
     sampler: str = "sobol",
     engine: str = "bvh",
+    normals: np.ndarray | None = None,
+    terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
     progress: Progress | None = None,
 ) -> AoResult:
     """AO per primary ray (see the module docstring for the definition and guarantees).
@@ -371,6 +503,12 @@ def render_ao(
     `engine`: "bvh" traces through `bvh`; "dacrt" traces the same rays (primary, then each
     round's occlusion rays) with the task-pool DACRT, without using the BVH: the same result
     to float32 rounding.
+    `normals`: None (geometric normals, flat shading) or (T, 3, 3) shading normals, one per
+    corner of each of the BVH's triangles in index order (Blender's `Mesh.corner_normals`
+    of the loop triangles; need not be unit; three zero corners mark a flat triangle).
+    `terminator_offset`: Cycles' shadow terminator geometry offset, one number or (T,) per
+    triangle in [0, 1] (Blender's per-object setting, default 0.1); only smooth triangles
+    use it. Both arrays are read once per set of objects and taken as read-only.
     `progress(fraction, phase)` is called between rounds; an exception it raises cancels
     the render.
     """
@@ -383,6 +521,7 @@ def render_ao(
     _check_args(spp, distance, seed, target_error, (min_spp, int(max_spp)))
     sampler_id = _sampler(sampler)
     origins, directions = as_rays(origins, directions)
+    scene_mesh(bvh).shading(normals, terminator_offset)  # checked (and kept) before tracing
     r = len(origins)
     dist = default_distance(bvh) if distance is None else float(distance)
     device = bvh.device
@@ -399,7 +538,8 @@ def render_ao(
 
     report(0.0, "primary")
     t0 = time.perf_counter()
-    hits = trace_primary(bvh, origins, directions, tmin, tmax, threads, engine)
+    hits = trace_primary(bvh, origins, directions, tmin, tmax, threads, engine, normals,
+                         terminator_offset)
     wp.synchronize_device(device)
     timings["primary"] = (time.perf_counter() - t0) * 1e3
 
@@ -464,7 +604,7 @@ def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dis
 
     def run(p: int) -> None:
         wp.launch(occlusion_kernel, dim=int(bounds[p + 1] - bounds[p]) * count,
-                  inputs=[bvh.arrays, hits.points, hits.normals, pix, act, int(bounds[p]),
+                  inputs=[bvh.arrays, hits.surfaces, pix, act, int(bounds[p]),
                           int(first), int(count), sampler_id, seed, dist, 1],
                   outputs=[out, out_half], device=device)
 
@@ -476,16 +616,9 @@ def _occlusion_round_dacrt(bvh, hits, pix, active, first, count, sampler_id, see
                            nthreads) -> tuple[np.ndarray, np.ndarray]:
     """`_occlusion_round` with the round's rays traced by DACRT (closest hit within the AO
     distance: occluded if there is one)."""
-    device = bvh.device
     m = len(active)
-    points = hits.points.numpy()[active]
-    dirs = wp.empty(m * count, dtype=wp.vec3, device=device)
-    wp.launch(directions_kernel, dim=(m, count),
-              inputs=[wp.array(hits.normals.numpy()[active], dtype=wp.vec3, device=device),
-                      wp.array(hits.pixels[active], dtype=int, device=device), int(first),
-                      int(count), sampler_id, seed], outputs=[dirs], device=device)
-    h = dacrt_trace_mesh(scene_mesh(bvh), np.repeat(points, count, axis=0), dirs.numpy(), 0.0,
-                         dist)
+    origins, dirs = _occlusion_rays(hits, first, count, seed, sampler_id, active)
+    h = dacrt_trace_mesh(scene_mesh(bvh), origins, dirs, 0.0, dist)
     opened = (h.triangle < 0).reshape(m, count)
     return opened.sum(axis=1), opened[:, : count // 2].sum(axis=1)
 
@@ -554,11 +687,13 @@ def ambient_occlusion(
     max_spp: int = DEFAULT_MAX_SPP,
     sampler: str = "sobol",
     engine: str = "bvh",
+    normals: np.ndarray | None = None,
+    terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
 ) -> np.ndarray:
     """AO per primary ray, (R,) float32: `render_ao(...).ao` (see there)."""
     return render_ao(bvh, origins, directions, spp, distance, seed, target_error, tmin=tmin,
                      tmax=tmax, threads=threads, max_spp=max_spp, sampler=sampler,
-                     engine=engine).ao
+                     engine=engine, normals=normals, terminator_offset=terminator_offset).ao
 
 
 WARP_MODULES = (occlusion_kernel.module,)  # this module's kernels (core.launch.load_modules)

@@ -195,13 +195,17 @@ class Api:
         self.url = service.url
         self.client = httpx.Client(base_url=self.url, timeout=timeout, headers=service.auth)
 
-    def upload(self, vertices: np.ndarray, indices: np.ndarray) -> httpx.Response:
-        return self.client.post(
-            "/v1/scenes",
-            params={"vertices": len(vertices), "triangles": len(indices)},
-            content=scene_body(vertices, indices),
-            headers=OCTET,
-        )
+    def upload(self, vertices: np.ndarray, indices: np.ndarray,
+               normals: np.ndarray | None = None,
+               terminator_offsets: np.ndarray | None = None) -> httpx.Response:
+        """POST /v1/scenes, with the optional normal and terminator blocks when given."""
+        params = {"vertices": len(vertices), "triangles": len(indices)}
+        content = scene_body(vertices, indices)
+        for name, block in (("normals", normals), ("terminator_offsets", terminator_offsets)):
+            if block is not None:
+                params[name] = "true"
+                content += np.asarray(block, "<f4").tobytes()
+        return self.client.post("/v1/scenes", params=params, content=content, headers=OCTET)
 
     def ao(
         self, scene_id: str, origins: np.ndarray, directions: np.ndarray, **params: object

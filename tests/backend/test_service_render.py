@@ -62,3 +62,36 @@ def test_ao_over_http_equals_the_direct_call(api, box_scene, scene_id, make_rays
     assert got.shape == (300,)
     np.testing.assert_array_equal(got, np.asarray(expected, np.float32))
     assert 0.0 < got.min() < 1.0 and got.max() == 1.0  # occluded floor and missed rays
+
+
+def _smooth_normals(vertices: np.ndarray, indices: np.ndarray) -> np.ndarray:
+    """Corner normals of the scene's vertices pointing away from its centre (any smooth
+    field will do: it makes the shading differ from the geometric one)."""
+    v = vertices.astype(np.float64)[indices]
+    out = v - vertices.astype(np.float64).mean(axis=0) + [0.0, 1.0, 0.0]
+    return (out / np.linalg.norm(out, axis=2, keepdims=True)).astype(np.float32)
+
+
+def test_normals_travel_with_the_scene(api, box_scene, make_rays):
+    """A scene uploaded with normals (and per-triangle terminator offsets) renders as the
+    direct call with them; its id is another scene's than the same triangles without."""
+    vertices, indices = box_scene
+    normals = _smooth_normals(vertices, indices)
+    offsets = np.linspace(0.0, 0.5, len(indices)).astype(np.float32)
+    plain = api.upload(vertices, indices).json()
+    answer = api.upload(vertices, indices, normals, offsets)
+    assert answer.status_code in (200, 201), answer.text
+    info = answer.json()
+    assert info["normals"] and not plain["normals"] and info["scene_id"] != plain["scene_id"]
+    assert info["bytes"] == plain["bytes"] + 40 * len(indices)
+    origins, directions = make_rays(300, seed=11)
+    params = {"spp": 8, "seed": 2, "distance": 1.0}
+    got = np.frombuffer(api.ao(info["scene_id"], origins, directions, **params).content, "<f4")
+    flat = np.frombuffer(api.ao(plain["scene_id"], origins, directions, **params).content, "<f4")
+    bvh = kernels.build_bvh(vertices, indices, device="cpu")
+    expected = kernels.ambient_occlusion(bvh, origins, directions, normals=normals,
+                                         terminator_offset=offsets, **params)
+    np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(flat, kernels.ambient_occlusion(bvh, origins, directions,
+                                                                  **params))
+    assert not np.array_equal(got, flat)

@@ -61,6 +61,51 @@ def test_index_error_names_the_triangle() -> None:
         wire.decode_scene(body(V, np.array([[0, 1, 2], [0, 7, 3]], np.int32)), 4, 2)
 
 
+NORMALS = np.arange(18, dtype=np.float32).reshape(2, 3, 3) / 17  # any finite numbers
+OFFSETS = np.array([0.1, 0.5], np.float32)
+
+
+def test_normal_and_terminator_blocks_follow_the_indices() -> None:
+    """docs/api.md: T*9 float32 normals, then T float32 offsets; the id covers them."""
+    data = body() + NORMALS.astype("<f4").tobytes() + OFFSETS.astype("<f4").tobytes()
+    scene = wire.decode_scene(data, 4, 2, normals=True, terminator_offsets=True)
+    np.testing.assert_array_equal(scene.normals, NORMALS)
+    np.testing.assert_array_equal(scene.terminator_offsets, OFFSETS)
+    assert scene.nbytes == len(data)
+    assert scene.shading().keys() == {"normals", "terminator_offset"}
+    assert scene.scene_id == hashlib.sha256(b"scenesort-scene-v1 4 2\n" + data).hexdigest()[:32]
+    other = NORMALS.copy()
+    other[1, 2, 0] += 1e-3
+    changed = body() + other.astype("<f4").tobytes() + OFFSETS.astype("<f4").tobytes()
+    assert wire.scene_hash(4, 2, changed) != scene.scene_id
+    plain = wire.decode_scene(body(), 4, 2)
+    assert plain.normals is None and plain.shading() == {}
+    assert plain.scene_id != wire.scene_hash(4, 2, body() + NORMALS.tobytes())
+
+
+@pytest.mark.parametrize(
+    ("blocks", "flags", "parameter", "code"),
+    [
+        (NORMALS.tobytes(), {}, "body", "bad_body_length"),
+        (b"", {"normals": True}, "body", "bad_body_length"),
+        (np.full((2, 3, 3), np.inf, np.float32).tobytes(), {"normals": True}, "body (normals)",
+         "not_finite"),
+        (NORMALS.tobytes() + np.float32([0.1, 1.5]).tobytes(),
+         {"normals": True, "terminator_offsets": True}, "body (terminator offsets)",
+         "bad_terminator_offset"),
+        (np.float32([0.1, 0.1]).tobytes(), {"terminator_offsets": True},
+         "terminator_offsets", "invalid_parameter"),
+    ],
+    ids=["normals-unannounced", "normals-missing", "normals-inf", "offset-over-1",
+         "offsets-without-normals"],
+)
+def test_bad_shading_blocks_name_the_part(blocks, flags, parameter, code) -> None:
+    with pytest.raises(ApiError) as info:
+        wire.decode_scene(body() + blocks, 4, 2, **flags)
+    assert (info.value.parameter, info.value.code) == (parameter, code)
+    assert 400 <= info.value.status < 500 and info.value.fix
+
+
 def test_rays_decode_in_order() -> None:
     rays = np.arange(12, dtype=np.float32).reshape(2, 6) + 1
     origins, directions = wire.decode_rays(rays.astype("<f4").tobytes(), 2)
