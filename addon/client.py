@@ -141,9 +141,12 @@ class Client:
         status, _, _ = self._request("HEAD", f"/v1/scenes/{scene_id}", timeout=HEALTH_TIMEOUT_S)
         return status == 200
 
-    def upload_scene(self, vertex_count: int, triangle_count: int, body: bytes) -> dict:
-        """`POST /v1/scenes`: the raw scene body; returns scene_id, triangles, bounds, ..."""
-        query = urllib.parse.urlencode({"vertices": vertex_count, "triangles": triangle_count})
+    def upload_scene(self, vertex_count: int, triangle_count: int, body: bytes,
+                     blocks: dict[str, str] | None = None) -> dict:
+        """`POST /v1/scenes`: the raw scene body, with `blocks` the flags of its optional
+        blocks (`SceneMesh.query()`); returns scene_id, triangles, bounds, ..."""
+        query = urllib.parse.urlencode(
+            {"vertices": vertex_count, "triangles": triangle_count, **(blocks or {})})
         _, _, data = self._request(
             "POST", f"/v1/scenes?{query}", body, "application/octet-stream", UPLOAD_TIMEOUT_S
         )

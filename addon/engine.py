@@ -110,7 +110,7 @@ class AoEngine:
         self, depsgraph: bpy.types.Depsgraph, mesh: export.SceneMesh, view: dict
     ) -> pipeline.Outcome:
         """The job on a worker thread while this one polls Esc and shows progress."""
-        settings = pipeline.Settings.from_scene(depsgraph.scene.scenesort)
+        settings = pipeline.Settings.from_scene(depsgraph.scene)
         target = prefs.target(bpy.context)
         self.task = Task(lambda task: pipeline.render_job(task, target, settings, mesh, view))
         self.task.start()
@@ -150,7 +150,7 @@ class AoEngine:
         """The build's timings into the panel's table, on the main thread."""
         if outcome.build is None:
             return
-        props, settings = scene.original.scenesort, pipeline.Settings.from_scene(scene.scenesort)
+        props, settings = scene.original.scenesort, pipeline.Settings.from_scene(scene)
 
         def apply() -> None:
             timings.apply_build(props, outcome.build, settings.method, settings.leaf_size)

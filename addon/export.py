@@ -1,8 +1,16 @@
 """Evaluated scene (a render or viewport depsgraph) -> world-space triangles (float32
-vertices, int32 indices).
+vertices, int32 indices) and, where faces are smooth-shaded, their shading normals.
 
 Reads whole arrays with `foreach_get`; Python only loops over objects and instances,
 never over vertices. Each mesh is read once and transformed per instance.
+
+Shading normals are what Cycles renders with: each loop triangle's three corner normals
+(`Mesh.corner_normals`: smooth faces, sharp edges, custom split normals), in world space;
+a flat-shaded triangle has zero corners, which the engine reads as "the geometric normal"
+(Cycles' `triangle_smooth_normal` falls back to it the same way). A scene without smooth
+faces sends no normals at all, so its upload is what it was before normals existed.
+Each object's Shadow Terminator Geometry Offset goes with its triangles when some object's
+differs from Blender's default (the service's default).
 """
 
 from __future__ import annotations
@@ -15,37 +23,80 @@ import numpy as np
 
 # Object types whose evaluated geometry can be turned into a mesh.
 _CONVERTIBLE = {"CURVE", "SURFACE", "FONT", "META"}
-_EMPTY = (np.zeros((0, 3)), np.zeros((0, 3), np.int32))
+DEFAULT_TERMINATOR_OFFSET = 0.1  # Object.shadow_terminator_geometry_offset's default
 
 
 @dataclass(frozen=True)
 class SceneMesh:
-    """World-space triangles: vertices (N,3) float32, indices (M,3) int32."""
+    """World-space triangles: vertices (N,3) float32, indices (M,3) int32; shading
+    normals (M,3,3) float32 (zero corners: flat) or None when every face is flat; per
+    triangle terminator offsets (M,) float32 or None when all are the default."""
 
     vertices: np.ndarray
     indices: np.ndarray
     objects: int  # object instances that contributed triangles
+    normals: np.ndarray | None = None
+    terminator_offsets: np.ndarray | None = None
 
     @property
     def triangles(self) -> int:
         return int(self.indices.shape[0])
 
     def body(self) -> bytes:
-        """The upload body of `POST /v1/scenes`: V*3 float32 then T*3 int32, little-endian."""
-        return (
-            np.ascontiguousarray(self.vertices, dtype="<f4").tobytes()
-            + np.ascontiguousarray(self.indices, dtype="<i4").tobytes()
-        )
+        """The upload body of `POST /v1/scenes`: V*3 float32, T*3 int32, then the normal
+        and terminator blocks when present (`query()` says which), little-endian."""
+        parts = [np.ascontiguousarray(self.vertices, dtype="<f4"),
+                 np.ascontiguousarray(self.indices, dtype="<i4")]
+        parts += [np.ascontiguousarray(a, dtype="<f4")
+                  for a in (self.normals, self.terminator_offsets) if a is not None]
+        return b"".join(a.tobytes() for a in parts)
+
+    def query(self) -> dict[str, str]:
+        """The upload's block flags (docs/api.md), only those that are on."""
+        flags = {"normals": self.normals, "terminator_offsets": self.terminator_offsets}
+        return {name: "true" for name, a in flags.items() if a is not None}
 
 
-def _mesh_arrays(mesh: bpy.types.Mesh) -> tuple[np.ndarray, np.ndarray]:
-    """Local-space vertices (float64) and loop-triangle vertex indices of one mesh."""
+@dataclass(frozen=True)
+class _MeshArrays:
+    """One mesh in its local space: vertices (float64), loop-triangle indices, and the
+    loop triangles' corner normals (zero on flat ones), None when no face is smooth."""
+
+    vertices: np.ndarray
+    indices: np.ndarray
+    normals: np.ndarray | None
+
+
+_EMPTY = _MeshArrays(np.zeros((0, 3)), np.zeros((0, 3), np.int32), None)
+
+
+def _mesh_arrays(mesh: bpy.types.Mesh) -> _MeshArrays:
+    """Local-space vertices, loop-triangle vertex indices and corner normals of one mesh."""
     mesh.calc_loop_triangles()
     verts = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
     mesh.vertices.foreach_get("co", verts)
-    tris = np.empty(len(mesh.loop_triangles) * 3, dtype=np.int32)
+    count = len(mesh.loop_triangles)
+    tris = np.empty(count * 3, dtype=np.int32)
     mesh.loop_triangles.foreach_get("vertices", tris)
-    return verts.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3)
+    smooth = np.empty(count, dtype=bool)
+    mesh.loop_triangles.foreach_get("use_smooth", smooth)
+    normals = None
+    if smooth.any():
+        loops = np.empty(count * 3, dtype=np.int32)
+        mesh.loop_triangles.foreach_get("loops", loops)
+        corners = np.empty(len(mesh.corner_normals) * 3, dtype=np.float32)
+        mesh.corner_normals.foreach_get("vector", corners)
+        normals = corners.reshape(-1, 3)[loops].reshape(-1, 3, 3).astype(np.float64)
+        normals[~smooth] = 0.0
+    return _MeshArrays(verts.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3), normals)
+
+
+def _world_normals(normals: np.ndarray, linear: np.ndarray) -> np.ndarray:
+    """Corner normals through an object's 3x3 transform: the inverse transpose, unit
+    length again (zero corners stay zero)."""
+    world = normals @ np.linalg.inv(linear)  # row vectors: (M^-T n)^T = n^T M^-1
+    length = np.linalg.norm(world, axis=-1, keepdims=True)
+    return np.divide(world, length, out=np.zeros_like(world), where=length > 0.0)
 
 
 def _renderable_collections(view_layer: bpy.types.ViewLayer) -> set[str]:
@@ -113,10 +164,13 @@ def _instances(depsgraph: bpy.types.Depsgraph) -> Iterator[bpy.types.DepsgraphOb
 
 
 def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
-    """World-space triangles of every visible, renderable mesh-like object and instance."""
-    cache: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    """World-space triangles of every visible, renderable mesh-like object and instance,
+    with their shading normals and terminator offsets (see the module docstring)."""
+    cache: dict[int, _MeshArrays] = {}
     vertex_parts: list[np.ndarray] = []
     index_parts: list[np.ndarray] = []
+    normal_parts: list[np.ndarray | None] = []
+    offset_parts: list[float] = []
     offset = 0
     count = 0
     for inst in _instances(depsgraph):
@@ -133,21 +187,46 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
                     cache[key] = _mesh_arrays(mesh) if mesh else _EMPTY
                 finally:
                     obj.to_mesh_clear()
-        local, tris = cache[key]
+        arrays = cache[key]
+        tris, normals = arrays.indices, arrays.normals
         if len(tris) == 0:
             continue
         m = np.array(inst.matrix_world, dtype=np.float64)
-        world = local @ m[:3, :3].T + m[:3, 3]
+        world = arrays.vertices @ m[:3, :3].T + m[:3, 3]
+        normals = None if normals is None else _world_normals(normals, m[:3, :3])
         if np.linalg.det(m[:3, :3]) < 0.0:
             tris = tris[:, ::-1]  # a mirroring transform flips winding; keep faces outward
+            normals = None if normals is None else normals[:, ::-1]  # corners follow
         vertex_parts.append(world.astype(np.float32))
         index_parts.append(tris + offset)
-        offset += len(local)
+        normal_parts.append(normals)
+        offset_parts.append(float(obj.shadow_terminator_geometry_offset))
+        offset += len(arrays.vertices)
         count += 1
     if not vertex_parts:
         return SceneMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), 0)
+    indices = np.ascontiguousarray(np.concatenate(index_parts), dtype=np.int32)
     return SceneMesh(
         np.ascontiguousarray(np.concatenate(vertex_parts)),
-        np.ascontiguousarray(np.concatenate(index_parts), dtype=np.int32),
+        indices,
         count,
+        *_shading(index_parts, normal_parts, offset_parts),
     )
+
+
+def _shading(index_parts: list[np.ndarray], normal_parts: list[np.ndarray | None],
+             offset_parts: list[float]) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """The scene's normal and terminator blocks from its instances' parts: None when no
+    instance has a smooth face, and offsets None when every smooth one has the default."""
+    smooth = [n is not None for n in normal_parts]
+    if not any(smooth):
+        return None, None
+    sizes = [len(t) for t in index_parts]
+    normals = np.concatenate([n if n is not None else np.zeros((size, 3, 3))
+                              for n, size in zip(normal_parts, sizes, strict=True)])
+    normals = np.ascontiguousarray(normals, dtype=np.float32)
+    used = {np.float32(o) for o, s in zip(offset_parts, smooth, strict=True) if s}
+    if used == {np.float32(DEFAULT_TERMINATOR_OFFSET)}:
+        return normals, None
+    offsets = np.repeat(np.asarray(offset_parts, np.float32), sizes)
+    return normals, np.ascontiguousarray(offsets, dtype=np.float32)

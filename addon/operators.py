@@ -273,7 +273,7 @@ class SCENESORT_OT_build_bvh(_TaskOperator, bpy.types.Operator):
 
     def prepare(self, context: bpy.types.Context) -> Task:
         target = prefs.target(context)
-        settings = pipeline.Settings.from_scene(context.scene.scenesort)
+        settings = pipeline.Settings.from_scene(context.scene)
         mesh = export.export_scene(context.evaluated_depsgraph_get())
         self._settings = settings
         return Task(lambda task: pipeline.build(task, target, settings, mesh))
@@ -292,7 +292,7 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
     def prepare(self, context: bpy.types.Context) -> Task:
         scene = context.scene
         target = prefs.target(context)
-        settings = pipeline.Settings.from_scene(scene.scenesort)
+        settings = pipeline.Settings.from_scene(scene)
         depsgraph = context.evaluated_depsgraph_get()
         view = camera.view(scene, depsgraph)
         mesh = export.export_scene(depsgraph)

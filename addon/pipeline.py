@@ -18,27 +18,41 @@ from .connection import Connection, Target, connect
 from .export import SceneMesh
 from .tasks import Task
 
+NO_WORLD_AO_DISTANCE = 10.0  # Cycles' AO distance in a scene without a World
+
+
+def ao_distance(scene: Any) -> float:
+    """The AO distance Cycles' AO pass uses: the World's (World > Ambient Occlusion >
+    Distance), or the panel's `ao_distance` where that is set (> 0) to override it."""
+    override = float(scene.scenesort.ao_distance)
+    if override > 0.0:
+        return override
+    world = scene.world
+    return float(world.light_settings.distance) if world is not None else NO_WORLD_AO_DISTANCE
+
 
 @dataclass(frozen=True)
 class Settings:
-    """A snapshot of `scene.scenesort`, safe to read off the main thread."""
+    """A snapshot of `scene.scenesort` (and the World's AO distance), safe to read off the
+    main thread."""
 
     method: str
     leaf_size: int
     spp: int
     target_error: float
-    ao_distance: float
+    ao_distance: float  # what the render uses: `ao_distance(scene)`
     seed: int
     engine: str
 
     @classmethod
-    def from_scene(cls, props: Any) -> Settings:
+    def from_scene(cls, scene: Any) -> Settings:
+        props = scene.scenesort
         return cls(
             method=props.method,
             leaf_size=int(props.leaf_size),
             spp=int(props.spp),
             target_error=float(props.target_error),
-            ao_distance=float(props.ao_distance),
+            ao_distance=ao_distance(scene),
             seed=int(props.seed),
             engine=props.engine,
         )
@@ -75,7 +89,7 @@ def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) 
     task.set_step("checking the service's scene cache")
     if not client.has_scene(scene_id):
         task.set_step(f"uploading {mesh.triangles:,} triangles ({len(body) / 1e6:.1f} MB)")
-        answer = client.upload_scene(len(mesh.vertices), mesh.triangles, body)
+        answer = client.upload_scene(len(mesh.vertices), mesh.triangles, body, mesh.query())
         outcome.uploaded_bytes = len(body)
         if answer.get("scene_id", scene_id) != scene_id:
             # Not fatal: use the service's id, but the next render will upload again.
@@ -127,9 +141,8 @@ def render_job(
         "engine": settings.engine,
         "method": settings.method,
         "leaf_size": settings.leaf_size,
+        "distance": settings.ao_distance,
     }
-    if settings.ao_distance:
-        payload["distance"] = settings.ao_distance
     if settings.target_error:
         payload["target_error"] = settings.target_error
     start = time.perf_counter()

@@ -73,9 +73,10 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
         name="AO distance",
         description=(
             "Occluders farther than this from the shaded point are ignored "
-            "(0: the service picks a distance from the scene's size)"
+            "(0: the World's Ambient Occlusion distance, as Cycles' AO pass uses; "
+            "10 m without a World)"
         ),
-        default=1.0,
+        default=0.0,
         min=0.0,
         soft_max=100.0,
         subtype="DISTANCE",

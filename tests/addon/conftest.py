@@ -95,3 +95,46 @@ def add_camera(
     scene.render.resolution_x, scene.render.resolution_y = width, height
     scene.render.resolution_percentage = 100
     return cam
+
+
+def read_image(path: Path) -> np.ndarray:
+    """An image file's RGBA, (height, width, 4), row 0 at the top."""
+    img = bpy.data.images.load(str(path))
+    try:
+        pixels = np.empty(len(img.pixels), np.float32)
+        img.pixels.foreach_get(pixels)
+        return pixels.reshape(img.size[1], img.size[0], 4)[::-1]
+    finally:
+        bpy.data.images.remove(img)
+
+
+def f12(scene: bpy.types.Scene, path: Path) -> np.ndarray:
+    """F12 and save: the EXR Blender wrote, its RGBA (row 0 at the top)."""
+    scene.render.filepath = str(path)
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    return read_image(path.with_suffix(".exr"))
+
+
+def shading(mesh) -> dict:  # noqa: ANN001 - an export.SceneMesh
+    """`kernels.render_ao`'s normal arguments for an exported scene (none when it is flat)."""
+    pairs = (("normals", mesh.normals), ("terminator_offset", mesh.terminator_offsets))
+    return {name: value for name, value in pairs if value is not None}
+
+
+def ctrl_f12(scene: bpy.types.Scene, folder: Path, first: int = 1, last: int = 3) -> list:
+    """Ctrl-F12 of frames first..last into `folder` as PNGs (the scene's 32-bit EXR output
+    is set again afterwards): the files Blender numbered, as PIL images in frame order."""
+    from PIL import Image
+
+    settings = scene.render.image_settings
+    scene.frame_start, scene.frame_end = first, last
+    scene.render.filepath = str(folder / "frame_")
+    settings.file_format = "PNG"
+    try:
+        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+    finally:
+        settings.file_format, settings.color_depth = "OPEN_EXR", "32"
+    names = sorted(p.name for p in folder.iterdir())
+    assert names == [f"frame_{f:04d}.png" for f in range(first, last + 1)]
+    return [Image.open(folder / name) for name in names]
+

@@ -20,7 +20,16 @@ import bpy
 import httpx
 import numpy as np
 import pytest
-from conftest import add_camera, add_object, box_mesh, free_port, grid_mesh
+from conftest import (
+    add_camera,
+    add_object,
+    box_mesh,
+    ctrl_f12,
+    f12,
+    free_port,
+    grid_mesh,
+    shading,
+)
 
 import addon
 from addon import camera, engine, export, prefs, service
@@ -93,24 +102,6 @@ def probe(live) -> Iterator[bpy.types.Scene]:
         Probe.stop_when = None
 
 
-def _read(path: Path) -> np.ndarray:
-    """An image file's RGBA, (height, width, 4), row 0 at the top."""
-    img = bpy.data.images.load(str(path))
-    try:
-        pixels = np.empty(len(img.pixels), np.float32)
-        img.pixels.foreach_get(pixels)
-        return pixels.reshape(img.size[1], img.size[0], 4)[::-1]
-    finally:
-        bpy.data.images.remove(img)
-
-
-def f12(scene: bpy.types.Scene, path: Path) -> np.ndarray:
-    """F12 and save: the written image's RGBA (row 0 at the top)."""
-    scene.render.filepath = str(path)
-    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
-    return _read(path.with_suffix(".exr"))
-
-
 def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
     """AO and coverage of the scene's camera rays from the engine itself (no add-on, no
     service): `kernels.render_ao` on the exported triangles."""
@@ -124,7 +115,8 @@ def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
     bvh = kernels.build_bvh(mesh.vertices, mesh.indices, method=props.method,
                             leaf_size=props.leaf_size, device="cpu")  # fmt: skip
     result = kernels.render_ao(bvh, origins, directions, spp=props.spp, seed=props.seed,
-                               distance=props.ao_distance, tmin=tmin, tmax=tmax)  # fmt: skip
+                               distance=props.ao_distance, tmin=tmin, tmax=tmax,
+                               **shading(mesh))  # fmt: skip
     shape = camera.resolution(scene)[::-1]
     return result.ao.reshape(shape), (result.spp_used > 0).reshape(shape)
 
@@ -200,27 +192,17 @@ def test_passes_ao_and_depth(probe, tmp_path) -> None:
 def test_animation_writes_each_frame_through_blenders_output(live, tmp_path) -> None:
     """Ctrl-F12: Blender numbers and writes the files itself, with the render's build and
     trace times in their metadata; the box moves per frame."""
-    from PIL import Image
-
     box = bpy.data.objects["Box"]
-    settings = live.render.image_settings
     box.location.x = -1.0
     box.keyframe_insert("location", frame=1)
     box.location.x = 1.0
     box.keyframe_insert("location", frame=3)
-    live.frame_start, live.frame_end = 1, 3
-    live.render.filepath = str(tmp_path / "frame_")
-    settings.file_format = "PNG"
     try:
-        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+        images = ctrl_f12(live, tmp_path)
     finally:
-        settings.file_format, settings.color_depth = "OPEN_EXR", "32"
         box.animation_data_clear()
         box.location.x = 0.0
         live.frame_set(1)
-    files = sorted(p.name for p in tmp_path.iterdir())
-    assert files == ["frame_0001.png", "frame_0002.png", "frame_0003.png"]
-    images = [Image.open(tmp_path / name) for name in files]
     frames = [np.asarray(img) for img in images]
     assert all(f.shape[:2] == (HEIGHT, WIDTH) for f in frames)
     assert not np.array_equal(frames[0], frames[2])  # each frame's own depsgraph

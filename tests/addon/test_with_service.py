@@ -180,7 +180,7 @@ def test_interactive_job_path_gives_the_same_image(live) -> None:
     assert bpy.ops.scenesort.render_ao() == {"FINISHED"}
     scripted = _image_ao()
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    settings = pipeline.Settings.from_scene(live.scenesort)
+    settings = pipeline.Settings.from_scene(live)
     target = prefs.target(bpy.context)
     mesh = export.export_scene(depsgraph)
     view = camera.view(live, depsgraph)
