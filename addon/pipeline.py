@@ -123,7 +123,7 @@ def prepare(
     return client, outcome, scene_id
 
 
-JOB_POLL_S = 0.1
+JOB_POLL_S = 0.03  # a finished job waits this long at most to be seen (one small GET a poll)
 
 
 def render_job(
