@@ -60,7 +60,8 @@ class SceneMesh:
 @dataclass(frozen=True)
 class _MeshArrays:
     """One mesh in its local space: vertices (float64), loop-triangle indices, and the
-    loop triangles' corner normals (zero on flat ones), None when no face is smooth."""
+    loop triangles' corner normals (float32, zero on flat ones), None when no face is
+    smooth."""
 
     vertices: np.ndarray
     indices: np.ndarray
@@ -81,20 +82,21 @@ def _mesh_arrays(mesh: bpy.types.Mesh) -> _MeshArrays:
     smooth = np.empty(count, dtype=bool)
     mesh.loop_triangles.foreach_get("use_smooth", smooth)
     normals = None
-    if smooth.any():
-        loops = np.empty(count * 3, dtype=np.int32)
-        mesh.loop_triangles.foreach_get("loops", loops)
-        corners = np.empty(len(mesh.corner_normals) * 3, dtype=np.float32)
-        mesh.corner_normals.foreach_get("vector", corners)
-        normals = corners.reshape(-1, 3)[loops].reshape(-1, 3, 3).astype(np.float64)
+    if smooth.any():  # the triangles' corner normals in one read (a third of the time of
+        normals = np.empty(count * 9, dtype=np.float32)  # corner_normals by loop index)
+        mesh.loop_triangles.foreach_get("split_normals", normals)
+        normals = normals.reshape(-1, 3, 3)
         normals[~smooth] = 0.0
     return _MeshArrays(verts.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3), normals)
 
 
 def _world_normals(normals: np.ndarray, linear: np.ndarray) -> np.ndarray:
     """Corner normals through an object's 3x3 transform: the inverse transpose, unit
-    length again (zero corners stay zero)."""
-    world = normals @ np.linalg.inv(linear)  # row vectors: (M^-T n)^T = n^T M^-1
+    length again (zero corners stay zero; so do all of an object scaled to nothing, whose
+    triangles have no area and are never hit)."""
+    if np.linalg.det(linear) == 0.0:
+        return np.zeros_like(normals)
+    world = normals @ np.linalg.inv(linear).astype(np.float32)  # rows: (M^-T n)^T = n^T M^-1
     length = np.linalg.norm(world, axis=-1, keepdims=True)
     return np.divide(world, length, out=np.zeros_like(world), where=length > 0.0)
 
@@ -222,7 +224,7 @@ def _shading(index_parts: list[np.ndarray], normal_parts: list[np.ndarray | None
     if not any(smooth):
         return None, None
     sizes = [len(t) for t in index_parts]
-    normals = np.concatenate([n if n is not None else np.zeros((size, 3, 3))
+    normals = np.concatenate([n if n is not None else np.zeros((size, 3, 3), np.float32)
                               for n, size in zip(normal_parts, sizes, strict=True)])
     normals = np.ascontiguousarray(normals, dtype=np.float32)
     used = {np.float32(o) for o, s in zip(offset_parts, smooth, strict=True) if s}
