@@ -82,8 +82,10 @@ def _mesh_arrays(mesh: bpy.types.Mesh) -> _MeshArrays:
     smooth = np.empty(count, dtype=bool)
     mesh.loop_triangles.foreach_get("use_smooth", smooth)
     normals = None
-    if smooth.any():  # the triangles' corner normals in one read (a third of the time of
-        normals = np.empty(count * 9, dtype=np.float32)  # corner_normals by loop index)
+    if smooth.any():
+        # The corner normals per triangle in one read: split_normals are corner_normals
+        # by loop index (tests/addon/test_shading.py), read in a seventh of the time.
+        normals = np.empty(count * 9, dtype=np.float32)
         mesh.loop_triangles.foreach_get("split_normals", normals)
         normals = normals.reshape(-1, 3, 3)
         normals[~smooth] = 0.0

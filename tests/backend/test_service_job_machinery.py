@@ -170,14 +170,17 @@ def test_explicit_ray_ao_stops_between_the_engines_rounds() -> None:
     its deadline, `jobs.ambient_occlusion` raises Stopped instead of rendering on."""
     import kernels
     from backend.jobs import AoParams, Stopped, StopSignal, ambient_occlusion
+    from backend.wire import SceneArrays
 
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
-    bvh = kernels.build_bvh(vertices, np.array([[0, 1, 2]], np.int32))
+    indices = np.array([[0, 1, 2]], np.int32)
+    bvh = kernels.build_bvh(vertices, indices)
+    scene = SceneArrays(vertices, indices, scene_id="0" * 32, degenerate=0)
     rays = np.full((8, 3), [0.2, 0.2, 1.0], np.float32), np.tile(np.float32([0, 0, -1]), (8, 1))
-    assert ambient_occlusion(bvh, *rays, AoParams(spp=4), StopSignal())[0].shape == (8,)
+    assert ambient_occlusion(bvh, scene, *rays, AoParams(spp=4), StopSignal())[0].shape == (8,)
     hung_up = StopSignal()
     hung_up.stop("the client disconnected")
     with pytest.raises(Stopped, match="the client disconnected"):
-        ambient_occlusion(bvh, *rays, AoParams(spp=4), hung_up)
+        ambient_occlusion(bvh, scene, *rays, AoParams(spp=4), hung_up)
     with pytest.raises(Stopped, match="deadline"):
-        ambient_occlusion(bvh, *rays, AoParams(spp=4), StopSignal(deadline=0.0))
+        ambient_occlusion(bvh, scene, *rays, AoParams(spp=4), StopSignal(deadline=0.0))
