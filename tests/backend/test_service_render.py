@@ -95,3 +95,23 @@ def test_normals_travel_with_the_scene(api, box_scene, make_rays):
     np.testing.assert_array_equal(flat, kernels.ambient_occlusion(bvh, origins, directions,
                                                                   **params))
     assert not np.array_equal(got, flat)
+
+
+@pytest.mark.parametrize(
+    ("query", "extra", "status", "parameter"),
+    [({"terminator_offsets": "true"}, 4, 422, "terminator_offsets"),
+     ({"normals": "true"}, 0, 400, "body"),
+     ({"normals": "true"}, 36 + 1, 400, "body")],
+    ids=["offsets-without-normals", "normal-block-missing", "normal-block-too-long"],
+)
+def test_bad_shading_uploads_are_problems_naming_the_field(api, box_scene, query, extra,
+                                                           status, parameter):
+    vertices, indices = box_scene
+    content = vertices.astype("<f4").tobytes() + indices.astype("<i4").tobytes()
+    content += b"\0" * (extra * len(indices))
+    response = api.client.post(
+        "/v1/scenes", params={"vertices": len(vertices), "triangles": len(indices), **query},
+        content=content, headers={"Content-Type": "application/octet-stream"})
+    assert response.status_code == status, response.text
+    problem = response.json()
+    assert problem["parameter"] == parameter and problem["fix"], problem
