@@ -60,7 +60,7 @@ BLOCK_WORDS = wp.constant(40)  # 9 coordinate rows and 1 position row of BLOCK l
 # contiguous in leaf order): one block test instead of a visit per binary leaf, as tinybvh
 # combines leaves to 4 triangles before its BVH8_CPU conversion (CombineLeafs(4)).
 MERGE = wp.constant(4)
-MAX_WIDTH = 8
+MAX_WIDTH = wp.constant(8)
 Lanes = wp.types.vector(length=MAX_WIDTH, dtype=wp.int32)
 LaneFloats = wp.types.vector(length=MAX_WIDTH, dtype=wp.float32)
 # Traversal stack entries: the most a wide traversal ever holds is the tree's `wide_stack`

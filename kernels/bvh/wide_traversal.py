@@ -2,8 +2,9 @@
 tested at once, hit children visited near to far.
 
 A stack entry (and the node being visited) is a reference: 0 none, k + 1 the wide node k,
--(s + 1) the leaf in lane s % W of wide node s / W (its first triangle and count are read
-from that lane when the leaf is visited).
+-(s + 1) the leaf in lane s % 8 of wide node s / 8 (its first block and count are read
+from that lane when the leaf is visited; 8 = MAX_WIDTH for every width, so decoding is a
+shift).
 
 On a CPU with AVX2 a node's W child boxes are tested by one SIMD pass (`wide_node_simd`,
 clang vector extensions: Warp compiles CPU kernels for the host's ISA, WARP_FACTS.md);
@@ -22,7 +23,15 @@ from ..core.ray import FAR_WIDEN, Hit, Ray, intersect_box
 from ..core.triangle import intersect_triangle
 from .leaf import finish_hit
 from .node import BvhArrays
-from .wide import BLOCK, BLOCK_WORDS, WORDS_PER_LANE, WideDists, WideStack, float_bits
+from .wide import (
+    BLOCK,
+    BLOCK_WORDS,
+    MAX_WIDTH,
+    WORDS_PER_LANE,
+    WideDists,
+    WideStack,
+    float_bits,
+)
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
@@ -51,16 +60,16 @@ def simd_lanes() -> int:
     auto splat = [](float x) { f8 v = {x, x, x, x, x, x, x, x}; return v; };
     const float inf = __builtin_inff();
     const float* n = wide.data + (long long)(node - 1) * (8 * width);
-    // The six coordinate rows of the W child boxes; W = 4 fills lanes 4-7 with the unused
-    // lane's point at infinity, which no ray enters.
-    f8 box[6];
-    for (int a = 0; a < 6; ++a) {
-        box[a] = splat(inf);
+    // Row r of the node (W = 4 fills lanes 4-7 with the unused lane's point at infinity,
+    // which no ray enters).
+    auto row = [&](int r) {
+        f8 v = splat(inf);
         if (width == 8)
-            __builtin_memcpy(&box[a], n + 8 * a, 32);
+            __builtin_memcpy(&v, n + 8 * r, 32);
         else
-            __builtin_memcpy(&box[a], n + 4 * a, 16);
-    }
+            __builtin_memcpy(&v, n + 4 * r, 16);
+        return v;
+    };
     // Slab test of intersect_box, lane-parallel. The near plane of each axis is chosen by
     // the sign of 1/d (+inf where d == 0) instead of min/max of both: the same values. The
     // maxps/minps operand order makes a NaN (0 * inf: an origin on the face of a slab the
@@ -69,55 +78,73 @@ def simd_lanes() -> int:
     f8 t0 = splat(tmin);
     f8 t1 = splat(inf);
     for (int a = 0; a < 3; ++a) {
-        const float inv = inv_dir.c[a];
+        const int s = inv_dir.c[a] < 0.0f;  // the near plane is hi
         const f8 o = splat(origin.c[a]);
-        const f8 i = splat(inv);
-        const f8 near = inv >= 0.0f ? box[2 * a] : box[2 * a + 1];
-        const f8 far = inv >= 0.0f ? box[2 * a + 1] : box[2 * a];
-        t0 = __builtin_ia32_maxps256((near - o) * i, t0);
-        t1 = __builtin_ia32_minps256((far - o) * i, t1);
+        const f8 i = splat(inv_dir.c[a]);
+        t0 = __builtin_ia32_maxps256((row(2 * a + s) - o) * i, t0);
+        t1 = __builtin_ia32_minps256((row(2 * a + 1 - s) - o) * i, t1);
     }
     t1 = __builtin_ia32_minps256(t1 * splat(widen), splat(tmax));
     const i8 in_box = (t0 <= t1) & (t0 < splat(inf));
     int mask = __builtin_ia32_movmskps256((f8)in_box);
     if (mask == 0)
         return 0;
-    const int* child = (const int*)(n + 6 * width);
-    const int* count = child + width;
-    const int slot0 = (node - 1) * width;
+    // References of the 8 lanes at once: inner child k -> k + 1, leaf -> -(slot + 1).
+    i8 child = {0, 0, 0, 0, 0, 0, 0, 0};
+    i8 count = child;
+    const int* words = (const int*)(n + 6 * width);
+    __builtin_memcpy(&child, words, 4 * width);
+    __builtin_memcpy(&count, words + width, 4 * width);
+    const i8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
+    const int slot0 = (node - 1) * 8;
+    const i8 slot = (i8){slot0, slot0, slot0, slot0, slot0, slot0, slot0, slot0} + lane;
+    const i8 leaf = count > 0;
+    const i8 refs = (leaf & ~slot) | (~leaf & (child + 1));
+    int ref[8];
     float t[8];
+    __builtin_memcpy(ref, &refs, 32);
     __builtin_memcpy(t, &t0, 32);
-    auto ref = [&](int j) { return count[j] > 0 ? -(slot0 + j + 1) : child[j] + 1; };
     const int first = __builtin_ctz(mask);
-    mask &= mask - 1;
-    if (mask == 0)
-        return ref(first);
+    const int rest = mask & (mask - 1);
+    if (rest == 0)
+        return ref[first];
     if (!ordered) {  // any hit: lane order (Embree's traverseAnyHit)
-        while (mask) {
-            const int j = __builtin_ctz(mask);
-            mask &= mask - 1;
-            stack.c[sp] = ref(j);
-            dists.c[sp] = t[j];
+#if defined(__AVX512VL__)
+        __builtin_ia32_compressstoresi256_mask((i8*)(stack.c + sp), refs, (unsigned char)mask);
+        __builtin_ia32_compressstoresf256_mask((f8*)(dists.c + sp), t0, (unsigned char)mask);
+        sp += __builtin_popcount(mask) - 1;
+#else
+        for (int m = mask; m; m &= m - 1) {
+            stack.c[sp] = ref[__builtin_ctz(m)];
+            dists.c[sp] = t[__builtin_ctz(m)];
             ++sp;
         }
-        return ref(first);
+        --sp;
+#endif
+        return stack.c[sp];
     }
-    // Closest hit: insertion into the stack, farthest deepest; the nearest is taken back
-    // (Embree's traverseClosestHit sorts the hit children likewise).
+    // Closest hit: the hit children in the stack farthest deepest, the nearest taken back
+    // (Embree's traverseClosestHit sorts them likewise); at equal distances the later lane
+    // is nearer.
+    const int second = __builtin_ctz(rest);
+    if ((rest & (rest - 1)) == 0) {  // two: the commonest case, without a loop
+        const int near = t[second] <= t[first] ? second : first;
+        const int far = first + second - near;
+        stack.c[sp] = ref[far];
+        dists.c[sp] = t[far];
+        ++sp;
+        return ref[near];
+    }
     const int top = sp;
-    stack.c[sp] = ref(first);
-    dists.c[sp] = t[first];
-    ++sp;
-    while (mask) {
-        const int j = __builtin_ctz(mask);
-        mask &= mask - 1;
+    for (int m = mask; m; m &= m - 1) {
+        const int j = __builtin_ctz(m);
         int p = sp;
         while (p > top && dists.c[p - 1] < t[j]) {
             stack.c[p] = stack.c[p - 1];
             dists.c[p] = dists.c[p - 1];
             --p;
         }
-        stack.c[p] = ref(j);
+        stack.c[p] = ref[j];
         dists.c[p] = t[j];
         ++sp;
     }
@@ -142,7 +169,7 @@ def wide_node_simd(wide: wp.array(dtype=float), node: int, width: int, origin: w
 def lane_ref(wide: wp.array(dtype=float), base: int, width: int, node: int, j: int) -> int:
     """The reference of child lane j of wide node reference `node` (at word `base`)."""
     if float_bits(wide[base + 7 * width + j]) > 0:
-        return -((node - 1) * width + j + 1)
+        return -((node - 1) * MAX_WIDTH + j + 1)
     return float_bits(wide[base + 6 * width + j]) + 1
 
 
@@ -311,7 +338,7 @@ def traverse_wide(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: boo
                                           stack, dists, sp)
         else:
             slot = -node - 1
-            base = (slot // w) * WORDS_PER_LANE * w + slot % w
+            base = (slot >> 3) * WORDS_PER_LANE * w + (slot & 7)
             block = float_bits(bvh.wide[base + 6 * w])
             count = float_bits(bvh.wide[base + 7 * w])
             done = bool(False)

@@ -231,11 +231,11 @@ def test_width_option():
 
 
 @wp.kernel(enable_backward=False)
-def node_tests(wide: wp.array(dtype=float), width: int, count: int,
+def node_tests(wide: wp.array(dtype=float), width: int, count: int, ordered: int,
                origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
                bvh: BvhArrays, out: wp.array(dtype=int, ndim=2)):
-    """Visit wide node i % count with both node tests, ordered: the reference each returns,
-    then what it left on the stack, from the top."""
+    """Visit wide node i % count with both node tests: the reference each returns, then
+    what it left on the stack, from the top."""
     i = wp.tid()
     r = make_ray(origins[i], directions[i])
     node = 1 + i % count
@@ -245,10 +245,11 @@ def node_tests(wide: wp.array(dtype=float), width: int, count: int,
         sp = int(0)
         ref = int(0)
         if k == 0:
-            ref = wide_node_simd(wide, node, width, r.origin, r.inv_dir, 0.0, 1.0e30, 1,
+            ref = wide_node_simd(wide, node, width, r.origin, r.inv_dir, 0.0, 1.0e30, ordered,
                                  FAR_WIDEN, stack, dists, sp)
         else:
-            ref = wide_node_portable(bvh, node, r, 0.0, 1.0e30, True, stack, dists, sp)
+            ref = wide_node_portable(bvh, node, r, 0.0, 1.0e30, ordered != 0, stack, dists,
+                                     sp)
         out[i, 9 * k] = ref
         for j in range(8):
             out[i, 9 * k + 1 + j] = wp.where(j < sp, stack[wp.max(sp - 1 - j, 0)], 0)
@@ -258,8 +259,9 @@ def node_tests(wide: wp.array(dtype=float), width: int, count: int,
 @pytest.mark.parametrize("width", [4, 8])
 def test_simd_node_test_equals_the_portable_one(width):
     """The AVX2 node test and the lane-by-lane one with intersect_box leave the same
-    children in the same order, on every node of a tree with flat boxes, for origins on
-    box corners and faces and rays with zero components (the NaN path)."""
+    children in the same order (closest hit: near to far; any hit: lane order), on every
+    node of a tree with flat boxes, for origins on box corners and faces and rays with zero
+    components (the NaN path)."""
     if simd_lanes() == 0:
         pytest.skip("no AVX2 on this CPU")
     rng = np.random.default_rng(11)
@@ -285,11 +287,12 @@ def test_simd_node_test_equals_the_portable_one(width):
         d[i] = 0.5 * (n["lo"][j] + n["hi"][j]) - o[i]
     d[rng.random((count, 3)) < 0.2] = 0.0
     d[np.all(d == 0, axis=1)] = [0.0, -0.0, 1.0]
-    out = wp.zeros((count, 18), dtype=int)
-    wp.launch(node_tests, dim=count,
-              inputs=[bvh.arrays.wide, width, len(nodes), wp.array(o, dtype=wp.vec3),
-                      wp.array(d, dtype=wp.vec3), bvh.arrays, out])
-    got = out.numpy()
-    assert np.count_nonzero(got[:, 0]) > count / 4
-    assert np.count_nonzero(got[:, 1]) > count / 10
-    assert np.array_equal(got[:, :9], got[:, 9:])
+    for ordered in (1, 0):  # closest hit, any hit
+        out = wp.zeros((count, 18), dtype=int)
+        wp.launch(node_tests, dim=count,
+                  inputs=[bvh.arrays.wide, width, len(nodes), ordered, wp.array(o, dtype=wp.vec3),
+                          wp.array(d, dtype=wp.vec3), bvh.arrays, out])
+        got = out.numpy()
+        assert np.count_nonzero(got[:, 0]) > count / 4
+        assert np.count_nonzero(got[:, 2]) > count / 20  # two or more hit children
+        assert np.array_equal(got[:, :9], got[:, 9:])
