@@ -48,6 +48,7 @@ import numpy as np
 import warp as wp
 
 from ..core.box import INF, half_area
+from ..core.launch import host_threads, launch_split
 from .node import BvhNode
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -108,13 +109,28 @@ def is_wide_leaf(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), c: 
     return nodes[c].count > 0 or sizes[c] <= MERGE
 
 
+@wp.func_native(
+    """
+#if !defined(__CUDA_ARCH__)
+    __builtin_prefetch(&nodes.data[i]);
+    __builtin_prefetch(&sizes.data[i]);
+#endif
+"""
+)
+def prefetch_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), i: int):
+    """Start loading binary node i and its size (CPU; a no-op on CUDA)."""
+    ...
+
+
 @wp.func
 def opening_gain(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), c: int) -> float:
     """What opening binary node c saves in SAH terms, its surface area, or -1 if c is a wide
-    leaf (is_wide_leaf)."""
+    leaf (is_wide_leaf). The node array is far larger than the caches: the children of an
+    inner c, which opening it would read next, are prefetched."""
     n = nodes[c]
     if n.count > 0 or sizes[c] <= MERGE:
         return -1.0
+    prefetch_node(nodes, sizes, n.first)
     return half_area(n.lo, n.hi)
 
 
@@ -165,13 +181,15 @@ def write_lane(wide: wp.array(dtype=float), base: int, width: int, j: int, lo: w
     wide[base + 7 * width + j] = bits_float(count)
 
 
-@wp.func
-def write_blocks(tri_verts: wp.array(dtype=wp.vec3), first: int, count: int, block: int,
-                 blocks: wp.array(dtype=float)):
-    """Leaf-order triangles [first, first + count) as blocks from `block` on."""
-    for k in range(((count + BLOCK - 1) / BLOCK) * BLOCK):
-        i = first + wp.min(k, count - 1)  # the last block repeats its last triangle
-        base = (block + k / BLOCK) * BLOCK_WORDS + k % BLOCK
+@wp.kernel
+def fill_blocks(tri_verts: wp.array(dtype=wp.vec3), block_triangles: wp.array(dtype=wp.vec3i),
+                blocks: wp.array(dtype=float)):
+    """Block (block, first, n): leaf-order triangles [first, first + n) in its lanes, the
+    last one repeated in the lanes after them."""
+    b = block_triangles[wp.tid()]
+    for k in range(BLOCK):
+        i = b[1] + wp.min(k, b[2] - 1)
+        base = b[0] * BLOCK_WORDS + k
         for m in range(3):
             v = tri_verts[3 * i + m]
             for a in range(3):
@@ -183,10 +201,9 @@ def write_blocks(tri_verts: wp.array(dtype=wp.vec3), first: int, count: int, blo
 def collapse_kernel(
     nodes: wp.array(dtype=BvhNode),
     node_count: int,
-    tri_verts: wp.array(dtype=wp.vec3),
     width: int,
     wide: wp.array(dtype=float),
-    blocks: wp.array(dtype=float),
+    block_triangles: wp.array(dtype=wp.vec3i),  # out: per leaf block (block, first, n)
     sizes: wp.array(dtype=int),  # per binary node: triangles in its subtree ...
     starts: wp.array(dtype=int),  # ... and the first one's leaf position
     todo: wp.array(dtype=int),  # per wide node: the binary node it is made from
@@ -195,7 +212,8 @@ def collapse_kernel(
 ):
     """One thread: subtree sizes bottom up (a child's index is above its parent's), then the
     wide nodes top down in breadth-first order: a wide node's children get consecutive
-    indices, so the children of a node lie side by side in memory."""
+    indices, so the children of a node lie side by side in memory. The leaves' blocks are
+    listed here and filled by `fill_blocks`, in parallel."""
     for i in range(node_count - 1, -1, -1):
         n = nodes[i]
         if n.count > 0:
@@ -224,9 +242,11 @@ def collapse_kernel(
             else:
                 n = nodes[c]
                 if is_wide_leaf(nodes, sizes, c):
-                    write_blocks(tri_verts, starts[c], sizes[c], used, blocks)
                     write_lane(wide, base, width, j, n.lo, n.hi, used, sizes[c])
-                    used += (sizes[c] + BLOCK - 1) / BLOCK
+                    for q in range((sizes[c] + BLOCK - 1) / BLOCK):
+                        block_triangles[used] = wp.vec3i(used, starts[c] + q * BLOCK,
+                                                         wp.min(BLOCK, sizes[c] - q * BLOCK))
+                        used += 1
                 else:
                     write_lane(wide, base, width, j, n.lo, n.hi, count, 0)
                     todo[count] = c
@@ -256,13 +276,16 @@ def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: i
     most traversal stack entries, leaf blocks)."""
     wide = wp.empty(max(node_count, 1) * 8 * width, dtype=float, device=device)
     # every leaf holds a triangle, so a block per triangle is enough
-    blocks = wp.empty(max(triangles, 1) * int(BLOCK_WORDS), dtype=float, device=device)
+    block_triangles = wp.empty(max(triangles, 1), dtype=wp.vec3i, device=device)
     sizes, starts, todo, stacked = (wp.empty(max(node_count, 1), dtype=int, device=device)
                                     for _ in range(4))
     counters = wp.zeros(3, dtype=int, device=device)
     wp.launch(collapse_kernel, dim=1,
-              inputs=[nodes, node_count, tri_verts, width, wide, blocks, sizes, starts, todo,
+              inputs=[nodes, node_count, width, wide, block_triangles, sizes, starts, todo,
                       stacked, counters], device=device)
     count, most, used = (int(x) for x in counters.numpy())
-    return (wide[: count * 8 * width], blocks[: max(used, 1) * int(BLOCK_WORDS)],
+    blocks = wp.empty(max(used, 1) * int(BLOCK_WORDS), dtype=float, device=device)
+    launch_split(fill_blocks, used, [tri_verts], [block_triangles[:used]], [], [blocks], device,
+                 host_threads(device, None))
+    return (wide[: count * 8 * width], blocks,
             {"wide_nodes": count, "wide_stack": most, "leaf_blocks": used})
