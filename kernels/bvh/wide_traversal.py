@@ -1,5 +1,7 @@
 """Closest-hit and any-hit traversal of the wide tree (bvh.wide): all children of a node
-tested at once, hit children visited near to far.
+tested at once, hit children visited near to far (closest hit) or in lane order (any hit,
+which stops at its first hit), as Embree's BVHNNodeTraverser1Hit does
+(kernels/bvh/bvh_traverser1.h); a leaf's triangles tested 4 at a time.
 
 A stack entry (and the node being visited) is a reference: 0 none, k + 1 the wide node k,
 -(s + 1) the leaf in lane s % 8 of wide node s / 8 (its first block and count are read
@@ -12,6 +14,8 @@ elsewhere (CUDA, other CPUs) lane by lane with `core.ray.intersect_box`
 (`wide_node_portable`). Both compute every lane's entry distance with the same float32
 operations in the same order as `intersect_box`, so they make the same decisions: the
 conservative test's guarantee (never miss a box the exact ray touches) holds lane by lane.
+Likewise `leaf_simd` (SSE, 4 lanes) and `leaf_portable` against `intersect_triangle`:
+Woop, Benthin and Wald's watertight test, bit for bit.
 """
 
 from __future__ import annotations
