@@ -225,8 +225,9 @@ def fmt(s: float | None) -> str:
 
 def table(rows: list[dict], args) -> str:
     lines = [
-        f"Run: `{args.command_line}` on {os.cpu_count()} cores, CPU only, nothing else "
-        f"running; each point is the median of {args.repeat} timed runs.",
+        f"Run: `{args.command_line}` on {os.cpu_count()} cores, CPU only, 5-minute load "
+        f"average {os.getloadavg()[1]:.2f} when the run ended (other work shares the cores "
+        f"when it is above 0); each point is the median of {args.repeat} timed runs.",
         "",
         f"Time (s) to reach RMSE {RMSE_GOAL} (interpolated, log-log); floor: target_error "
         "<= 0.5 x wp.Mesh (on as many host threads as ours; wp.Mesh 1t: one launch, as "

@@ -1,7 +1,9 @@
 """The 2012 paper's Tables 6.1/6.2 on the shared scenes: BVH build and trace, against
-Warp's `wp.Mesh` and Embree in the same run.
+Warp's `wp.Mesh` and Embree in the same run; and the wide BVH (issue 17) against the binary
+one and Embree side by side (`--part wide` runs only that).
 
     python benchmarks/bvh.py [--scenes bunny,sponza] [--repeat 5] [--width 1024 --height 768]
+    python benchmarks/bvh.py --part wide --width 1024 --height 1024
 
 Times are medians of `--repeat` runs after one warm-up. Warp's kernel compile time is
 measured once, in a fresh kernel cache, and reported on its own. Writes the tables into
@@ -39,15 +41,18 @@ from kernels.render import default_distance  # noqa: E402
 
 LEAVES = (8, 16, 32)
 METHODS = ("sah", "median")
+WIDE_WIDTHS = (2, 4, 8)  # 2: the binary tree ("today's" traversal)
+AO_PER_HIT = 4  # issue 17's AO rays: 4 cosine rays per primary hit, tmax 0.1 x diagonal
 
 
 def compile_seconds() -> dict[str, float]:
     """First-use cost of each engine module in an empty kernel cache."""
-    from kernels.bvh import build, traversal
+    from kernels.bvh import build, traversal, wide
 
     out = {}
     for name, module in (("bvh_build", build.build_worker.module),
-                         ("bvh_trace", traversal.trace_kernel.module)):
+                         ("bvh_trace", traversal.trace_kernel.module),
+                         ("bvh_collapse", wide.collapse_kernel.module)):
         start = time.perf_counter()
         wp.load_module(module, device="cpu")
         out[name] = time.perf_counter() - start
@@ -182,6 +187,90 @@ def trace_rows(name: str, scene, repeat: int, width: int, height: int) -> list[d
     return out
 
 
+def wide_rows(name: str, scene, repeat: int, width: int, height: int) -> dict:
+    """Issue 17, side by side and interleaved: build (SAH, leaf 8) of each width, the
+    collapse included, and MRays/s of each width on all cores against embreex on one
+    thread, for primary rays and AO any-hit rays (AO_PER_HIT per hit, tmax 0.1 x the
+    diagonal)."""
+    v, f = scene.vertices, scene.indices
+    cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": width,
+                                        "height": height})
+    o, d, _, _ = cam.rays()
+    bvhs = {w: kernels.build_bvh(v, f, width=w) for w in WIDE_WIDTHS}
+    build_s = peers.timeit_each([lambda w=w: kernels.build_bvh(v, f, width=w)
+                                 for w in WIDE_WIDTHS], repeat)
+    row = {"scene": name, "tris": len(f), "build_ms": {w: 1e3 * t for w, t in
+                                                      zip(WIDE_WIDTHS, build_s, strict=True)},
+           "collapse_ms": {w: bvhs[w].stats["phase_ms"]["collapse"] for w in WIDE_WIDTHS},
+           "wide_nodes": {w: bvhs[w].stats["wide_nodes"] for w in WIDE_WIDTHS},
+           "wide_stack": {w: bvhs[w].stats["wide_stack"] for w in WIDE_WIDTHS}}
+    hits = kernels.trace(bvhs[2], o, d)
+    dist = default_distance(bvhs[2])
+    ao_o, ao_d = peers.ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=AO_PER_HIT)
+    embree = peers.Embree(v, f)
+    cores = cpu_cores()
+    for kind, (ro, rd, tmax, any_hit) in {"primary": (o, d, 1e30, False),
+                                          "AO": (ao_o, ao_d, dist, True)}.items():
+        fns = [lambda b=bvhs[w], ro=ro, rd=rd, tmax=tmax, a=any_hit:
+               kernels.trace(b, ro, rd, tmax=tmax, any_hit=a, threads=cores)
+               for w in WIDE_WIDTHS]
+        fns.append((lambda ro=ro, rd=rd, tmax=tmax: embree.occluded(ro, rd, tmax)) if any_hit
+                   else (lambda ro=ro, rd=rd: embree.closest(ro, rd)))
+        times = peers.timeit_each(fns, repeat)
+        ref = (embree.occluded(ro, rd, tmax) if any_hit else embree.closest(ro, rd)[1] >= 0)
+        row[kind] = {"count": len(ro), "embree_1t": len(ro) / times[-1] / 1e6}
+        for w, t in zip(WIDE_WIDTHS, times, strict=False):
+            ours = kernels.trace(bvhs[w], ro, rd, tmax=tmax, any_hit=any_hit).triangle >= 0
+            row[kind][w] = {"mrays": len(ro) / t / 1e6, "vs_embree": times[-1] / t,
+                            "embree_diff": int((ours != ref).sum())}
+    return row
+
+
+def wide_markdown(rows: list[dict], command: str, load: str) -> str:
+    cores = cpu_cores()
+    out = [
+        f"Command: `{command}` on {platform.machine()} with {cores} cores, CPU only (Warp "
+        f"{wp.config.version}), load before the run: {load}. Each figure is the median of "
+        "interleaved runs (every width and Embree in turn, in alternating order). Ours on all "
+        f"{cores} cores (host threads) against embreex (Embree 4) on ONE thread; width 2 is "
+        "the binary tree, 4 and 8 the wide trees with the SIMD node test.",
+        "", "### Floors (issue 17)", "",
+        "Trace: ours / Embree 1t on primary rays and on AO any-hit rays "
+        f"({AO_PER_HIT} per hit, tmax 0.1 x diagonal), floor 1.0, goal 1.5. Build: SAH leaf 8 "
+        "with the collapse, over the binary build without it, floor 1.15.", "",
+        "| scene | width | primary / Embree | AO / Embree | build / binary build | "
+        "hit/miss diff vs Embree (primary, AO) | floors |",
+        "|---|---:|---:|---:|---:|---|---|"]
+    for r in rows:
+        for w in WIDE_WIDTHS:
+            build = r["build_ms"][w] / r["build_ms"][2]
+            p, a = r["primary"][w], r["AO"][w]
+            ok = p["vs_embree"] >= 1.0 and a["vs_embree"] >= 1.0 and build <= 1.15
+            out.append(f"| {r['scene']} | {w} | {p['vs_embree']:.2f} | {a['vs_embree']:.2f} | "
+                       f"{build:.2f} | {p['embree_diff']}, {a['embree_diff']} | "
+                       f"{'PASS' if ok else 'FAIL'} |")
+    out += ["", "### Figures", "",
+            "| scene | tris | rays | count | Embree 1t MRays/s | "
+            + " | ".join(f"width {w} MRays/s" for w in WIDE_WIDTHS) + " |",
+            "|---|---:|---|---:|---:|" + "---:|" * len(WIDE_WIDTHS)]
+    for r in rows:
+        for kind in ("primary", "AO"):
+            k = r[kind]
+            out.append(f"| {r['scene']} | {r['tris']:,} | {kind} | {k['count']:,} | "
+                       f"{k['embree_1t']:.2f} | "
+                       + " | ".join(f"{k[w]['mrays']:.2f}" for w in WIDE_WIDTHS) + " |")
+    out += ["", "| scene | " + " | ".join(f"build ms w{w}" for w in WIDE_WIDTHS)
+            + " | collapse ms (w4, w8) | wide nodes (w4, w8) | stack need (w4, w8) |",
+            "|---|" + "---:|" * len(WIDE_WIDTHS) + "---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['scene']} | " + " | ".join(f"{r['build_ms'][w]:.1f}"
+                                                    for w in WIDE_WIDTHS)
+                   + f" | {r['collapse_ms'][4]:.2f}, {r['collapse_ms'][8]:.2f} | "
+                   f"{r['wide_nodes'][4]:,}, {r['wide_nodes'][8]:,} | "
+                   f"{r['wide_stack'][4]}, {r['wide_stack'][8]} |")
+    return "\n".join(out) + "\n"
+
+
 def floors(build: list[dict], peer_build: dict, traces: list[dict]) -> list[str]:
     """Issue 2's floors, per scene: SAH build (ours, leaf_size 8, all cores) <= 1.5x
     `wp.Mesh(bvh_constructor="sah")` as users call it (its default leaf size 4) at equal or
@@ -273,11 +362,27 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--width", type=int, default=1024)
     parser.add_argument("--height", type=int, default=768)
+    parser.add_argument("--part", choices=("all", "wide"), default="all",
+                        help="wide: only the wide-BVH tables (issue 17)")
     parser.add_argument("--no-docs", action="store_true", help="print only")
     args = parser.parse_args(argv)
     command = "python benchmarks/bvh.py " + " ".join(argv if argv is not None else sys.argv[1:])
     wp.init()
+    load = "{:.2f}, {:.2f}, {:.2f} (1, 5, 15 min)".format(*os.getloadavg())
     compile_s = compile_seconds()
+    wide = []
+    for name in args.scenes.split(","):
+        wide.append(wide_rows(name, shared_scene(name), args.repeat, args.width, args.height))
+        print(f"{name}: wide done", file=sys.stderr, flush=True)
+    wide_text = wide_markdown(wide, command.strip(), load)
+    Console(width=200).print(Markdown(wide_text))
+    if not args.no_docs:
+        write_section("bvh_wide", "## Wide BVH with SIMD node tests against Embree "
+                      "(`benchmarks/bvh.py`, issue 17)\n\n" + wide_text)
+        FIGURES.mkdir(parents=True, exist_ok=True)
+        (FIGURES / "bvh_wide.json").write_text(json.dumps(wide, indent=1, default=str))
+    if args.part == "wide":
+        return 0
     build, peer_build, traces = [], {}, []
     for name in args.scenes.split(","):
         scene = shared_scene(name)

@@ -1,5 +1,6 @@
 """Bounding volume hierarchies: the task-pool builders (spatial median and binned SAH, 2012
-paper, sec. 4), the node layout, and closest-hit / any-hit traversal."""
+paper, sec. 4), the node layout, the wide (4- or 8-child) tree collapsed from it, and
+closest-hit / any-hit traversal of either."""
 
 from .api import METHODS, Bvh, build_bvh, trace
 from .node import BvhArrays, BvhNode

@@ -34,9 +34,19 @@ from .build_data import (
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
 from .traversal import STACK_SIZE, trace_kernel
+from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
 
 Method = Literal["sah", "median"]
 METHODS: dict[str, int] = {"median": int(METHOD_MEDIAN), "sah": int(METHOD_SAH)}
+Width = Literal[2, 4, 8]
+# width=None: the faster traversal per device, measured (docs/benchmarks.md, issue 17): the
+# wide tree with the SIMD box test on CPU; on CUDA the binary tree (the wide one runs there
+# lane by lane, unmeasured).
+DEFAULT_WIDTH = {"cpu": 8, "cuda": 2}
+
+
+def default_width(device) -> int:
+    return DEFAULT_WIDTH["cpu" if device.is_cpu else "cuda"]
 
 
 @dataclass
@@ -46,7 +56,7 @@ class Bvh:
     method: str
     leaf_size: int
     device: wp.context.Device
-    arrays: BvhArrays  # device-side view for kernels
+    arrays: BvhArrays  # device-side view for kernels (the wide nodes too, if any)
     bounds: np.ndarray  # (2, 3) float32
     stats: dict = field(default_factory=dict)
     mesh: DeviceMesh | None = None  # the mesh on the device, reused by AO and DACRT
@@ -71,8 +81,13 @@ def build_bvh(
     min_chunks: int = DEFAULT_MIN_CHUNKS,
     workers: int | None = None,
     pool_capacity: int | None = None,
+    width: Width | None = None,
 ) -> Bvh:
-    """Build a BVH with the task pool in one persistent launch (2012 paper, sec. 4)."""
+    """Build a BVH with the task pool in one persistent launch (2012 paper, sec. 4), then
+    collapse it into a tree of `width` 4 or 8 (bvh.wide; 2: none; None: the device's
+    default, DEFAULT_WIDTH), which `trace` and AO then traverse."""
+    if width is not None and width not in WIDTHS:
+        raise ValueError(f"width must be one of {list(WIDTHS)} or None, got {width!r}")
     if method not in METHODS:
         raise ValueError(f"method must be one of {sorted(METHODS)}, got {method!r}")
     if not 1 <= int(leaf_size) <= 64:
@@ -82,8 +97,9 @@ def build_bvh(
     if int(min_chunks) < 1:
         raise ValueError(f"min_chunks must be >= 1, got {min_chunks}")
     device = get_device(device)
+    width = default_width(device) if width is None else int(width)
     phase_ms: dict[str, float] = {}
-    compile_ms = load_modules(device, *bb.WARP_MODULES)  # compile time is not build time
+    compile_ms = load_modules(device, *bb.WARP_MODULES, collapse_kernel.module)
     t_total = t0 = time.perf_counter()
     vertices, indices = as_triangle_mesh(vertices, indices)
     phase_ms["validate"] = (time.perf_counter() - t0) * 1e3
@@ -157,6 +173,22 @@ def build_bvh(
     arrays.tri_verts = tri_verts
     arrays.tri_ids = tri_ids
     phase_ms["reorder"] = sync_ms(device, t0)
+
+    t0 = time.perf_counter()
+    wide_stats = {"wide_nodes": 0, "wide_stack": 0, "leaf_blocks": 0}
+    arrays.blocks = wp.zeros(1, dtype=float, device=device)
+    if width > 2 and n > 0:
+        arrays.wide, arrays.blocks, wide_stats = collapse(b.nodes, node_count, tri_verts, n,
+                                                          width, device)
+        if wide_stats["wide_stack"] > WIDE_STACK:  # not seen on real scenes: see WIDE_STACK
+            width = 2
+    elif width > 2:
+        arrays.wide = empty_wide(width, device)
+        wide_stats["wide_nodes"] = 1
+    if width == 2:
+        arrays.wide = wp.zeros(1, dtype=float, device=device)
+    arrays.width = width
+    phase_ms["collapse"] = sync_ms(device, t0)
     total_ms = (time.perf_counter() - t_total) * 1e3
 
     bvh = Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
@@ -181,6 +213,8 @@ def build_bvh(
         "workers": workers,
         "method": method,
         "leaf_size": int(leaf_size),
+        "width": width,
+        **wide_stats,  # wide nodes, and the most stack entries a wide traversal holds
         "device": str(device),
     }
     return bvh

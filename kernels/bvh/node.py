@@ -1,5 +1,6 @@
 """The BVH's layout in memory: 32-byte nodes in one flat array, and the device view that
-traversal kernels read (Output of the build, 2012 paper, sec. 4.2)."""
+traversal kernels read (Output of the build, 2012 paper, sec. 4.2), which also carries the
+wide nodes collapsed from them (bvh.wide)."""
 
 from __future__ import annotations
 
@@ -22,6 +23,9 @@ class BvhArrays:
     nodes: wp.array(dtype=BvhNode)
     tri_verts: wp.array(dtype=wp.vec3)  # v0, v1, v2 per triangle, in leaf order
     tri_ids: wp.array(dtype=int)  # the caller's triangle index per leaf position
+    wide: wp.array(dtype=float)  # width 4 or 8: the wide nodes (layout in bvh.wide) ...
+    blocks: wp.array(dtype=float)  # ... and their leaves' triangle blocks
+    width: int  # 2: traverse `nodes`; 4 or 8: traverse `wide`
 
 
 def empty_root(device) -> wp.array:

@@ -1,6 +1,7 @@
-"""Closest-hit and any-hit traversal of a built BVH (near child first, explicit stack).
+"""Closest-hit and any-hit traversal of a built BVH (near child first, explicit stack):
+the binary tree here, the wide tree in wide_traversal; `traverse` picks by the tree.
 
-The stack holds STACK_SIZE entries, as many as the deepest tree `build_bvh` makes
+The binary stack holds STACK_SIZE entries, as many as the deepest tree `build_bvh` makes
 (`max_depth` <= STACK_SIZE), so it cannot overflow. Popped nodes whose entry distance is
 beyond the closest hit found so far are skipped.
 """
@@ -11,8 +12,9 @@ import warp as wp
 
 from ..core.box import INF
 from ..core.ray import Hit, Ray, intersect_box, make_ray
-from ..core.triangle import intersect_triangle, refine_hit
+from .leaf import finish_hit, intersect_leaf
 from .node import BvhArrays
+from .wide_traversal import traverse_wide
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
@@ -22,11 +24,8 @@ DistStack = wp.types.vector(length=STACK_SIZE, dtype=wp.float32)
 
 
 @wp.func
-def traverse(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
-    """Closest hit in [tmin, tmax], or with `any_hit` the first hit found (no float64
-    refinement, no ordering bookkeeping beyond the stack). Pass `any_hit` as a run-time
-    value (a kernel argument): with a literal True, the CPU build of a kernel ran 25-30%
-    slower in our measurements (clang specialises the loop badly)."""
+def traverse_binary(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
+    """`traverse` on the binary tree (bvh.nodes)."""
     hit = Hit()
     hit.t = INF
     hit.triangle = -1
@@ -41,20 +40,10 @@ def traverse(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) ->
     while True:
         n = bvh.nodes[node]
         if n.count > 0:
-            for i in range(n.first, n.first + n.count):
-                h = intersect_triangle(
-                    r, bvh.tri_verts[3 * i], bvh.tri_verts[3 * i + 1], bvh.tri_verts[3 * i + 2],
-                    tmin, best,
-                )
-                if h[0] < hit.t:
-                    hit.t = h[0]
-                    hit.u = h[1]
-                    hit.v = h[2]
-                    hit.triangle = i
-                    best = h[0]
-                    if any_hit:
-                        hit.triangle = bvh.tri_ids[i]
-                        return hit
+            if intersect_leaf(bvh, r, n.first, n.count, tmin, tmax, hit, any_hit):
+                hit.triangle = bvh.tri_ids[hit.triangle]
+                return hit
+            best = wp.min(hit.t, tmax)
             node = -1
         else:
             left = bvh.nodes[n.first]
@@ -83,16 +72,20 @@ def traverse(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) ->
                 node = nodes[sp]
         if node < 0:
             break
-    if hit.triangle >= 0:
-        i = hit.triangle
-        exact = refine_hit(r, bvh.tri_verts[3 * i], bvh.tri_verts[3 * i + 1],
-                           bvh.tri_verts[3 * i + 2], tmin, tmax,
-                           wp.vec3(hit.t, hit.u, hit.v))
-        hit.t = exact[0]
-        hit.u = exact[1]
-        hit.v = exact[2]
-        hit.triangle = bvh.tri_ids[i]
-    return hit
+    return finish_hit(bvh, r, tmin, tmax, hit)
+
+
+@wp.func
+def traverse(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
+    """Closest hit in [tmin, tmax], or with `any_hit` the first hit found (no float64
+    refinement, no ordering bookkeeping beyond the stack), through the wide tree where the
+    BVH has one (bvh.width 4 or 8), else the binary tree: the same hits either way (the
+    triangle may differ only between hits at equal t). Pass `any_hit` as a run-time value
+    (a kernel argument): with a literal True, the CPU build of a kernel ran 25-30% slower
+    in our measurements (clang specialises the loop badly)."""
+    if bvh.width > 2:
+        return traverse_wide(bvh, r, tmin, tmax, any_hit)
+    return traverse_binary(bvh, r, tmin, tmax, any_hit)
 
 
 @wp.func

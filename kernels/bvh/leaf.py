@@ -1,0 +1,49 @@
+"""What the traversals do at a binary leaf and at the end: the watertight test of a leaf's run
+of triangles, and the float64 refinement of the closest hit (shared by the binary and the
+wide traversal, so both report bit-identical hits). Until the end, hit.triangle is a leaf
+position; `finish_hit` (or, for an any hit, the caller) maps it to the caller's index."""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ..core.ray import Hit, Ray
+from ..core.triangle import intersect_triangle, refine_hit
+from .node import BvhArrays
+
+
+@wp.func
+def intersect_leaf(bvh: BvhArrays, r: Ray, first: int, count: int, tmin: float,
+                   tmax: float, hit: wp.ref[Hit], any_hit: bool) -> bool:
+    """Test triangles [first, first + count) of leaf order in [tmin, min(tmax, hit.t)]
+    (hit.t is inf until a hit); a closer hit goes into `hit` with its leaf position. With
+    `any_hit`, the first hit ends the test and True is returned: the traversal is done."""
+    for i in range(first, first + count):
+        h = intersect_triangle(
+            r, bvh.tri_verts[3 * i], bvh.tri_verts[3 * i + 1], bvh.tri_verts[3 * i + 2],
+            tmin, wp.min(hit.t, tmax),
+        )
+        if h[0] < hit.t:
+            hit.t = h[0]
+            hit.u = h[1]
+            hit.v = h[2]
+            hit.triangle = i
+            if any_hit:
+                return True
+    return False
+
+
+@wp.func
+def finish_hit(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, hit: Hit) -> Hit:
+    """The closest hit found (leaf position in hit.triangle) refined in float64 and given
+    the caller's triangle index."""
+    if hit.triangle >= 0:
+        i = hit.triangle
+        exact = refine_hit(r, bvh.tri_verts[3 * i], bvh.tri_verts[3 * i + 1],
+                           bvh.tri_verts[3 * i + 2], tmin, tmax,
+                           wp.vec3(hit.t, hit.u, hit.v))
+        hit.t = exact[0]
+        hit.u = exact[1]
+        hit.v = exact[2]
+        hit.triangle = bvh.tri_ids[i]
+    return hit

@@ -1,0 +1,365 @@
+"""Closest-hit and any-hit traversal of the wide tree (bvh.wide): all children of a node
+tested at once, hit children visited near to far (closest hit) or in lane order (any hit,
+which stops at its first hit), as Embree's BVHNNodeTraverser1Hit does
+(kernels/bvh/bvh_traverser1.h); a leaf's triangles tested 4 at a time.
+
+A stack entry (and the node being visited) is a reference: 0 none, k + 1 the wide node k,
+-(s + 1) the leaf in lane s % 8 of wide node s / 8 (its first block and count are read
+from that lane when the leaf is visited; 8 = MAX_WIDTH for every width, so decoding is a
+shift).
+
+On a CPU with AVX2 a node's W child boxes are tested by one SIMD pass (`wide_node_simd`,
+clang vector extensions: Warp compiles CPU kernels for the host's ISA, WARP_FACTS.md);
+elsewhere (CUDA, other CPUs) lane by lane with `core.ray.intersect_box`
+(`wide_node_portable`). Both compute every lane's entry distance with the same float32
+operations in the same order as `intersect_box`, so they make the same decisions: the
+conservative test's guarantee (never miss a box the exact ray touches) holds lane by lane.
+Likewise `leaf_simd` (SSE, 4 lanes) and `leaf_portable` against `intersect_triangle`:
+Woop, Benthin and Wald's watertight test, bit for bit.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ..core.box import INF
+from ..core.ray import FAR_WIDEN, Hit, Ray, intersect_box
+from ..core.triangle import intersect_triangle
+from .leaf import finish_hit
+from .node import BvhArrays
+from .wide import (
+    BLOCK,
+    BLOCK_WORDS,
+    MAX_WIDTH,
+    WORDS_PER_LANE,
+    WideDists,
+    WideStack,
+    float_bits,
+)
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+
+@wp.func_native(
+    """
+#if defined(__AVX2__) && !defined(__CUDA_ARCH__)
+    return 8;
+#else
+    return 0;
+#endif
+"""
+)
+def simd_lanes() -> int:
+    """Lanes of the SIMD box test compiled for this device: 8 on an AVX2 CPU, else 0."""
+    ...
+
+
+@wp.func_native(
+    """
+#if defined(__AVX2__) && !defined(__CUDA_ARCH__)
+{
+#pragma clang fp contract(off)
+    typedef float f8 __attribute__((vector_size(32)));
+    typedef int i8 __attribute__((vector_size(32)));
+    auto splat = [](float x) { f8 v = {x, x, x, x, x, x, x, x}; return v; };
+    const float inf = __builtin_inff();
+    const float* n = wide.data + (long long)(node - 1) * (8 * width);
+    // Row r of the node (W = 4 fills lanes 4-7 with the unused lane's point at infinity,
+    // which no ray enters).
+    auto row = [&](int r) {
+        f8 v = splat(inf);
+        if (width == 8)
+            __builtin_memcpy(&v, n + 8 * r, 32);
+        else
+            __builtin_memcpy(&v, n + 4 * r, 16);
+        return v;
+    };
+    // Slab test of intersect_box, lane-parallel. The near plane of each axis is chosen by
+    // the sign of 1/d (+inf where d == 0) instead of min/max of both: the same values. The
+    // maxps/minps operand order makes a NaN (0 * inf: an origin on the face of a slab the
+    // ray is parallel to) keep the running bound, so that slab does not restrict, as in
+    // intersect_box's careful path (faces included).
+    f8 t0 = splat(tmin);
+    f8 t1 = splat(inf);
+    for (int a = 0; a < 3; ++a) {
+        const int s = inv_dir.c[a] < 0.0f;  // the near plane is hi
+        const f8 o = splat(origin.c[a]);
+        const f8 i = splat(inv_dir.c[a]);
+        t0 = __builtin_ia32_maxps256((row(2 * a + s) - o) * i, t0);
+        t1 = __builtin_ia32_minps256((row(2 * a + 1 - s) - o) * i, t1);
+    }
+    t1 = __builtin_ia32_minps256(t1 * splat(widen), splat(tmax));
+    const i8 in_box = (t0 <= t1) & (t0 < splat(inf));
+    int mask = __builtin_ia32_movmskps256((f8)in_box);
+    if (mask == 0)
+        return 0;
+    // References of the 8 lanes at once: inner child k -> k + 1, leaf -> -(slot + 1).
+    i8 child = {0, 0, 0, 0, 0, 0, 0, 0};
+    i8 count = child;
+    const int* words = (const int*)(n + 6 * width);
+    __builtin_memcpy(&child, words, 4 * width);
+    __builtin_memcpy(&count, words + width, 4 * width);
+    const i8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
+    const int slot0 = (node - 1) * 8;
+    const i8 slot = (i8){slot0, slot0, slot0, slot0, slot0, slot0, slot0, slot0} + lane;
+    const i8 leaf = count > 0;
+    const i8 refs = (leaf & ~slot) | (~leaf & (child + 1));
+    int ref[8];
+    float t[8];
+    __builtin_memcpy(ref, &refs, 32);
+    __builtin_memcpy(t, &t0, 32);
+    const int first = __builtin_ctz(mask);
+    const int rest = mask & (mask - 1);
+    if (rest == 0)
+        return ref[first];
+    if (!ordered) {  // any hit: lane order (Embree's traverseAnyHit)
+#if defined(__AVX512VL__)
+        __builtin_ia32_compressstoresi256_mask((i8*)(stack.c + sp), refs, (unsigned char)mask);
+        __builtin_ia32_compressstoresf256_mask((f8*)(dists.c + sp), t0, (unsigned char)mask);
+        sp += __builtin_popcount(mask) - 1;
+#else
+        for (int m = mask; m; m &= m - 1) {
+            stack.c[sp] = ref[__builtin_ctz(m)];
+            dists.c[sp] = t[__builtin_ctz(m)];
+            ++sp;
+        }
+        --sp;
+#endif
+        return stack.c[sp];
+    }
+    // Closest hit: the hit children in the stack farthest deepest, the nearest taken back
+    // (Embree's traverseClosestHit sorts them likewise); at equal distances the later lane
+    // is nearer.
+    const int second = __builtin_ctz(rest);
+    if ((rest & (rest - 1)) == 0) {  // two: the commonest case, without a loop
+        const int near = t[second] <= t[first] ? second : first;
+        const int far = first + second - near;
+        stack.c[sp] = ref[far];
+        dists.c[sp] = t[far];
+        ++sp;
+        return ref[near];
+    }
+    const int top = sp;
+    for (int m = mask; m; m &= m - 1) {
+        const int j = __builtin_ctz(m);
+        int p = sp;
+        while (p > top && dists.c[p - 1] < t[j]) {
+            stack.c[p] = stack.c[p - 1];
+            dists.c[p] = dists.c[p - 1];
+            --p;
+        }
+        stack.c[p] = ref[j];
+        dists.c[p] = t[j];
+        ++sp;
+    }
+    --sp;
+    return stack.c[sp];
+}
+#else
+    return 0;
+#endif
+"""
+)
+def wide_node_simd(wide: wp.array(dtype=float), node: int, width: int, origin: wp.vec3,
+                   inv_dir: wp.vec3, tmin: float, tmax: float, ordered: int, widen: float,
+                   stack: wp.ref[WideStack], dists: wp.ref[WideDists],
+                   sp: wp.ref[int]) -> int:
+    """Visit inner wide node reference `node`: the hit children other than the returned
+    one (0: none hit) go on the stack, nearer ones on top when `ordered`."""
+    ...
+
+
+@wp.func
+def lane_ref(wide: wp.array(dtype=float), base: int, width: int, node: int, j: int) -> int:
+    """The reference of child lane j of wide node reference `node` (at word `base`)."""
+    if float_bits(wide[base + 7 * width + j]) > 0:
+        return -((node - 1) * MAX_WIDTH + j + 1)
+    return float_bits(wide[base + 6 * width + j]) + 1
+
+
+@wp.func
+def wide_node_portable(bvh: BvhArrays, node: int, r: Ray, tmin: float, tmax: float,
+                       ordered: bool, stack: wp.ref[WideStack], dists: wp.ref[WideDists],
+                       sp: wp.ref[int]) -> int:
+    """wide_node_simd lane by lane with intersect_box."""
+    w = bvh.width
+    base = (node - 1) * WORDS_PER_LANE * w
+    top = int(sp)
+    for j in range(w):
+        lo = wp.vec3(bvh.wide[base + j], bvh.wide[base + 2 * w + j], bvh.wide[base + 4 * w + j])
+        hi = wp.vec3(bvh.wide[base + w + j], bvh.wide[base + 3 * w + j],
+                     bvh.wide[base + 5 * w + j])
+        t = intersect_box(r, lo, hi, tmin, tmax)
+        if t < INF:
+            p = int(sp)
+            while ordered and p > top:
+                if dists[p - 1] >= t:
+                    break
+                stack[p] = stack[p - 1]
+                dists[p] = dists[p - 1]
+                p -= 1
+            stack[p] = lane_ref(bvh.wide, base, w, node, j)
+            dists[p] = t
+            sp += 1
+    if sp == top:
+        return 0
+    sp -= 1
+    return stack[sp]
+
+
+@wp.func_native(
+    """
+#if defined(__AVX2__) && !defined(__CUDA_ARCH__)
+{
+#pragma clang fp contract(off)
+    // intersect_triangle (Woop, Benthin, Wald 2013) on the 4 triangles of each block with the
+    // same float32 operations in the same order (no FMA contraction), edge functions that
+    // round to zero recomputed in float64 lane by lane as edge_function does.
+    typedef float f4 __attribute__((vector_size(16)));
+    typedef int i4 __attribute__((vector_size(16)));
+    auto splat = [](float x) { f4 v = {x, x, x, x}; return v; };
+    auto row = [](const float* p, int k) { f4 v; __builtin_memcpy(&v, p + 4 * k, 16); return v; };
+    auto edge64 = [](float ax, float ay, float bx, float by) {  // edge_function in float64
+        const double p = (double)bx * (double)ay;
+        const double q = (double)by * (double)ax;
+        return (float)(p - q);
+    };
+    const int kx = r.kx, ky = r.ky, kz = r.kz;
+    const f4 ox = splat(r.origin.c[kx]), oy = splat(r.origin.c[ky]), oz = splat(r.origin.c[kz]);
+    const f4 sx = splat(r.shear.c[0]), sy = splat(r.shear.c[1]), sz = splat(r.shear.c[2]);
+    const f4 zero = splat(0.0f);
+    const int blocks_used = (count + 3) / 4;
+    for (int q = 0; q < blocks_used; ++q) {
+        const float* p = blocks.data + (long long)(block + q) * 40;
+        const f4 az = row(p, kz) - oz, bz = row(p, 3 + kz) - oz, cz = row(p, 6 + kz) - oz;
+        const f4 sax = sx * az, say = sy * az, sbx = sx * bz, sby = sy * bz;
+        const f4 scx = sx * cz, scy = sy * cz;
+        const f4 ax = (row(p, kx) - ox) - sax, ay = (row(p, ky) - oy) - say;
+        const f4 bx = (row(p, 3 + kx) - ox) - sbx, by = (row(p, 3 + ky) - oy) - sby;
+        const f4 cx = (row(p, 6 + kx) - ox) - scx, cy = (row(p, 6 + ky) - oy) - scy;
+        const f4 u1 = cx * by, u2 = cy * bx, v1 = ax * cy, v2 = ay * cx;
+        const f4 w1 = bx * ay, w2 = by * ax;
+        f4 u = u1 - u2, v = v1 - v2, w = w1 - w2;
+        const i4 flat = (u == zero) | (v == zero) | (w == zero);
+        if (__builtin_ia32_movmskps((f4)flat)) {
+            for (int l = 0; l < 4; ++l) {
+                if (u[l] == 0.0f)
+                    u[l] = edge64(bx[l], by[l], cx[l], cy[l]);
+                if (v[l] == 0.0f)
+                    v[l] = edge64(cx[l], cy[l], ax[l], ay[l]);
+                if (w[l] == 0.0f)
+                    w[l] = edge64(ax[l], ay[l], bx[l], by[l]);
+            }
+        }
+        const i4 neg = (u < zero) | (v < zero) | (w < zero);
+        const i4 pos = (u > zero) | (v > zero) | (w > zero);
+        const f4 det = (u + v) + w;
+        const f4 tu = u * (sz * az), tv = v * (sz * bz), tw = w * (sz * cz);
+        const f4 t_scaled = (tu + tv) + tw;
+        const f4 inv_det = splat(1.0f) / det;
+        const f4 t = t_scaled * inv_det;
+        const float bound = hit.t < tmax ? hit.t : tmax;
+        const i4 ok = ~(neg & pos) & (det != zero) & (t >= splat(tmin)) & (t <= splat(bound));
+        int mask = __builtin_ia32_movmskps((f4)ok);
+        if (mask == 0)
+            continue;
+        int best = __builtin_ctz(mask);
+        if (!any_hit) {
+            for (int m = mask & (mask - 1); m; m &= m - 1) {
+                const int l = __builtin_ctz(m);
+                if (t[l] < t[best])
+                    best = l;
+            }
+        }
+        if (t[best] < hit.t) {
+            hit.t = t[best];
+            hit.u = v[best] * inv_det[best];
+            hit.v = w[best] * inv_det[best];
+            int pos_i;
+            __builtin_memcpy(&pos_i, p + 36 + best, 4);
+            hit.triangle = pos_i;
+            if (any_hit)
+                return 1;
+        }
+    }
+    return 0;
+}
+#else
+    return 0;
+#endif
+"""
+)
+def leaf_simd(blocks: wp.array(dtype=float), block: int, count: int, r: Ray, tmin: float,
+              tmax: float, any_hit: int, hit: wp.ref[Hit]) -> int:
+    """Test a leaf's `count` triangles (blocks from `block` on) in [tmin, min(tmax, hit.t)];
+    a closer hit goes into `hit` with its leaf position; with `any_hit` the first hit ends
+    the test and 1 is returned."""
+    ...
+
+
+@wp.func
+def leaf_portable(bvh: BvhArrays, block: int, count: int, r: Ray, tmin: float, tmax: float,
+                  any_hit: bool, hit: wp.ref[Hit]) -> bool:
+    """leaf_simd triangle by triangle with intersect_triangle."""
+    for k in range(count):
+        base = (block + k / BLOCK) * BLOCK_WORDS + k % BLOCK
+        v0 = wp.vec3(bvh.blocks[base], bvh.blocks[base + BLOCK], bvh.blocks[base + 2 * BLOCK])
+        v1 = wp.vec3(bvh.blocks[base + 3 * BLOCK], bvh.blocks[base + 4 * BLOCK],
+                     bvh.blocks[base + 5 * BLOCK])
+        v2 = wp.vec3(bvh.blocks[base + 6 * BLOCK], bvh.blocks[base + 7 * BLOCK],
+                     bvh.blocks[base + 8 * BLOCK])
+        h = intersect_triangle(r, v0, v1, v2, tmin, wp.min(hit.t, tmax))
+        if h[0] < hit.t:
+            hit.t = h[0]
+            hit.u = h[1]
+            hit.v = h[2]
+            hit.triangle = float_bits(bvh.blocks[base + 9 * BLOCK])
+            if any_hit:
+                return True
+    return False
+
+
+@wp.func
+def traverse_wide(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
+    """`traversal.traverse` on the wide tree. The root's own box is not tested: its
+    children's are."""
+    hit = Hit()
+    hit.t = INF
+    hit.triangle = -1
+    stack = WideStack()
+    dists = WideDists()
+    sp = int(0)
+    node = int(1)
+    w = bvh.width
+    while True:
+        if node > 0:
+            if simd_lanes() > 0:
+                node = wide_node_simd(bvh.wide, node, w, r.origin, r.inv_dir, tmin,
+                                      wp.min(hit.t, tmax), wp.where(any_hit, 0, 1), FAR_WIDEN,
+                                      stack, dists, sp)
+            else:
+                node = wide_node_portable(bvh, node, r, tmin, wp.min(hit.t, tmax), not any_hit,
+                                          stack, dists, sp)
+        else:
+            slot = -node - 1
+            base = (slot >> 3) * WORDS_PER_LANE * w + (slot & 7)
+            block = float_bits(bvh.wide[base + 6 * w])
+            count = float_bits(bvh.wide[base + 7 * w])
+            done = bool(False)
+            if simd_lanes() > 0:
+                done = leaf_simd(bvh.blocks, block, count, r, tmin, tmax,
+                                 wp.where(any_hit, 1, 0), hit) != 0
+            else:
+                done = leaf_portable(bvh, block, count, r, tmin, tmax, any_hit, hit)
+            if done:
+                hit.triangle = bvh.tri_ids[hit.triangle]
+                return hit
+            node = 0
+        best = wp.min(hit.t, tmax)
+        while node == 0 and sp > 0:
+            sp -= 1
+            if dists[sp] <= best:
+                node = stack[sp]
+        if node == 0:
+            break
+    return finish_hit(bvh, r, tmin, tmax, hit)
