@@ -85,7 +85,11 @@ OFFSET_ULPS = 128.0  # occlusion-ray origin offset, in float32 ulps of the local
 DEFAULT_TERMINATOR_OFFSET = 0.1  # Blender's Object.shadow_terminator_geometry_offset default
 Z95 = 1.959963984540054  # two-sided 95% normal quantile
 MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
-RMSE_AIM = 0.8  # target_error: stop at this fraction of it (the estimate's margin)
+RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's margin)
+# Owen-scrambled Sobol on an integrand with discontinuities (an occluder's edge) in 2D:
+# variance O(n^(-1 - 1/d)) = n^-1.5 (He and Wang 2015), so doubling keeps >= 2^-1.5 of it
+RHO_MIN = 2.0**-1.5
+DROP_SHORT = 0.8  # target_error: a round aims at this fraction of the MSE still to go
 DEFAULT_MAX_SPP = 1024
 EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
 EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in a round
@@ -607,7 +611,7 @@ def render_ao(
                                             open_mid, np.full(len(select), mid),
                                             default=math.nan)
                 if math.isfinite(before):
-                    counts.rho[end] = min(max(spread / (2.0 * before), 0.25), 0.5)
+                    counts.rho[end] = min(max(spread / (2.0 * before), RHO_MIN), 0.5)
         counts.before[select] = open_mid
         counts.open[select] += opened
         counts.done[select] += count
@@ -625,8 +629,8 @@ def render_ao(
         aim = None if target_error is None else RMSE_AIM * float(target_error)
         mse0 = None
         while h and len(select):
-            mse = counts.mse()
             if aim is not None and mse0 is not None:
+                mse = counts.mse()
                 # progress: how far the error has come down, on a log scale
                 report(math.log(mse0 / mse) / math.log(mse0 / aim**2) if mse > aim**2 else 1.0,
                        "occlusion")
@@ -635,7 +639,11 @@ def render_ao(
                        "occlusion")
             for n in np.unique(counts.done[select]):  # one launch set per sample count
                 group = select[counts.done[select] == n]
-                trace(group, int(n) if n else min_spp)  # doubling: Sobol prefixes of 2^k
+                # doubling: Sobol prefixes of 2^k; the minimum in two halves, so that how
+                # fast the variance falls is measured before the first decision
+                halves = n == 0 and min_spp % 2 == 0
+                for count in ([min_spp // 2] * 2 if halves else [int(n) or min_spp]):
+                    trace(group, count)
             rounds += 1
             mse0 = counts.mse() if mse0 is None else mse0
             select = _next_round(counts, aim, max_pixel_error, int(max_spp))
@@ -675,23 +683,30 @@ class _Counts:
         1/n (Owen-scrambled Sobol: the halves are anti-correlated): with
         rho = Var(n)/Var(n/2) it is spread * rho / (1 - rho) (spread itself when rho = 1/2,
         independent samples). rho is spread(n) / (2 spread(n/2)) on the pixels that
-        doubled to n, in [1/4, 1/2]; at the first count, that of the next; 1/2 (the
+        doubled to n, in [RHO_MIN, 1/2]; at the first count, that of the next; 1/2 (the
         pessimistic end) when unmeasured. A count without a measurement takes the nearest
         smaller one's (efficiency falls as n grows, so this never flatters); 1.0 below
         every one."""
         known = sorted(self.spread)
         if not known:
             return np.ones(len(n))
-        values = [1.0]
-        for m in known:
-            rho = self.rho.get(m, self.rho.get(2 * m, 0.5))
-            values.append(self.spread[m] * rho / (1.0 - rho))
+        values = [1.0] + [self.spread[m] * self._rho(m) / (1.0 - self._rho(m)) for m in known]
         return np.array(values)[np.searchsorted(np.array(known), n, side="right")]
+
+    def _rho(self, m: int) -> float:
+        return self.rho.get(m, self.rho.get(2 * m, 0.5))
+
+    def rho_at(self, n: np.ndarray) -> np.ndarray:
+        """Var(2n) / Var(n) expected for each count n: the latest measured rho at or
+        below 2n (1/2 when none)."""
+        known = sorted(self.rho)
+        values = np.array([0.5] + [self.rho[m] for m in known])
+        return values[np.searchsorted(np.array(known, dtype=np.int64), 2 * n, side="right")]
 
     def mse(self) -> float:
         """Estimated mean squared error over hit pixels, mean of efficiency * s^2 / n."""
         eff = self.efficiency_at(self.done)
-        return float(np.mean(eff * sample_variance(self.open, self.done) / self.done))
+        return float(np.mean(eff * posterior_variance(self.open, self.done, eff) / self.done))
 
 
 def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | None,
@@ -710,8 +725,10 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
     if max_pixel_error is not None:
         want |= room & (half_width(k, n, eff) >= max_pixel_error)
     if aim is not None:
-        contribution = eff * sample_variance(k, n) / n
-        need = (contribution.mean() - aim**2) * len(n) - 0.5 * contribution[want].sum()
+        contribution = eff * posterior_variance(k, n, eff) / n  # as counts.mse()
+        # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
+        drop = contribution * (1.0 - counts.rho_at(n))
+        need = (contribution.mean() - aim**2) * len(n) - drop[want].sum()
         if need > 0.0:
             sigma = np.sqrt(eff * smoothed_variance(k, n))
             neyman = sigma * sigma.sum() / (len(n) * aim**2)
@@ -720,10 +737,13 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
             for part in (free & (neyman > math.sqrt(2.0) * n), free):
                 order = np.flatnonzero(part)
                 order = order[np.argsort(-gain[order], kind="stable")]
-                enough = np.cumsum(0.5 * contribution[order]) >= need
+                # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
+                # often falls faster than the last measured rho says, and an overshoot
+                # cannot be undone, while a shortfall costs one more small round
+                enough = np.cumsum(drop[order]) >= DROP_SHORT * need
                 take = order[: int(np.argmax(enough)) + 1] if enough.any() else order
                 want[take] = True
-                need -= 0.5 * contribution[take].sum()
+                need -= drop[take].sum()
                 if need <= 0.0:
                     break
     return np.flatnonzero(want)
@@ -789,6 +809,25 @@ def sample_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:
     n = n.astype(np.float64)
     p = open_count / n
     return p * (1.0 - p) * n / np.maximum(n - 1.0, 1.0)
+
+
+def posterior_variance(open_count: np.ndarray, n: np.ndarray, efficiency: np.ndarray
+                       ) -> np.ndarray:
+    """E[p(1-p) | k of n open] per pixel under a Beta(a, b) prior on the pixels' p fitted
+    to the image by moments (empirical Bayes): about the sample variance where samples
+    disagree, and not 0 where they agree, by as much as the image says pixels like it
+    vary. The prior's spread is the spread of the estimates less their sampling
+    variance (efficiency * s^2 / n)."""
+    k = open_count.astype(np.float64)
+    n = n.astype(np.float64)
+    p = k / n
+    mean = float(p.mean())
+    spread = float(p.var() - np.mean(efficiency * sample_variance(open_count, n) / n))
+    if not (0.0 < mean < 1.0) or spread <= 0.0:
+        return sample_variance(open_count, n)
+    total = max(mean * (1.0 - mean) / spread - 1.0, 1e-6)
+    a, b = mean * total, (1.0 - mean) * total
+    return (a + k) * (b + n - k) / ((a + b + n) * (a + b + n + 1.0))
 
 
 def smoothed_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:

@@ -462,5 +462,6 @@ def test_engine_panels_draw_the_scenes_settings(live) -> None:
                  bpy.context)  # fmt: skip
         drawn.update({name: owner for owner, name, _ in layout.props})
     assert drawn == {"spp": live.scenesort, "target_error": live.scenesort,
+                     "max_pixel_error": live.scenesort,
                      "ao_distance": live.scenesort, "seed": live.scenesort,
                      "film_transparent": live.render}  # fmt: skip
