@@ -687,11 +687,17 @@ class _Counts:
         pessimistic end) when unmeasured. A count without a measurement takes the nearest
         smaller one's (efficiency falls as n grows, so this never flatters); 1.0 below
         every one."""
+        return self._at(n, lambda m: self.spread[m] * self._rho(m) / (1.0 - self._rho(m)))
+
+    def spread_at(self, n: np.ndarray) -> np.ndarray:
+        """The halves' spread itself at each count (what max_pixel_error has always used:
+        not corrected for rho, so a pixel bound never rests on a rate estimate)."""
+        return self._at(n, lambda m: self.spread[m])
+
+    def _at(self, n: np.ndarray, value: Callable[[int], float]) -> np.ndarray:
         known = sorted(self.spread)
-        if not known:
-            return np.ones(len(n))
-        values = [1.0] + [self.spread[m] * self._rho(m) / (1.0 - self._rho(m)) for m in known]
-        return np.array(values)[np.searchsorted(np.array(known), n, side="right")]
+        values = np.array([1.0] + [value(m) for m in known])
+        return values[np.searchsorted(np.array(known, dtype=np.int64), n, side="right")]
 
     def _rho(self, m: int) -> float:
         return self.rho.get(m, self.rho.get(2 * m, 0.5))
@@ -723,7 +729,7 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
     room = n < max_spp
     want = np.zeros(len(n), dtype=bool)
     if max_pixel_error is not None:
-        want |= room & (half_width(k, n, eff) >= max_pixel_error)
+        want |= room & (half_width(k, n, counts.spread_at(n)) >= max_pixel_error)
     if aim is not None:
         contribution = eff * posterior_variance(k, n, eff) / n  # as counts.mse()
         # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
