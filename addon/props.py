@@ -56,7 +56,7 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
     )
     spp: IntProperty(  # type: ignore[valid-type]
         name="Samples",
-        description="AO rays per pixel (the most per pixel when a target error is set)",
+        description="AO rays per pixel (the fewest per pixel, at least 8, with an error target)",
         default=16,
         min=1,
         max=4096,
