@@ -33,29 +33,36 @@ Guarantees:
 Adaptive sampling, two stopping rules (issue 19), which may be combined:
 - `target_error` is the image's RMSE over hit pixels against the converged AO (the
   expectation of infinitely many samples). The render estimates it as
-  sqrt(mean_i efficiency(n_i) * s_i^2 / n_i) over the hit pixels (`rmse_estimate`) and
-  stops once that estimate is below RMSE_AIM * target_error; RMSE_AIM leaves room for the
-  estimate's own error, so that (measured on every shared scene and in the tests) the
-  achieved RMSE lies in [0.7, 1.0] x target_error in at least 95% of renders: that is
+  sqrt(mean_i efficiency(n_i) * v_i / n_i) over the hit pixels (`rmse_estimate`), v_i
+  the pixel's `posterior_variance` (about its sample variance where its samples disagree;
+  where they agree, not 0 but what a Beta prior fitted to the image says), and stops
+  once that estimate is below RMSE_AIM * target_error. RMSE_AIM leaves room for the
+  estimate's own error and for the last round's overshoot, so that the achieved RMSE lies
+  in [0.7, 1.0] x target_error in at least 95% of renders (tests/kernels/render/
+  test_ao_target.py over seeds; benchmarks/ao_error.py on every shared scene): that is
   the confidence the API states. Samples go where they lower the image's error most per
   ray (Neyman allocation, n_i in proportion to sigma_i): every hit pixel gets the
-  minimum spp, then each round doubles the pixels with the largest sigma_i^2 / n_i^2
-  (the variance each new ray removes) until the doubled set is predicted to reach the
-  aim, where sigma_i^2 is the Jeffreys-smoothed variance below, so that a pixel whose
-  few samples agreed still earns more.
+  minimum spp (in two halves, so that the sampler's rate is measured before the first
+  decision), then each round doubles the pixels below their Neyman count, those with
+  the largest sigma_i^2 / n_i^2 (the variance each new ray removes) first, until the
+  doubled set is predicted to remove DROP_SHORT of what is left above the aim; sigma_i^2
+  is the Jeffreys-smoothed variance below, so that a pixel whose few samples agreed
+  still earns more.
 - `max_pixel_error` bounds every pixel (the rule `target_error` had before issue 19):
-  pixels whose 95% half-width z * sqrt(efficiency * s^2 / n) is still >= it double
-  their samples.
+  pixels whose 95% half-width z * sqrt(spread * s^2 / n) is still >= it double their
+  samples (`half_width`; spread as below).
 A pixel's samples are always a power-of-two prefix of its Sobol sequence (when the
-minimum is one), up to `max_spp`. s^2 is the sample variance; where all n samples agreed
-it is p(1-p) at the Jeffreys posterior mean p = (k + 1/2) / (n + 1) instead of 0, so a
-pixel is not declared exact on the strength of a few samples that missed a small
-occluder (the RMSE estimate itself uses the unbiased s^2, 0 there). Owen-scrambled Sobol
-samples have less variance than independent ones: `efficiency` is the sampler's variance
-ratio, measured at every sample count a round reaches, on the pixels whose samples
-disagree, from the spread between each pixel's estimate after half and after all of its
-new samples (`sampler_efficiency`); independent: ~1. It falls as n grows, so a count
-without its own measurement takes that of the nearest smaller one (never optimistic).
+minimum is one), up to `max_spp`. In the half-width and the allocation s^2 is the
+sample variance, and where all n samples agreed p(1-p) at the Jeffreys posterior mean
+p = (k + 1/2) / (n + 1) instead of 0, so a pixel is not declared exact on the strength
+of a few samples that missed a small occluder. Owen-scrambled Sobol samples have less
+variance than independent ones. `spread` is measured at every sample count n a round
+reaches, on the pixels whose samples disagree, from each pixel's estimate after n/2
+against after n samples (`sampler_efficiency`; independent samples: ~1). For Sobol the
+halves are anti-correlated, so the spread overstates the variance where it falls faster
+than 1/n: `efficiency` corrects it by the rate measured on the same pixels (see
+`_Counts.efficiency_at`). A count without a measurement takes the nearest smaller one's
+(efficiency falls as n grows, so this is never optimistic).
 """
 
 from __future__ import annotations
