@@ -608,17 +608,8 @@ def render_ao(
         end = first + count
         # the nested estimates: after the samples it had (after the first half when none)
         mid, open_mid = (first, counts.open[select]) if first else (count // 2, opened_half)
-        spread = sampler_efficiency(open_mid, np.full(len(select), mid),
-                                    counts.open[select] + opened, np.full(len(select), end),
-                                    default=math.nan)
-        if math.isfinite(spread):
-            counts.spread[end] = spread
-            if first:  # the same pixels' previous halves: how fast their variance falls
-                before = sampler_efficiency(counts.before[select], np.full(len(select), mid // 2),
-                                            open_mid, np.full(len(select), mid),
-                                            default=math.nan)
-                if math.isfinite(before):
-                    counts.rho[end] = min(max(spread / (2.0 * before), RHO_MIN), 0.5)
+        counts.measure(end, mid, open_mid, counts.open[select] + opened,
+                       counts.before[select] if first else None)
         counts.before[select] = open_mid
         counts.open[select] += opened
         counts.done[select] += count
@@ -683,6 +674,30 @@ class _Counts:
     before: np.ndarray  # open among the first half of each pixel's samples
     spread: dict[int, float] = field(default_factory=dict)
     rho: dict[int, float] = field(default_factory=dict)
+    # per count: the pooled sums of every round that reached it (rounds of one count are
+    # pooled, so a small late group does not overwrite what thousands of pixels measured)
+    sums: dict[int, np.ndarray] = field(default_factory=dict)
+    sums_before: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def measure(self, n: int, mid: int, open_mid: np.ndarray, open_end: np.ndarray,
+                open_before: np.ndarray | None) -> None:
+        """Pool one round's nested estimates (mid against n samples; before: mid/2
+        against mid) at count n."""
+        def pooled(store: dict, key: int, *args: np.ndarray) -> np.ndarray:
+            store[key] = store.get(key, 0.0) + _spread_sums(*args)
+            return store[key]
+
+        m = len(open_mid)
+        total = pooled(self.sums, n, open_mid, np.full(m, mid), open_end, np.full(m, n))
+        if total[2] < EFFICIENCY_PIXELS:
+            return
+        self.spread[n] = float(np.clip(total[0] / total[1], EFFICIENCY_MIN, 1.0))
+        if open_before is not None:  # the same pixels' previous halves: the rate
+            before = pooled(self.sums_before, n, open_before, np.full(m, mid // 2), open_mid,
+                            np.full(m, mid))
+            if before[2] >= EFFICIENCY_PIXELS:
+                ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])
+                self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
 
     def efficiency_at(self, n: np.ndarray) -> np.ndarray:
         """The sampler's efficiency (variance over the independent samples' p(1-p)/n) at
@@ -807,14 +822,22 @@ def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.nda
     Var(independent) at this sample count. Only pixels whose samples disagree take part
     (fully open or occluded ones would pull it toward 0). Clipped to [EFFICIENCY_MIN, 1];
     `default` when too few pixels disagree to tell."""
+    diff2, bernoulli, mixed = _spread_sums(open_mid, n_mid, open_end, n_end)
+    if mixed < EFFICIENCY_PIXELS:
+        return float(default)
+    return float(np.clip(diff2 / bernoulli, EFFICIENCY_MIN, 1.0))
+
+
+def _spread_sums(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
+                 n_end: np.ndarray) -> np.ndarray:
+    """`sampler_efficiency`'s sums over the disagreeing pixels: (squared differences,
+    Bernoulli variances, pixels), so that measurements of one count can be pooled."""
     p = open_end / n_end
     mixed = (open_end > 0) & (open_end < n_end) & (n_mid > 0) & (n_end > n_mid)
-    if mixed.sum() < EFFICIENCY_PIXELS:
-        return float(default)
     p, n_mid, n_end = p[mixed], n_mid[mixed].astype(np.float64), n_end[mixed]
     diff2 = (open_mid[mixed] / n_mid - p) ** 2
     bernoulli = p * (1.0 - p) * (n_end - n_mid) / (n_mid * n_end)
-    return float(np.clip(diff2.sum() / bernoulli.sum(), EFFICIENCY_MIN, 1.0))
+    return np.array([diff2.sum(), bernoulli.sum(), float(mixed.sum())])
 
 
 def sample_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:
