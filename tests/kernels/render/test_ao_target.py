@@ -44,10 +44,9 @@ def test_achieved_rmse_is_calibrated_to_the_target(bunny_view, target):
     most one outside), and the reported estimate is within 20% of the measured RMSE in
     as many. False-failure rate: over 40 other seeds (100-139) every run landed inside
     (achieved 0.73-0.93x at 0.05, 0.80-0.94x at 0.02, 0.79-0.97x at 0.01) and every
-    estimate within 0.85-1.03
-    of the measured RMSE; if the per-run miss rate were 1/40, a fresh set of 20 seeds
-    would fail (two misses) with probability ~9% per target. The seeds are fixed, so the
-    test itself is deterministic."""
+    estimate within 0.85-1.03 of the measured RMSE; if the per-run miss rate were 1/40, a
+    fresh set of 20 seeds would fail (two misses) with probability ~9% per target. The
+    seeds are fixed, so the test itself is deterministic."""
     bvh, o, d, kw, ref = bunny_view
     ratios, estimates = [], []
     for seed in SEEDS:
