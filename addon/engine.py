@@ -31,14 +31,18 @@ _EXPECTED = (ServiceError, service.LaunchError, ValueError)
 
 
 def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
-    """Build and trace times and the scene's size, for the status bar and metadata."""
+    """Build and trace times, the scene's size and what the render achieved (estimated
+    RMSE in AO units, mean and largest spp, rays), for the status bar and metadata."""
     build = outcome.build or {}
     build_ms = float((build.get("timings_ms") or {}).get("total", 0.0))
     cached = " (cached)" if build.get("cached") else ""
     trace_ms = outcome.timings_ms.get("ao", 0.0)
+    rmse = "-" if outcome.rmse_estimate is None else f"{outcome.rmse_estimate:.4f}"
     return (
         f"{triangles:,} triangles | build {build_ms:.1f} ms{cached} | "
-        f"trace {trace_ms:.1f} ms | total {outcome.render_ms:.0f} ms"
+        f"trace {trace_ms:.1f} ms | total {outcome.render_ms:.0f} ms | "
+        f"est. RMSE {rmse} | spp {outcome.spp_mean:.1f} mean, {outcome.spp_max} max | "
+        f"{outcome.rays:,} rays"
     )
 
 

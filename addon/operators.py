@@ -309,6 +309,9 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
         status = _status(context)
         status.last_upload_bytes = outcome.uploaded_bytes
         status.last_render_ms = outcome.render_ms
+        status.last_rmse = -1.0 if outcome.rmse_estimate is None else outcome.rmse_estimate
+        status.last_spp_mean, status.last_spp_max = outcome.spp_mean, outcome.spp_max
+        status.last_rays = outcome.rays
         status.renders += 1
         img = image.write_ao_image(outcome)
         image.show_in_image_editors(context.window_manager, img)

@@ -45,8 +45,27 @@ def _draw_settings(layout: bpy.types.UILayout, props) -> None:  # noqa: ANN001
     col.prop(props, "engine")
     col.prop(props, "spp")
     col.prop(props, "target_error")
+    col.prop(props, "max_pixel_error")
     col.prop(props, "ao_distance")
     col.prop(props, "seed")
+
+
+def _draw_achieved(layout: bpy.types.UILayout, status) -> None:  # noqa: ANN001
+    """What the last render achieved; the values' tooltips explain the units."""
+    if not status.renders:
+        return
+    box = layout.box()
+    box.label(text="Last render", icon="RENDER_RESULT")
+    grid = box.grid_flow(columns=2, even_columns=True, align=True)
+    grid.label(text="Est. RMSE (AO 0-1)")
+    if status.last_rmse >= 0.0:
+        grid.prop(status, "last_rmse", text="", emboss=False)
+    else:
+        grid.label(text="-")
+    for name, label in (("last_spp_mean", "Mean spp"), ("last_spp_max", "Max spp"),
+                        ("last_rays", "Rays")):
+        grid.label(text=label)
+        grid.prop(status, name, text="", emboss=False)
 
 
 def _draw_timings(layout: bpy.types.UILayout, props) -> None:  # noqa: ANN001
@@ -104,6 +123,7 @@ def draw(layout: bpy.types.UILayout, context: bpy.types.Context) -> None:
         col.label(text=status.error, icon="ERROR")
     elif status.message:
         layout.label(text=status.message, icon="INFO")
+    _draw_achieved(layout, status)
     _draw_timings(layout, props)
 
 
@@ -158,7 +178,8 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
     bl_order = 0
     source = "scenesort"
     groups = (
-        (("spp", "Samples"), ("target_error", "Target Error")),
+        (("spp", "Samples"), ("target_error", "Target Error"),
+         ("max_pixel_error", "Max Pixel Error")),
         (("ao_distance", "AO Distance"), ("seed", "Seed")),
     )
 

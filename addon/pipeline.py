@@ -40,6 +40,7 @@ class Settings:
     leaf_size: int
     spp: int
     target_error: float
+    max_pixel_error: float
     ao_distance: float  # what the render uses: `ao_distance(scene)`
     seed: int
     engine: str
@@ -52,6 +53,7 @@ class Settings:
             leaf_size=int(props.leaf_size),
             spp=int(props.spp),
             target_error=float(props.target_error),
+            max_pixel_error=float(props.max_pixel_error),
             ao_distance=ao_distance(scene),
             seed=int(props.seed),
             engine=props.engine,
@@ -73,6 +75,11 @@ class Outcome:
     depth: np.ndarray | None = None  # camera-space Z, 1e10 on a miss
     timings_ms: dict[str, float] = field(default_factory=dict)  # the job's phases
     render_ms: float = 0.0
+    # what the render achieved (the job's status): estimated RMSE (None: unknown), spp, rays
+    rmse_estimate: float | None = None
+    spp_mean: float = 0.0
+    spp_max: int = 0
+    rays: int = 0
     requests: list[str] = field(default_factory=list)
 
 
@@ -145,6 +152,8 @@ def render_job(
     }
     if settings.target_error:
         payload["target_error"] = settings.target_error
+    if settings.max_pixel_error:
+        payload["max_pixel_error"] = settings.max_pixel_error
     start = time.perf_counter()
     job = client.create_job(payload)
     outcome.job_id = job["job_id"]
@@ -161,6 +170,10 @@ def render_job(
         )
     outcome.size = (int(job["width"]), int(job["height"]))
     outcome.timings_ms = dict(job["timings_ms"])
+    outcome.rmse_estimate = job.get("rmse_estimate")
+    outcome.spp_mean = float(job.get("spp_mean") or 0.0)
+    outcome.spp_max = int(job.get("spp_max") or 0)
+    outcome.rays = int(job.get("rays") or 0)
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)
     outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")

@@ -39,7 +39,9 @@ from backend.jobs import (
     StopSignal,
 )
 from backend.models import (
+    MAX_PIXEL_ERROR_DOC,
     OCTET,
+    TARGET_ERROR_DOC,
     BvhInfo,
     BvhRequest,
     BvhStats,
@@ -194,8 +196,8 @@ async def run_on_worker(
 
 def _check_work(settings: Settings, count: int, count_name: str, params: AoParams) -> None:
     """Refuse a request whose ray casts (count x samples per ray) exceed --max-work."""
-    per_ray = jobs.adaptive_max_spp() if params.target_error is not None else params.spp
-    spp_name = "the adaptive cap of spp" if params.target_error is not None else "spp"
+    per_ray = jobs.adaptive_max_spp() if params.adaptive else params.spp
+    spp_name = "the adaptive cap of spp" if params.adaptive else "spp"
     work = count * per_ray
     if work > settings.max_work:
         raise ApiError(
@@ -212,13 +214,14 @@ def _check_work(settings: Settings, count: int, count_name: str, params: AoParam
 def _check_ao(params: AoParams) -> None:
     """Refuse what the engine would refuse, naming the query parameter."""
     max_spp = jobs.adaptive_max_spp()
-    if params.target_error is not None and params.spp > max_spp:
+    if params.adaptive and params.spp > max_spp:
         raise ApiError(
             422,
             "spp",
-            f"with target_error, spp is the minimum per ray and must be <= {max_spp}, "
-            f"got {params.spp}",
-            f"lower spp to at most {max_spp}, or drop target_error for a fixed spp",
+            f"with target_error or max_pixel_error, spp is the minimum per ray and must be "
+            f"<= {max_spp}, got {params.spp}",
+            f"lower spp to at most {max_spp}, or drop target_error and max_pixel_error for "
+            "a fixed spp",
             "invalid_parameter",
         )
 
@@ -522,7 +525,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         spp: Annotated[int, Query(ge=1, le=4096)] = 16,
         distance: Annotated[float | None, Query(gt=0, allow_inf_nan=False)] = None,
         seed: Annotated[int, Query(ge=0, le=2**31 - 1)] = 0,
-        target_error: Annotated[float | None, Query(gt=0, lt=1, allow_inf_nan=False)] = None,
+        target_error: Annotated[float | None, Query(
+            gt=0, lt=1, allow_inf_nan=False, description=TARGET_ERROR_DOC)] = None,
+        max_pixel_error: Annotated[float | None, Query(
+            gt=0, lt=1, allow_inf_nan=False, description=MAX_PIXEL_ERROR_DOC)] = None,
         engine: Literal["bvh", "dacrt"] = "bvh",
         method: Literal["sah", "median"] | None = None,
         leaf_size: Annotated[int | None, Query(ge=1, le=64)] = None,
@@ -537,7 +543,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         t0 = time.perf_counter()
         scene = _scene_or_404(store, scene_id)
         params = AoParams(
-            spp=spp, distance=distance, seed=seed, target_error=target_error, engine=engine
+            spp=spp, distance=distance, seed=seed, target_error=target_error,
+            max_pixel_error=max_pixel_error, engine=engine,
         )
         _check_ao(params)
         _check_work(settings, rays, "rays", params)
@@ -609,6 +616,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             distance=request.distance,
             seed=request.seed,
             target_error=request.target_error,
+            max_pixel_error=request.max_pixel_error,
             engine=request.engine,
         )
         _check_ao(params)

@@ -155,6 +155,10 @@ class Job:
     depth: np.ndarray | None = None  # (height, width) float32 camera-space Z, 1e10 on a miss
     png: bytes | None = None
     spp_mean: float | None = None
+    # what the render achieved (AoResult.stats): estimated RMSE, largest spp, rays traced
+    rmse_estimate: float | None = None
+    spp_max: int | None = None
+    rays: int | None = None
     version: int = 0  # bumped on every change; server-sent events wait on it
     signal: StopSignal = field(default_factory=StopSignal)
     max_seconds: float = float("inf")  # the deadline, counted from the start of the run
@@ -231,6 +235,9 @@ class Job:
                 "height": self.height,
                 "timings_ms": dict(self.timings_ms),
                 "spp_mean": self.spp_mean,
+                "spp_max": self.spp_max,
+                "rmse_estimate": self.rmse_estimate,
+                "rays": self.rays,
                 "error": self.error,
             }
 
@@ -364,7 +371,12 @@ class AoParams:
     distance: float | None = None
     seed: int = 0
     target_error: float | None = None
+    max_pixel_error: float | None = None
     engine: Literal["bvh", "dacrt"] = "bvh"
+
+    @property
+    def adaptive(self) -> bool:
+        return self.target_error is not None or self.max_pixel_error is not None
 
     def kwargs(self) -> dict[str, Any]:
         """Keyword arguments for `kernels.ambient_occlusion` / `kernels.render_ao`."""
@@ -373,6 +385,8 @@ class AoParams:
             out["distance"] = self.distance
         if self.target_error is not None:
             out["target_error"] = self.target_error
+        if self.max_pixel_error is not None:
+            out["max_pixel_error"] = self.max_pixel_error
         out["engine"] = self.engine
         return out
 
@@ -472,14 +486,15 @@ def render_camera(
     if not cached:  # of "bvh", the part that was Warp compiling (as "ao.compile" of "ao")
         job.add_timing("bvh.compile", float(bvh.stats.get("compile_ms", 0.0)))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
-    ao, spp_used = timed(
+    result = timed(
         "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, params)
     )
     shape = (camera.height, camera.width)
-    job.ao = ao.reshape(shape)
-    hit = spp_used > 0  # rays that missed take no samples
-    job.coverage = hit.astype(np.float32).reshape(shape)
-    job.spp_mean = float(spp_used[hit].mean()) if hit.any() else 0.0
+    job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
+    job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0 spp
+    stats = result.stats()
+    job.spp_mean, job.spp_max = stats["spp_mean"], stats["spp_max"]
+    job.rmse_estimate, job.rays = stats["rmse_estimate"], stats["rays"]
     depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
     job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
@@ -510,9 +525,9 @@ def _render_ao(
     tmin: np.ndarray,
     tmax: np.ndarray,
     params: AoParams,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> Any:
     """`kernels.render_ao` within the camera's clip range with the scene's normals,
-    reporting progress between its rounds; (ao, spp used per ray)."""
+    reporting progress between its rounds; its `AoResult`."""
     import kernels
 
     def progress(fraction: float, phase: str) -> None:
@@ -524,4 +539,4 @@ def _render_ao(
     )
     for name, ms in result.timings_ms.items():
         job.add_timing(f"ao.{name}", float(ms))
-    return np.asarray(result.ao, dtype=np.float32), np.asarray(result.spp_used)
+    return result

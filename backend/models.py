@@ -113,6 +113,21 @@ class Window(Strict):
 PixelAspect = Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]
 
 
+TARGET_ERROR_DOC = (
+    "stop when the image's RMSE over hit pixels against the converged AO (AO in [0, 1]) "
+    "is estimated below this; the achieved RMSE is within [0.7, 1.0] x target_error in "
+    ">= 95% of renders (null: fixed spp)"
+)
+MAX_PIXEL_ERROR_DOC = (
+    "stop each pixel when its 95% confidence half-width is below this (every pixel bounded;"
+    " more samples than target_error for the same number)"
+)
+RMSE_ESTIMATE_DOC = (
+    "the render's estimate of its RMSE over hit pixels against the converged AO (AO in "
+    "[0, 1]), from the per-pixel sample variances"
+)
+
+
 class JobRequest(Strict):
     scene_id: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
     camera: CameraModel
@@ -125,7 +140,10 @@ class JobRequest(Strict):
     spp: Annotated[int, Field(ge=1, le=4096)] = 16
     distance: Annotated[float | None, Field(gt=0, allow_inf_nan=False)] = None
     seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    target_error: Annotated[float | None, Field(gt=0, lt=1, allow_inf_nan=False)] = None
+    target_error: Annotated[float | None, Field(
+        gt=0, lt=1, allow_inf_nan=False, description=TARGET_ERROR_DOC)] = None
+    max_pixel_error: Annotated[float | None, Field(
+        gt=0, lt=1, allow_inf_nan=False, description=MAX_PIXEL_ERROR_DOC)] = None
     engine: Literal["bvh", "dacrt"] = "bvh"
     method: Literal["sah", "median"] = "sah"
     leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
@@ -140,7 +158,10 @@ class JobStatus(Strict):
     width: int
     height: int
     timings_ms: dict[str, float]
-    spp_mean: float | None
+    spp_mean: float | None = Field(description="mean samples per hit pixel")
+    spp_max: int | None = Field(description="most samples any pixel took")
+    rmse_estimate: float | None = Field(description=RMSE_ESTIMATE_DOC)
+    rays: int | None = Field(description="rays traced: primary and occlusion")
     error: str | None
 
 

@@ -44,7 +44,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--target-error",
         type=float,
         default=None,
-        help="adaptive: stop a pixel once its 95%% interval half-width is below",
+        help="adaptive: stop once the image's estimated RMSE over hit pixels (AO in [0, 1]) is "
+        "below; the achieved RMSE is within [0.7, 1.0]x of it in >= 95%% of renders",
+    )
+    parser.add_argument(
+        "--max-pixel-error",
+        type=float,
+        default=None,
+        help="adaptive: stop each pixel once its 95%% interval half-width is below",
     )
     parser.add_argument(
         "--max-spp", type=int, default=1024, help="adaptive: most samples per pixel (default 1024)"
@@ -131,8 +138,10 @@ def _check(args: argparse.Namespace) -> None:
         raise ValueError(f"--spp must be >= 1, got {args.spp}")
     if args.distance is not None and not args.distance > 0:
         raise ValueError(f"--distance must be > 0, got {args.distance}")
-    if args.target_error is not None and not 0 < args.target_error < 1:
-        raise ValueError(f"--target-error must be in (0, 1), got {args.target_error}")
+    for name in ("target_error", "max_pixel_error"):
+        value = getattr(args, name)
+        if value is not None and not 0 < value < 1:
+            raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {value}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -169,6 +178,7 @@ def _render(args: argparse.Namespace, console: Any) -> int:
         distance=args.distance,
         seed=args.seed,
         target_error=args.target_error,
+        max_pixel_error=args.max_pixel_error,
         engine=args.engine,
         tmin=tmin,
         tmax=tmax,
@@ -222,10 +232,12 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
 
     ms = result.timings_ms
     rays = result.rays
-    spp = result.spp_used[result.spp_used > 0]
+    stats = result.stats()
+    rmse = stats["rmse_estimate"]
     title = (
         f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
-        f"spp mean {spp.mean() if len(spp) else 0:.1f} (max {spp.max(initial=0)})"
+        f"spp mean {stats['spp_mean']:.1f} (max {stats['spp_max']}), "
+        f"est. RMSE {'-' if rmse is None else f'{rmse:.4f}'} (AO units, hit pixels)"
     )
     table = Table(title=title, min_width=len(title) + 4)
     table.add_column("phase")

@@ -30,16 +30,39 @@ Guarantees:
 - Skipped work: primary rays that miss the scene box are not traced, missed pixels get no
   occlusion rays, and (with `target_error`) converged pixels get no more samples.
 
-Adaptive sampling (`target_error`): every hit pixel gets the minimum spp, then the pixels
-whose 95% half-width z * sqrt(efficiency * s^2 / n) is still >= the target double their
-samples (so a pixel's samples are always a power-of-two prefix of its Sobol sequence
-when the minimum is one), up to `max_spp`. s^2 is the sample variance; where all n
-samples agreed it is p(1-p) at the Jeffreys posterior mean p = (k + 1/2) / (n + 1)
-instead of 0, so a pixel is not declared exact on the strength of a few samples that
-missed a small occluder. Owen-scrambled Sobol samples have less variance than
-independent ones: `efficiency` is the sampler's variance ratio, measured in every round
-on the pixels whose samples disagree from the spread between each pixel's estimate
-after half and after all of its new samples (`sampler_efficiency`); independent: ~1.
+Adaptive sampling, two stopping rules (issue 19), which may be combined:
+- `target_error` is the image's RMSE over hit pixels against the converged AO (the
+  expectation of infinitely many samples). The render estimates it as
+  sqrt(mean_i efficiency(n_i) * v_i / n_i) over the hit pixels (`rmse_estimate`), v_i
+  the pixel's `posterior_variance` (about its sample variance where its samples disagree;
+  where they agree, not 0 but what a Beta prior fitted to the image says), and stops
+  once that estimate is below RMSE_AIM * target_error. RMSE_AIM leaves room for the
+  estimate's own error and for the last round's overshoot, so that the achieved RMSE lies
+  in [0.7, 1.0] x target_error in at least 95% of renders (tests/kernels/render/
+  test_ao_target.py over seeds; benchmarks/ao_error.py on every shared scene): that is
+  the confidence the API states. Samples go where they lower the image's error most per
+  ray (Neyman allocation, n_i in proportion to sigma_i): every hit pixel gets the
+  minimum spp (in two halves, so that the sampler's rate is measured before the first
+  decision), then each round doubles the pixels below their Neyman count, those with
+  the largest sigma_i^2 / n_i^2 (the variance each new ray removes) first, until the
+  doubled set is predicted to remove DROP_SHORT of what is left above the aim; sigma_i^2
+  is the Jeffreys-smoothed variance below, so that a pixel whose few samples agreed
+  still earns more.
+- `max_pixel_error` bounds every pixel (the rule `target_error` had before issue 19):
+  pixels whose 95% half-width z * sqrt(spread * s^2 / n) is still >= it double their
+  samples (`half_width`; spread as below).
+A pixel's samples are always a power-of-two prefix of its Sobol sequence (when the
+minimum is one), up to `max_spp`. In the half-width and the allocation s^2 is the
+sample variance, and where all n samples agreed p(1-p) at the Jeffreys posterior mean
+p = (k + 1/2) / (n + 1) instead of 0, so a pixel is not declared exact on the strength
+of a few samples that missed a small occluder. Owen-scrambled Sobol samples have less
+variance than independent ones. `spread` is measured at every sample count n a round
+reaches, on the pixels whose samples disagree, from each pixel's estimate after n/2
+against after n samples (`sampler_efficiency`; independent samples: ~1). For Sobol the
+halves are anti-correlated, so the spread overstates the variance where it falls faster
+than 1/n: `efficiency` corrects it by the rate measured on the same pixels (see
+`_Counts.efficiency_at`). A count without a measurement takes the nearest smaller one's
+(efficiency falls as n grows, so this is never optimistic).
 """
 
 from __future__ import annotations
@@ -69,6 +92,11 @@ OFFSET_ULPS = 128.0  # occlusion-ray origin offset, in float32 ulps of the local
 DEFAULT_TERMINATOR_OFFSET = 0.1  # Blender's Object.shadow_terminator_geometry_offset default
 Z95 = 1.959963984540054  # two-sided 95% normal quantile
 MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
+RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's margin)
+# Owen-scrambled Sobol on an integrand with discontinuities (an occluder's edge) in 2D:
+# variance O(n^(-1 - 1/d)) = n^-1.5 (He and Wang 2015), so doubling keeps >= 2^-1.5 of it
+RHO_MIN = 2.0**-1.5
+DROP_SHORT = 0.8  # target_error: a round aims at this fraction of the MSE still to go
 DEFAULT_MAX_SPP = 1024
 EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
 EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in a round
@@ -86,7 +114,21 @@ class AoResult:
     spp_used: np.ndarray  # (R,) int32 occlusion samples per ray (0 where the ray missed)
     # compile (Warp's, not in total), setup, primary, occlusion, total
     timings_ms: dict[str, float] = field(default_factory=dict)
-    rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion
+    rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion, rounds
+    # Estimated RMSE over hit pixels against the converged AO (see the module docstring);
+    # None when no ray hit.
+    rmse_estimate: float | None = None
+
+    def stats(self) -> dict[str, float | int | None]:
+        """What the render achieved: estimated RMSE, mean and largest spp over hit
+        pixels, rays traced (primary and occlusion)."""
+        hit = self.spp_used[self.spp_used > 0]
+        return {
+            "rmse_estimate": self.rmse_estimate,
+            "spp_mean": float(hit.mean()) if len(hit) else 0.0,
+            "spp_max": int(hit.max()) if len(hit) else 0,
+            "rays": int(self.rays.get("primary", 0) + self.rays.get("occlusion", 0)),
+        }
 
 
 @wp.struct
@@ -458,16 +500,17 @@ def _sampler(sampler: str) -> int:
     return SAMPLERS[sampler]
 
 
-def _check_args(spp, distance, seed, target_error, min_spp_max) -> None:
+def _check_args(spp, distance, seed, targets, min_spp_max) -> None:
     if isinstance(spp, bool) or not isinstance(spp, int | np.integer) or spp < 1:
         raise ValueError(f"spp must be an integer >= 1, got {spp!r}")
     if distance is not None and not (float(distance) > 0.0):
         raise ValueError(f"distance must be > 0 (or None for the scene default), got {distance!r}")
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer):
         raise ValueError(f"seed must be an integer, got {seed!r}")
-    if target_error is not None and not (0.0 < float(target_error) < 1.0):
-        raise ValueError(f"target_error must be in (0, 1) or None, got {target_error!r}")
-    if target_error is not None and min_spp_max[1] < min_spp_max[0]:
+    for name, value in targets.items():
+        if value is not None and not (0.0 < float(value) < 1.0):
+            raise ValueError(f"{name} must be in (0, 1) or None, got {value!r}")
+    if any(v is not None for v in targets.values()) and min_spp_max[1] < min_spp_max[0]:
         raise ValueError(
             f"max_spp ({min_spp_max[1]}) must be >= the minimum spp ({min_spp_max[0]}): "
             "raise max_spp or lower spp"
@@ -483,6 +526,7 @@ def render_ao(
     seed: int = 0,
     target_error: float | None = None,
     *,
+    max_pixel_error: float | None = None,
     tmin: float | np.ndarray = 0.0,
     tmax: float | np.ndarray = np.inf,
     threads: int | None = None,
@@ -495,10 +539,13 @@ def render_ao(
 ) -> AoResult:
     """AO per primary ray (see the module docstring for the definition and guarantees).
 
-    Fixed mode (`target_error=None`): `spp` samples per hit pixel. Adaptive mode: each hit
-    pixel gets at least max(spp, MIN_ADAPTIVE_SPP) samples, then doubles them in rounds
-    until the half-width of its 95% confidence interval (`half_width`) is below
-    `target_error` or it has `max_spp`. `distance=None` is DISTANCE_FRACTION of the scene
+    Fixed mode (neither target): `spp` samples per hit pixel. Adaptive mode: each hit pixel
+    gets at least max(spp, MIN_ADAPTIVE_SPP) samples, then samples are doubled in rounds,
+    up to `max_spp` per pixel, until the image's estimated RMSE over hit pixels is below
+    RMSE_AIM * `target_error` (the achieved RMSE is then within [0.7, 1.0] x target_error
+    with >= 95% confidence) and every pixel's 95% half-width (`half_width`) is below
+    `max_pixel_error` (each rule only when given). `result.rmse_estimate` is the estimate
+    in every mode. `distance=None` is DISTANCE_FRACTION of the scene
     box diagonal. `sampler`: "sobol" (Owen-scrambled, default) or "random"; both unbiased.
     `engine`: "bvh" traces through `bvh`; "dacrt" traces the same rays (primary, then each
     round's occlusion rays) with the task-pool DACRT, without using the BVH: the same result
@@ -517,8 +564,11 @@ def render_ao(
     modules = WARP_MODULES + (dacrt_warp_modules("pool") if engine == "dacrt" else ())
     compile_ms = load_modules(bvh.device, *modules)  # compiling is not rendering
     t_start = time.perf_counter()
-    min_spp = max(int(spp), MIN_ADAPTIVE_SPP) if target_error is not None else int(spp)
-    _check_args(spp, distance, seed, target_error, (min_spp, int(max_spp)))
+    adaptive = target_error is not None or max_pixel_error is not None
+    min_spp = max(int(spp), MIN_ADAPTIVE_SPP) if adaptive else int(spp)
+    _check_args(spp, distance, seed,
+                {"target_error": target_error, "max_pixel_error": max_pixel_error},
+                (min_spp, int(max_spp)))
     sampler_id = _sampler(sampler)
     origins, directions = as_rays(origins, directions)
     scene_mesh(bvh).shading(normals, terminator_offset)  # checked (and kept) before tracing
@@ -545,48 +595,186 @@ def render_ao(
 
     t0 = time.perf_counter()
     h = len(hits.pixels)
-    n_done = np.zeros(h, dtype=np.int64)
-    n_open = np.zeros(h, dtype=np.int64)
+    counts = _Counts(*(np.zeros(h, dtype=np.int64) for _ in range(3)))
     pix = wp.array(hits.pixels, dtype=int, device=device)
+    trace_round = _occlusion_round if engine == "bvh" else _occlusion_round_dacrt
     rounds = 0
-    active = np.arange(h)
-    # Every active pixel has the same sample count, so a round is (first, count) for all.
-    count = max(1, min(min_spp, ROUND_RAYS // max(h, 1))) if target_error is None else min_spp
-    while h and len(active):
-        first = int(n_done[active[0]])
-        report(_fraction(n_done, min_spp, target_error is None, len(active), count), "occlusion")
-        trace_round = _occlusion_round if engine == "bvh" else _occlusion_round_dacrt
-        opened, opened_half = trace_round(bvh, hits, pix, active, first, count, sampler_id,
+
+    def trace(select: np.ndarray, count: int) -> None:
+        """Samples n..n+count-1 of the `select`ed pixels, which all have n samples."""
+        first = int(counts.done[select[0]])
+        opened, opened_half = trace_round(bvh, hits, pix, select, first, count, sampler_id,
                                           int(seed), dist, nthreads)
-        n_open[active] += opened
-        n_done[active] += count
-        rounds += 1
-        n = first + count
-        if target_error is None:
-            count = min(count, min_spp - n)
-            active = active if count > 0 else active[:0]
-        else:
-            efficiency = sampler_efficiency(n_open[active] - opened + opened_half,
-                                            np.full(len(active), first + count // 2),
-                                            n_open[active], n_done[active])
-            half = half_width(n_open[active], n_done[active], efficiency)
-            active = active[half >= float(target_error)] if n < max_spp else active[:0]
-            count = min(n, int(max_spp) - n)  # doubling: Sobol prefixes of 2^k samples
+        end = first + count
+        # the nested estimates: after the samples it had (after the first half when none)
+        mid, open_mid = (first, counts.open[select]) if first else (count // 2, opened_half)
+        counts.measure(end, mid, open_mid, counts.open[select] + opened,
+                       counts.before[select] if first else None)
+        counts.before[select] = open_mid
+        counts.open[select] += opened
+        counts.done[select] += count
+
+    if not adaptive:
+        count = max(1, min(min_spp, ROUND_RAYS // max(h, 1)))
+        everyone = np.arange(h)
+        while h and count > 0:
+            report(float(counts.done.sum()) / (min_spp * h), "occlusion")
+            trace(everyone, count)
+            rounds += 1
+            count = min(count, min_spp - int(counts.done[0]))
+    else:
+        select = np.arange(h)
+        aim = None if target_error is None else RMSE_AIM * float(target_error)
+        mse0 = None
+        while h and len(select):
+            if aim is not None and mse0 is not None:
+                mse = counts.mse()
+                # progress: how far the error has come down, on a log scale
+                report(math.log(mse0 / mse) / math.log(mse0 / aim**2) if mse > aim**2 else 1.0,
+                       "occlusion")
+            else:
+                report(_fraction(counts.done, len(select), int(counts.done[select[0]])),
+                       "occlusion")
+            for n in np.unique(counts.done[select]):  # one launch set per sample count
+                group = select[counts.done[select] == n]
+                # doubling: Sobol prefixes of 2^k; the minimum in two halves, so that how
+                # fast the variance falls is measured before the first decision
+                halves = n == 0 and min_spp % 2 == 0
+                for count in ([min_spp // 2] * 2 if halves else [int(n) or min_spp]):
+                    trace(group, count)
+            rounds += 1
+            mse0 = counts.mse() if mse0 is None else mse0
+            select = _next_round(counts, aim, max_pixel_error, int(max_spp))
     timings["occlusion"] = (time.perf_counter() - t0) * 1e3
 
     ao = np.ones(r, dtype=np.float32)
     spp_used = np.zeros(r, dtype=np.int32)
     if h:
-        ao[hits.pixels] = (n_open / n_done).astype(np.float32)
-        spp_used[hits.pixels] = n_done.astype(np.int32)
+        ao[hits.pixels] = (counts.open / counts.done).astype(np.float32)
+        spp_used[hits.pixels] = counts.done.astype(np.int32)
     timings["total"] = (time.perf_counter() - t_start) * 1e3
     report(1.0, "done")
     return AoResult(
         ao=ao,
         spp_used=spp_used,
         timings_ms=timings,
-        rays={"primary": hits.traced, "occlusion": int(n_done.sum()), "rounds": rounds},
+        rays={"primary": hits.traced, "occlusion": int(counts.done.sum()), "rounds": rounds},
+        rmse_estimate=math.sqrt(counts.mse()) if h else None,
     )
+
+
+@dataclass
+class _Counts:
+    """Per hit pixel: samples traced and open; per sample count n reached by doubling, the
+    `sampler_efficiency` of the halves (n/2 against n, `spread`) where enough pixels
+    disagreed, and how fast the variance fell on those pixels (`rho`)."""
+
+    done: np.ndarray
+    open: np.ndarray
+    before: np.ndarray  # open among the first half of each pixel's samples
+    spread: dict[int, float] = field(default_factory=dict)
+    rho: dict[int, float] = field(default_factory=dict)
+    # per count: the pooled sums of every round that reached it (rounds of one count are
+    # pooled, so a small late group does not overwrite what thousands of pixels measured)
+    sums: dict[int, np.ndarray] = field(default_factory=dict)
+    sums_before: dict[int, np.ndarray] = field(default_factory=dict)
+
+    def measure(self, n: int, mid: int, open_mid: np.ndarray, open_end: np.ndarray,
+                open_before: np.ndarray | None) -> None:
+        """Pool one round's nested estimates (mid against n samples; before: mid/2
+        against mid) at count n."""
+        def pooled(store: dict, key: int, *args: np.ndarray) -> np.ndarray:
+            store[key] = store.get(key, 0.0) + _spread_sums(*args)
+            return store[key]
+
+        m = len(open_mid)
+        total = pooled(self.sums, n, open_mid, np.full(m, mid), open_end, np.full(m, n))
+        if total[2] < EFFICIENCY_PIXELS:
+            return
+        self.spread[n] = float(np.clip(total[0] / total[1], EFFICIENCY_MIN, 1.0))
+        if open_before is not None:  # the same pixels' previous halves: the rate
+            before = pooled(self.sums_before, n, open_before, np.full(m, mid // 2), open_mid,
+                            np.full(m, mid))
+            if before[2] >= EFFICIENCY_PIXELS:
+                ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])
+                self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
+
+    def efficiency_at(self, n: np.ndarray) -> np.ndarray:
+        """The sampler's efficiency (variance over the independent samples' p(1-p)/n) at
+        each count n. The halves' spread overstates it where the variance falls faster than
+        1/n (Owen-scrambled Sobol: the halves are anti-correlated): with
+        rho = Var(n)/Var(n/2) it is spread * rho / (1 - rho) (spread itself when rho = 1/2,
+        independent samples). rho is spread(n) / (2 spread(n/2)) on the pixels that
+        doubled to n, in [RHO_MIN, 1/2]; at the first count, that of the next; 1/2 (the
+        pessimistic end) when unmeasured. A count without a measurement takes the nearest
+        smaller one's (efficiency falls as n grows, so this never flatters); 1.0 below
+        every one."""
+        return self._at(n, lambda m: self.spread[m] * self._rho(m) / (1.0 - self._rho(m)))
+
+    def spread_at(self, n: np.ndarray) -> np.ndarray:
+        """The halves' spread itself at each count (what max_pixel_error has always used:
+        not corrected for rho, so a pixel bound never rests on a rate estimate)."""
+        return self._at(n, lambda m: self.spread[m])
+
+    def _at(self, n: np.ndarray, value: Callable[[int], float]) -> np.ndarray:
+        known = sorted(self.spread)
+        values = np.array([1.0] + [value(m) for m in known])
+        return values[np.searchsorted(np.array(known, dtype=np.int64), n, side="right")]
+
+    def _rho(self, m: int) -> float:
+        return self.rho.get(m, self.rho.get(2 * m, 0.5))
+
+    def rho_at(self, n: np.ndarray) -> np.ndarray:
+        """Var(2n) / Var(n) expected for each count n: the latest measured rho at or
+        below 2n (1/2 when none)."""
+        known = sorted(self.rho)
+        values = np.array([0.5] + [self.rho[m] for m in known])
+        return values[np.searchsorted(np.array(known, dtype=np.int64), 2 * n, side="right")]
+
+    def mse(self) -> float:
+        """Estimated mean squared error over hit pixels, mean of efficiency * s^2 / n."""
+        eff = self.efficiency_at(self.done)
+        return float(np.mean(eff * posterior_variance(self.open, self.done, eff) / self.done))
+
+
+def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | None,
+                max_spp: int) -> np.ndarray:
+    """The hit pixels whose samples the next round doubles (empty: done).
+
+    max_pixel_error: every pixel whose half-width is not yet below it. aim (the RMSE to
+    reach): while the estimate is above it, the pixels below their Neyman count
+    n*_i = sigma_i sum_j sigma_j / (H aim^2) by more than a factor sqrt(2), those with the
+    most variance removed per ray first, as many as the estimate predicts it needs (then,
+    if those are not enough, the others in the same order)."""
+    n, k = counts.done, counts.open
+    eff = counts.efficiency_at(n)
+    room = n < max_spp
+    want = np.zeros(len(n), dtype=bool)
+    if max_pixel_error is not None:
+        want |= room & (half_width(k, n, counts.spread_at(n)) >= max_pixel_error)
+    if aim is not None:
+        contribution = eff * posterior_variance(k, n, eff) / n  # as counts.mse()
+        # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
+        drop = contribution * (1.0 - counts.rho_at(n))
+        need = (contribution.mean() - aim**2) * len(n) - drop[want].sum()
+        if need > 0.0:
+            sigma = np.sqrt(eff * smoothed_variance(k, n))
+            neyman = sigma * sigma.sum() / (len(n) * aim**2)
+            gain = sigma**2 / n**2  # variance removed per ray by doubling
+            free = room & ~want
+            for part in (free & (neyman > math.sqrt(2.0) * n), free):
+                order = np.flatnonzero(part)
+                order = order[np.argsort(-gain[order], kind="stable")]
+                # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
+                # often falls faster than the last measured rho says, and an overshoot
+                # cannot be undone, while a shortfall costs one more small round
+                enough = np.cumsum(drop[order]) >= DROP_SHORT * need
+                take = order[: int(np.argmax(enough)) + 1] if enough.any() else order
+                want[take] = True
+                need -= drop[take].sum()
+                if need <= 0.0:
+                    break
+    return np.flatnonzero(want)
 
 
 def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
@@ -624,7 +812,7 @@ def _occlusion_round_dacrt(bvh, hits, pix, active, first, count, sampler_id, see
 
 
 def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
-                       n_end: np.ndarray) -> float:
+                       n_end: np.ndarray, default: float = 1.0) -> float:
     """The sampler's variance relative to independent samples, pooled over pixels.
 
     For nested estimates m_mid (first n_mid samples) and m_end (all n_end), independent
@@ -632,42 +820,73 @@ def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.nda
     (Sobol) sequence gives less. The ratio of the summed squared differences to the summed
     Bernoulli variances p(1-p)(n_end - n_mid)/(n_mid n_end) estimates Var(sampler) /
     Var(independent) at this sample count. Only pixels whose samples disagree take part
-    (fully open or occluded ones would pull it toward 0). Clipped to [EFFICIENCY_MIN, 1]:
-    1 when too few pixels disagree to tell."""
+    (fully open or occluded ones would pull it toward 0). Clipped to [EFFICIENCY_MIN, 1];
+    `default` when too few pixels disagree to tell."""
+    diff2, bernoulli, mixed = _spread_sums(open_mid, n_mid, open_end, n_end)
+    if mixed < EFFICIENCY_PIXELS:
+        return float(default)
+    return float(np.clip(diff2 / bernoulli, EFFICIENCY_MIN, 1.0))
+
+
+def _spread_sums(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
+                 n_end: np.ndarray) -> np.ndarray:
+    """`sampler_efficiency`'s sums over the disagreeing pixels: (squared differences,
+    Bernoulli variances, pixels), so that measurements of one count can be pooled."""
     p = open_end / n_end
     mixed = (open_end > 0) & (open_end < n_end) & (n_mid > 0) & (n_end > n_mid)
-    if mixed.sum() < EFFICIENCY_PIXELS:
-        return 1.0
     p, n_mid, n_end = p[mixed], n_mid[mixed].astype(np.float64), n_end[mixed]
     diff2 = (open_mid[mixed] / n_mid - p) ** 2
     bernoulli = p * (1.0 - p) * (n_end - n_mid) / (n_mid * n_end)
-    return float(np.clip(diff2.sum() / bernoulli.sum(), EFFICIENCY_MIN, 1.0))
+    return np.array([diff2.sum(), bernoulli.sum(), float(mixed.sum())])
 
 
-def half_width(open_count: np.ndarray, n: np.ndarray, efficiency: float) -> np.ndarray:
-    """95% half-width of each pixel's estimate, z * sqrt(efficiency * s^2 / n).
+def sample_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """The unbiased sample variance of each pixel's n 0/1 samples (0 where they agree)."""
+    n = n.astype(np.float64)
+    p = open_count / n
+    return p * (1.0 - p) * n / np.maximum(n - 1.0, 1.0)
 
-    s^2 is the sample variance of the n 0/1 samples. Where they all agreed it would be 0;
-    there it is p(1-p) at the Jeffreys posterior mean p = (k + 1/2) / (n + 1) (Brown, Cai
-    and DasGupta 2001), about 1/(2n): an occluder smaller than ~1/n of the hemisphere is
-    still possible. `efficiency` (<= 1) is the sampler's variance relative to
-    independent samples (`sampler_efficiency`)."""
+
+def posterior_variance(open_count: np.ndarray, n: np.ndarray, efficiency: np.ndarray
+                       ) -> np.ndarray:
+    """E[p(1-p) | k of n open] per pixel under a Beta(a, b) prior on the pixels' p fitted
+    to the image by moments (empirical Bayes): about the sample variance where samples
+    disagree, and not 0 where they agree, by as much as the image says pixels like it
+    vary. The prior's spread is the spread of the estimates less their sampling
+    variance (efficiency * s^2 / n)."""
     k = open_count.astype(np.float64)
     n = n.astype(np.float64)
     p = k / n
-    sample_var = p * (1.0 - p) * n / np.maximum(n - 1.0, 1.0)
-    q = (k + 0.5) / (n + 1.0)
+    mean = float(p.mean())
+    spread = float(p.var() - np.mean(efficiency * sample_variance(open_count, n) / n))
+    if not (0.0 < mean < 1.0) or spread <= 0.0:
+        return sample_variance(open_count, n)
+    total = max(mean * (1.0 - mean) / spread - 1.0, 1e-6)
+    a, b = mean * total, (1.0 - mean) * total
+    return (a + k) * (b + n - k) / ((a + b + n) * (a + b + n + 1.0))
+
+
+def smoothed_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """`sample_variance`, but where all n samples agreed p(1-p) at the Jeffreys posterior
+    mean p = (k + 1/2) / (n + 1) (Brown, Cai and DasGupta 2001), about 1/(2n): an occluder
+    smaller than ~1/n of the hemisphere is still possible."""
+    q = (open_count + 0.5) / (n + 1.0)
     agree = (open_count == 0) | (open_count == n)
-    var = np.where(agree, q * (1.0 - q), sample_var)
-    return Z95 * np.sqrt(efficiency * var / n)
+    return np.where(agree, q * (1.0 - q), sample_variance(open_count, n))
 
 
-def _fraction(n_done, min_spp, fixed, active, count) -> float:
-    """Progress: samples done over samples planned (adaptive: planned grows, so this is an
-    estimate, never above 1)."""
+def half_width(open_count: np.ndarray, n: np.ndarray, efficiency: float | np.ndarray
+               ) -> np.ndarray:
+    """95% half-width of each pixel's estimate, z * sqrt(efficiency * s^2 / n), with the
+    `smoothed_variance` (never 0). `efficiency` (<= 1, one or per pixel) is the sampler's
+    variance relative to independent samples (`sampler_efficiency`)."""
+    return Z95 * np.sqrt(efficiency * smoothed_variance(open_count, n) / n)
+
+
+def _fraction(n_done, active, count) -> float:
+    """Progress with max_pixel_error: samples done over samples planned (planned grows, so
+    this is an estimate, never above 1)."""
     done = float(n_done.sum())
-    if fixed:
-        return done / (min_spp * len(n_done))
     planned = done + float(active * count)
     return min(done / planned, 1.0) if planned > 0 else 0.0
 
@@ -681,6 +900,7 @@ def ambient_occlusion(
     seed: int = 0,
     target_error: float | None = None,
     *,
+    max_pixel_error: float | None = None,
     tmin: float | np.ndarray = 0.0,
     tmax: float | np.ndarray = np.inf,
     threads: int | None = None,
@@ -691,7 +911,8 @@ def ambient_occlusion(
     terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
 ) -> np.ndarray:
     """AO per primary ray, (R,) float32: `render_ao(...).ao` (see there)."""
-    return render_ao(bvh, origins, directions, spp, distance, seed, target_error, tmin=tmin,
+    return render_ao(bvh, origins, directions, spp, distance, seed, target_error,
+                     max_pixel_error=max_pixel_error, tmin=tmin,
                      tmax=tmax, threads=threads, max_spp=max_spp, sampler=sampler,
                      engine=engine, normals=normals, terminator_offset=terminator_offset).ao
 

@@ -127,6 +127,19 @@ def test_engine_is_selectable_with_its_passes(live) -> None:
     assert "SCENESORT" in bpy.types.RENDER_PT_format.COMPAT_ENGINES  # output settings shown
 
 
+def test_stats_line_reports_what_the_render_achieved() -> None:
+    """The status bar and metadata line carries the job's estimated RMSE, mean and
+    largest spp and rays; an unknown estimate shows as '-'."""
+    from addon import pipeline
+
+    outcome = pipeline.Outcome(rmse_estimate=0.0123, spp_mean=40.25, spp_max=256,
+                               rays=123456, render_ms=10.0)
+    line = engine.stats_line(outcome, 1000)
+    assert "est. RMSE 0.0123" in line and "spp 40.2 mean, 256 max" in line
+    assert "123,456 rays" in line
+    assert "est. RMSE -" in engine.stats_line(pipeline.Outcome(), 1000)
+
+
 def test_f12_combined_is_the_engines_ao_with_zero_background(live, tmp_path) -> None:
     """F12 starts the service itself; Combined RGB equals a direct engine call's AO on the
     same rays, 0 where the ray missed (Cycles' AO pass); alpha 1 without Film Transparent."""
@@ -462,5 +475,6 @@ def test_engine_panels_draw_the_scenes_settings(live) -> None:
                  bpy.context)  # fmt: skip
         drawn.update({name: owner for owner, name, _ in layout.props})
     assert drawn == {"spp": live.scenesort, "target_error": live.scenesort,
+                     "max_pixel_error": live.scenesort,
                      "ao_distance": live.scenesort, "seed": live.scenesort,
                      "film_transparent": live.render}  # fmt: skip

@@ -17,7 +17,8 @@ OPERATORS = (
     "server_start", "server_restart", "server_stop", "server_status", "open_log", "build_bvh",
     "render_ao",
 )  # fmt: skip
-SETTINGS = ("method", "leaf_size", "spp", "target_error", "ao_distance", "engine")
+SETTINGS = ("method", "leaf_size", "spp", "target_error", "max_pixel_error", "ao_distance",
+            "engine")
 
 
 def _registered() -> bool:

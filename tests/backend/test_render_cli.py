@@ -4,6 +4,7 @@ the timing table and bad input (run in-process through the real command-line ent
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -69,7 +70,7 @@ def test_shared_scene_by_name_writes_png_and_npy(tmp_path, capsys, scenes_dir):
     assert "sponza" in capsys.readouterr().out
 
 
-def test_ply_path_with_camera_file_and_target_error(tmp_path, scenes_dir):
+def test_ply_path_with_camera_file_and_target_error(tmp_path, scenes_dir, capsys):
     cam = {
         "position": [0.1111, 0.2167, 0.4248],
         "look_at": [-0.0168, 0.1102, -0.0015],
@@ -105,6 +106,8 @@ def test_ply_path_with_camera_file_and_target_error(tmp_path, scenes_dir):
     hit = kernels.trace(kernels.build_bvh(*_bunny(scenes_dir)), *camera.rays()[:2]).hit
     assert 0.05 < hit.mean() < 0.9  # the file camera, not the framing one, was used
     assert np.all(ao.ravel()[~hit] == 1.0) and ao.ravel()[hit].min() < 1.0
+    out = capsys.readouterr().out  # the table's title: what the render achieved
+    assert re.search(r"est\. RMSE 0\.\d{4} \(AO\s+units,\s+hit\s+pixels\)", out), out
 
 
 def _bunny(folder):

@@ -196,6 +196,16 @@ CASES: list[tuple[str, str, str, dict, Any, dict, int, str]] = [
         "target_error",
     ),
     (
+        "ao max pixel error 1",
+        "POST",
+        f"{SC}/{{sid}}/ao",
+        {"rays": 1, "max_pixel_error": 1},
+        ONE_RAY,
+        OCTET,
+        422,
+        "max_pixel_error",
+    ),
+    (
         "ao adaptive spp over the cap",
         "POST",
         f"{SC}/{{sid}}/ao",

@@ -69,6 +69,23 @@ def test_job_renders_what_the_direct_call_renders(api, box_scene, scene_id) -> N
     np.testing.assert_array_equal(np.asarray(image), expected_png)
 
 
+def test_a_job_reports_what_it_achieved(api, box_scene, scene_id) -> None:
+    """The status carries the render's estimated RMSE, mean and largest spp and rays,
+    exactly `AoResult.stats()` of the same render; max_pixel_error reaches the engine."""
+    origins, directions, tmin, tmax = Camera.from_dict(camera(40, 30)).rays()
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    for params in ({"spp": 4, "seed": 2, "target_error": 0.05},
+                   {"spp": 4, "seed": 2, "max_pixel_error": 0.1}):
+        job = create(api, scene_id, 40, 30, **params)
+        status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+        assert status["state"] == "done", status
+        expected = kernels.render_ao(bvh, origins, directions, tmin=tmin, tmax=tmax,
+                                     **params).stats()
+        got = {k: status[k] for k in ("rmse_estimate", "spp_mean", "spp_max", "rays")}
+        assert got == pytest.approx(expected), (got, expected)
+        assert status["spp_max"] >= 8 and status["rmse_estimate"] > 0
+
+
 def test_coverage_and_depth_layers_follow_the_primary_hits(api, box_scene, scene_id) -> None:
     """coverage is 1 exactly where AO sampled (a hit), depth is Cycles' Z pass: the
     closest hit's camera-space depth, 1e10 on background."""

@@ -219,18 +219,18 @@ def test_rmse_falls_as_inverse_sqrt_spp(sponza, sponza_reference):
     assert np.all(err_sobol[1:] < err_random[1:]), (err_sobol, err_random)
 
 
-def test_target_error_is_met(sponza, sponza_reference):
-    """Per-pixel error against the 2048-spp reference is within target for >= 95% of
-    pixels, and converged pixels stopped early (spp varies)."""
+def test_max_pixel_error_is_met(sponza, sponza_reference):
+    """Per-pixel error against the 2048-spp reference is within max_pixel_error for >= 95%
+    of pixels, and converged pixels stopped early (spp varies)."""
     _, bvh, o, d = sponza
     target = 0.05
-    res = kernels.render_ao(bvh, o, d, target_error=target, seed=5, sampler="random")
+    res = kernels.render_ao(bvh, o, d, max_pixel_error=target, seed=5, sampler="random")
     hit = res.spp_used > 0
     within = np.abs(res.ao - sponza_reference)[hit] <= target
     assert within.mean() >= 0.95, within.mean()
     assert res.spp_used[hit].min() >= 16
     assert res.spp_used[hit].min() < res.spp_used[hit].max() <= 1024
-    res_sobol = kernels.render_ao(bvh, o, d, target_error=target, seed=5)
+    res_sobol = kernels.render_ao(bvh, o, d, max_pixel_error=target, seed=5)
     assert (np.abs(res_sobol.ao - sponza_reference)[hit] <= target).mean() >= 0.95
 
 
@@ -275,7 +275,7 @@ def test_adaptive_open_plane_stops_at_the_first_power_of_two_within_target():
     o = np.c_[rng.uniform(-0.9, 0.9, (r, 2)), np.ones(r)].astype(np.float32)
     d = np.tile(np.float32([0, 0, -1]), (r, 1))
     d[r // 2 :] *= -1  # pointing away from the plane's box: skipped
-    res = kernels.render_ao(bvh, o, d, target_error=0.05, max_spp=1024)
+    res = kernels.render_ao(bvh, o, d, max_pixel_error=0.05, max_spp=1024)
     assert res.rays["primary"] == r // 2
     assert np.all(res.ao == 1.0)
     assert np.all(res.spp_used[r // 2 :] == 0)
@@ -337,7 +337,8 @@ def test_progress_reports_and_cancels():
 @pytest.mark.parametrize(
     "kwargs,field",
     [({"spp": 0}, "spp"), ({"distance": 0.0}, "distance"), ({"target_error": 1.5}, "target_error"),
-     ({"sampler": "halton"}, "sampler"), ({"target_error": 0.1, "spp": 64, "max_spp": 32},
+     ({"max_pixel_error": 0.0}, "max_pixel_error"), ({"sampler": "halton"}, "sampler"),
+     ({"target_error": 0.1, "spp": 64, "max_spp": 32},
                                           "max_spp"), ({"seed": 1.5}, "seed"),
      ({"engine": "optix"}, "engine")],
 )
