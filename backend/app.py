@@ -69,6 +69,13 @@ SceneId = Annotated[
     str, Path(pattern=r"^[0-9a-f]{32}$", description="32 hex characters (see docs/api.md)")
 ]
 JobId = Annotated[str, Path(pattern=r"^[0-9a-f]{16}$", description="16 hex characters")]
+# The counts and flags of a scene or mesh body (query parameters).
+Vertices = Annotated[int, Query(ge=1, le=wire.MAX_INDEXABLE_VERTICES)]
+Triangles = Annotated[int, Query(ge=1, le=2**31 - 1)]
+Normals = Annotated[bool, Query(description="the body ends with T*9 float32 corner normals "
+                                "(smooth shading)")]
+Offsets = Annotated[bool, Query(description="after the normals, T float32 shadow terminator "
+                                "offsets")]
 
 
 @dataclass(frozen=True)
@@ -467,12 +474,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "per triangle), then with terminator_offsets=true T float32 shadow terminator "
         "offsets; no header or padding: exactly 12*V + 12*T (+ 36*T) (+ 4*T) bytes."
     )
-    Vertices = Annotated[int, Query(ge=1, le=wire.MAX_INDEXABLE_VERTICES)]
-    Triangles = Annotated[int, Query(ge=1, le=2**31 - 1)]
-    Normals = Annotated[bool, Query(description="the body ends with T*9 float32 "
-                                    "corner normals (smooth shading)")]
-    Offsets = Annotated[bool, Query(description="after the normals, T float32 "
-                                    "shadow terminator offsets")]
 
     @app.post(
         "/v1/scenes",

@@ -1,0 +1,191 @@
+"""Meshes by content hash (HEAD/PUT /v1/meshes/{id}) and scenes as instance lists
+(POST /v1/instance-scenes) on a real service, bad input included: every refusal is a 4xx
+naming the field at fault, behind the same token, Content-Type and body checks."""
+
+from __future__ import annotations
+
+import httpx
+import numpy as np
+import pytest
+from conftest import OCTET, floor_and_box, scene_body
+
+from backend import wire
+
+
+def cube() -> tuple[np.ndarray, np.ndarray]:
+    """A closed unit cube centred on the origin (12 triangles)."""
+    v = np.array([[x, y, z] for x in (-0.5, 0.5) for y in (-0.5, 0.5) for z in (-0.5, 0.5)],
+                 np.float32)
+    f = [[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+         [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]]
+    return v, np.array(f, np.int32)
+
+
+def mesh_id(vertices: np.ndarray, indices: np.ndarray) -> str:
+    return wire.scene_hash(len(vertices), len(indices), scene_body(vertices, indices))
+
+
+def put_mesh(api, vertices, indices, name: str | None = None, **params) -> httpx.Response:  # noqa: ANN001
+    return api.client.put(
+        f"/v1/meshes/{name or mesh_id(vertices, indices)}",
+        params={"vertices": len(vertices), "triangles": len(indices), **params},
+        content=scene_body(vertices, indices), headers=OCTET)
+
+
+def instance_body(ids: list[str], mesh_index: list[int], transforms: np.ndarray) -> bytes:
+    return ("".join(ids).encode() + np.asarray(mesh_index, "<i4").tobytes()
+            + np.asarray(transforms, "<f4").tobytes())
+
+
+def post_instances(api, ids, mesh_index, transforms, **params) -> httpx.Response:  # noqa: ANN001
+    query = {"meshes": len(ids), "instances": len(mesh_index), **params}
+    return api.client.post("/v1/instance-scenes", params=query, headers=OCTET,
+                           content=instance_body(ids, mesh_index, transforms))
+
+
+def transforms(*offsets: tuple[float, float, float], scale: float = 1.0) -> np.ndarray:
+    out = np.zeros((len(offsets), 3, 4), np.float32)
+    out[:, :, :3] = scale * np.eye(3, dtype=np.float32)
+    out[:, :, 3] = offsets
+    return out
+
+
+@pytest.fixture(scope="module")
+def meshes(api) -> dict[str, str]:  # noqa: ANN001
+    """The cube and the floor-and-box on the service, by name."""
+    ids = {}
+    for name, (v, i) in {"cube": cube(), "floor": floor_and_box()}.items():
+        answer = put_mesh(api, v, i)
+        assert answer.status_code in (200, 201), answer.text
+        ids[name] = answer.json()["scene_id"]
+    return ids
+
+
+def test_mesh_put_is_201_then_200_and_head_finds_it(api) -> None:  # noqa: ANN001
+    v, i = cube()
+    v = v * 3.0  # a mesh no other test uploads
+    name = mesh_id(v, i)
+    assert api.client.head(f"/v1/meshes/{name}").status_code == 404
+    first, again = put_mesh(api, v, i), put_mesh(api, v, i)
+    assert (first.status_code, again.status_code) == (201, 200)
+    assert first.json()["scene_id"] == name and first.json()["triangles"] == 12
+    assert api.client.head(f"/v1/meshes/{name}").status_code == 200
+    # a mesh is a single-mesh scene too
+    assert api.client.get(f"/v1/scenes/{name}").json()["vertices"] == 8
+
+
+def test_mesh_under_another_name_is_refused(api) -> None:  # noqa: ANN001
+    v, i = cube()
+    answer = put_mesh(api, v, i, name="0" * 32)
+    assert answer.status_code == 422 and answer.json()["parameter"] == "mesh_id"
+    assert mesh_id(v, i) in answer.json()["detail"]
+
+
+@pytest.mark.parametrize(("change", "status", "parameter"), [
+    ({"params": {"vertices": 9}}, 400, "body"),
+    ({"params": {"triangles": 0}}, 422, "triangles"),
+    ({"headers": {"Content-Type": "application/json"}}, 415, "Content-Type"),
+    ({"headers": {"Authorization": "Bearer wrong"}}, 401, "Authorization"),
+])
+def test_bad_mesh_uploads_name_the_field(api, change, status, parameter) -> None:  # noqa: ANN001
+    v, i = cube()
+    params = {"vertices": len(v), "triangles": len(i), **change.get("params", {})}
+    headers = {**OCTET, **change.get("headers", {})}
+    answer = api.client.put(f"/v1/meshes/{mesh_id(v, i)}", params=params,
+                            content=scene_body(v, i), headers=headers)
+    assert answer.status_code == status and answer.json()["parameter"] == parameter
+    assert answer.json()["fix"]
+
+
+def test_instance_list_is_a_scene_with_its_world_box(api, meshes) -> None:  # noqa: ANN001
+    ids = [meshes["cube"], meshes["floor"]]
+    placed = transforms((0, 0, 0), (5, 0, 0), (0, 3, 0))
+    placed[1, :, :3] = np.diag([-1.0, 2.0, 1.0])  # mirrored and stretched
+    first = post_instances(api, ids, [0, 0, 1], placed)
+    again = post_instances(api, ids, [0, 0, 1], placed)
+    assert (first.status_code, again.status_code) == (201, 200)
+    info = first.json()
+    scene_id = info["scene_id"]
+    body = instance_body(ids, [0, 0, 1], placed)
+    assert scene_id == wire.instances_hash(2, 3, body)
+    floor_v, floor_i = floor_and_box()
+    assert info["meshes"] == ids and info["instances"] == 3
+    assert info["triangles"] == 12 + 12 + len(floor_i)
+    corners = [cube()[0] @ t[:, :3].T.astype(np.float64) + t[:, 3] for t in placed[:2]]
+    corners.append(floor_v.astype(np.float64) + placed[2, :, 3])
+    world = np.concatenate(corners)
+    np.testing.assert_allclose(info["bounds"], [world.min(0), world.max(0)], atol=1e-6)
+    assert api.client.head(f"/v1/scenes/{scene_id}").status_code == 200
+    assert api.client.get(f"/v1/scenes/{scene_id}").json() == info
+
+
+def test_an_instance_list_is_its_bytes(api, meshes) -> None:  # noqa: ANN001
+    """Moving one instance is a new scene id; the same list again is the same id."""
+    ids = [meshes["cube"]]
+    a = post_instances(api, ids, [0, 0], transforms((0, 0, 0), (2, 0, 0))).json()["scene_id"]
+    b = post_instances(api, ids, [0, 0], transforms((0, 0, 0), (2, 0, 1))).json()["scene_id"]
+    assert a != b
+
+
+def test_unknown_mesh_is_404_naming_the_mesh_ids(api, meshes) -> None:  # noqa: ANN001
+    missing = "f" * 32
+    answer = post_instances(api, [meshes["cube"], missing], [0, 1], transforms((0, 0, 0),
+                                                                               (1, 1, 1)))
+    assert answer.status_code == 404
+    problem = answer.json()
+    assert problem["parameter"] == "body (mesh ids)" and missing in problem["detail"]
+    assert "PUT /v1/meshes" in problem["fix"]
+
+
+def _bad_transforms(kind: str) -> np.ndarray:
+    out = transforms((0, 0, 0), (1, 0, 0))
+    if kind == "nan":
+        out[1, 0, 3] = np.nan
+    else:
+        out[1, :, :3] = 0.0
+    return out
+
+
+@pytest.mark.parametrize(("ids", "index", "placed", "parameter", "words"), [
+    (["CUBE" * 8], [0], transforms((0, 0, 0)), "body (mesh ids)", "hex"),
+    (None, [0, 2], transforms((0, 0, 0), (1, 0, 0)), "body (mesh indices)", "instance 1"),
+    (None, [0, 0], _bad_transforms("nan"), "body (transforms)", "instance 1"),
+    (None, [0, 0], _bad_transforms("zero"), "body (transforms)", "singular"),
+])
+def test_bad_instance_lists_are_400_naming_the_part(api, meshes, ids, index, placed,  # noqa: ANN001
+                                                    parameter, words) -> None:
+    answer = post_instances(api, ids or [meshes["cube"]], index, placed)
+    assert answer.status_code == 400, answer.text
+    assert answer.json()["parameter"] == parameter and words in answer.json()["detail"]
+
+
+def test_instance_list_length_and_counts_are_checked(api, meshes) -> None:  # noqa: ANN001
+    body = instance_body([meshes["cube"]], [0], transforms((0, 0, 0)))
+    short = api.client.post("/v1/instance-scenes", params={"meshes": 1, "instances": 1},
+                            content=body[:-4], headers=OCTET)
+    assert short.status_code == 400 and short.json()["parameter"] == "body"
+    zero = api.client.post("/v1/instance-scenes", params={"meshes": 1, "instances": 0},
+                           content=body, headers=OCTET)
+    assert zero.status_code == 422 and zero.json()["parameter"] == "instances"
+    untyped = api.client.post("/v1/instance-scenes", params={"meshes": 1, "instances": 1},
+                              content=body)
+    assert untyped.status_code == 415
+
+
+def test_dacrt_is_refused_for_an_instance_list(api, meshes) -> None:  # noqa: ANN001
+    scene_id = post_instances(api, [meshes["cube"]], [0], transforms((0, 0, -4))).json()
+    camera = {"matrix_world": np.eye(4).tolist(), "width": 8, "height": 6}
+    answer = api.client.post("/v1/jobs", json={"scene_id": scene_id["scene_id"],
+                                               "camera": camera, "engine": "dacrt"})
+    assert answer.status_code == 422 and answer.json()["parameter"] == "engine"
+
+
+def test_decode_instances_keeps_the_values() -> None:
+    """The decoded list is the body's values, native float32/int32 (no server)."""
+    ids = ["a" * 32, "b" * 32]
+    placed = transforms((1, 2, 3), (4, 5, 6), scale=2.0)
+    listing = wire.decode_instances(instance_body(ids, [1, 0], placed), 2, 2)
+    assert listing.mesh_ids == tuple(ids)
+    np.testing.assert_array_equal(listing.mesh_index, [1, 0])
+    np.testing.assert_array_equal(listing.transforms, placed)
+    assert listing.transforms.dtype == np.float32 and listing.mesh_index.dtype == np.int32
