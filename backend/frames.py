@@ -69,9 +69,13 @@ class BuildReport:
         return out
 
 
+TOPOLOGY_DONORS = 8  # meshes remembered per topology as refit donors, newest last
+
+
 def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, device: str,
-             report: BuildReport) -> Any:
-    """The mesh's BVH: cached, else refit from its topology's last one, else built."""
+             report: BuildReport, in_use: frozenset[str] = frozenset()) -> Any:
+    """The mesh's BVH: cached, else refit from the BVH of an earlier mesh of its topology
+    (one that `in_use`, the meshes of the same frame, does not hold), else built."""
     import kernels
 
     key = bvh_key(mesh.scene_id, method, leaf_size)
@@ -80,25 +84,41 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
         report.reused.append(mesh.scene_id)
         return bvh
     topo = topology_key(mesh.topology, method, leaf_size)
-    donor_id = store.get(topo)
-    donor = None if donor_id is None else store.get(bvh_key(donor_id, method, leaf_size))
-    if donor is not None:
+    donors = [d for d in store.get(topo) or [] if d != mesh.scene_id]
+    donor_id = next((d for d in reversed(donors) if d not in in_use
+                     and bvh_key(d, method, leaf_size) in store), None)
+    if donor_id is not None:
+        donor = store.get(bvh_key(donor_id, method, leaf_size))
         bvh = report.measure("refit", lambda: kernels.refit_bvh(donor, mesh.vertices))
-        report.refit.append(mesh.scene_id)
+        if bvh is donor:  # refit in place: the donor's BVH and top levels are the new mesh's
+            _forget(store, donor_id, method, leaf_size)
+            donors.remove(donor_id)
+            report.refit.append(mesh.scene_id)
+        else:  # the engine's rule chose a rebuild (the refit tree would cost too much)
+            report.built.append(mesh.scene_id)
     else:
         bvh = report.measure("build", lambda: kernels.build_bvh(
             mesh.vertices, mesh.indices, method=method, leaf_size=leaf_size, device=device))
         report.built.append(mesh.scene_id)
     store.put(key, bvh, bvh_nbytes(bvh))
-    store.put(topo, mesh.scene_id, 64)
+    store.put(topo, [*donors, mesh.scene_id][-TOPOLOGY_DONORS:], 64 * TOPOLOGY_DONORS)
     return bvh
+
+
+def _forget(store: Store, mesh_id: str, method: str, leaf_size: int) -> None:
+    """Drop a mesh's BVH and the top levels over it: its BVH now holds another mesh."""
+    store.discard(bvh_key(mesh_id, method, leaf_size))
+    for scene in store.values_of(wire.InstanceScene):
+        if any(m.scene_id == mesh_id for m in scene.meshes):
+            store.discard(bvh_key(scene.scene_id, method, leaf_size))
 
 
 def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method: str,
               leaf_size: int, device: str) -> tuple[Any, BuildReport]:
     """What a render traces for `scene`, with the report of what it took to have it: a
     single mesh's BVH, or an instance list's two levels (the top level over the meshes'
-    BVHs, each from `mesh_bvh`)."""
+    BVHs, each from `mesh_bvh`). An instance list is kept in the store with its top level,
+    which lives no longer than it (store.py drops a scene's BVHs with it)."""
     import kernels
 
     report = BuildReport()
@@ -110,7 +130,11 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
         report.reused.extend(m.scene_id for m in scene.meshes)
         report.top_level = "reused"
         return levels, report
-    bottoms = [mesh_bvh(store, m, method, leaf_size, device, report) for m in scene.meshes]
+    if scene.scene_id not in store:
+        store.put(scene.scene_id, scene, scene.nbytes)
+    in_use = frozenset(m.scene_id for m in scene.meshes)
+    bottoms = [mesh_bvh(store, m, method, leaf_size, device, report, in_use)
+               for m in scene.meshes]
     levels = report.measure("top_level", lambda: kernels.build_scene(
         bottoms, scene.mesh_index, scene.transforms, device=device))
     report.top_level = "built"
