@@ -475,13 +475,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         "offsets; no header or padding: exactly 12*V + 12*T (+ 36*T) (+ 4*T) bytes."
     )
 
-    @app.post(
-        "/v1/scenes",
-        response_model=SceneInfo,
-        status_code=201,
-        responses={200: {"model": SceneInfo, "description": "already known"}, **common},
-        openapi_extra=binary_body(scene_layout + " World space."),
-    )
+    uploaded: dict[str, Any] = {  # 201 new, 200 known: what both mesh uploads answer
+        "response_model": SceneInfo, "status_code": 201,
+        "responses": {200: {"model": SceneInfo, "description": "already known"}, **common},
+    }
+
+    @app.post("/v1/scenes", **uploaded, openapi_extra=binary_body(scene_layout + " World space."))
     async def upload_scene(
         request: Request, response: Response, vertices: Vertices, triangles: Triangles,
         normals: Normals = False, terminator_offsets: Offsets = False,
@@ -490,13 +489,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return await store_mesh(request, response, (vertices, triangles),
                                 (normals, terminator_offsets))
 
-    @app.put(
-        "/v1/meshes/{mesh_id}",
-        response_model=SceneInfo,
-        status_code=201,
-        responses={200: {"model": SceneInfo, "description": "already known"}, **common},
-        openapi_extra=binary_body(scene_layout + " The mesh's own (object) space."),
-    )
+    @app.put("/v1/meshes/{mesh_id}", **uploaded,
+             openapi_extra=binary_body(scene_layout + " The mesh's own (object) space."))
     async def put_mesh(
         request: Request, response: Response, mesh_id: SceneId, vertices: Vertices,
         triangles: Triangles, normals: Normals = False, terminator_offsets: Offsets = False,

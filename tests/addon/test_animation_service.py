@@ -1,17 +1,21 @@
 """Frame ranges against a real service that the add-on starts: per frame only what changed
-is sent (meshes after a HEAD by hash, the instance list when it changed)."""
+is sent (meshes after a HEAD by hash, the instance list when it changed), and Ctrl-F12
+gives the images `scenesort render-frames` makes of the exported bundle."""
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from pathlib import Path
 
 import bpy
+import numpy as np
 import pytest
-from conftest import FRAMES, animated_scene
+from conftest import FRAMES, animated_scene, read_image
 
 import addon
 from addon import connection, export, pipeline, prefs, service
 from addon.tasks import Task
+from backend.cli import main
 
 
 @pytest.fixture(scope="module")
@@ -58,3 +62,24 @@ def test_frames_send_only_what_changed(live) -> None:
     assert lists == {1: 1, 2: 1, 3: 1, 4: 0}
     assert all(r.startswith(("HEAD", "PUT", "POST", "GET /v1/health")) for f in FRAMES
                for r in sent[f])
+
+
+def test_ctrl_f12_gives_render_frames_images(live, tmp_path: Path) -> None:
+    """The engine's frame range (instance lists on the service) and `scenesort
+    render-frames` on the exported bundle give the same AO and coverage, frame by frame."""
+    scene = live
+    settings = scene.render.image_settings
+    scene.render.engine, scene.render.film_transparent = "SCENESORT", True
+    settings.file_format, settings.color_depth = "OPEN_EXR", "32"
+    scene.render.filepath = str(tmp_path / "engine" / "frame_")
+    assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+    assert bpy.ops.scenesort.export_animation(directory=str(tmp_path / "bundle")) == {"FINISHED"}
+    assert main(["render-frames", str(tmp_path / "bundle"), "--out", str(tmp_path / "cli"),
+                 "--no-progress"]) == 0
+    for frame in FRAMES:
+        rgba = read_image(tmp_path / "engine" / f"frame_{frame:04d}.exr")
+        ao = np.load(tmp_path / "cli" / f"{frame:06d}.npy")
+        hit = rgba[..., 3] == 1.0
+        assert 0.2 < hit.mean() < 1.0
+        np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+        np.testing.assert_array_equal(ao[~hit], 1.0)  # a miss is unoccluded in the job's AO
