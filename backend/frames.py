@@ -27,7 +27,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from backend import jobs, wire
+from backend import wire
 from backend.bundle import Bundle, read_bundle
 from backend.store import Store, bvh_key, bvh_nbytes
 
@@ -194,6 +194,8 @@ class FrameRenderer:
 
     def render(self, frame_number: int) -> FrameResult:
         """Render one frame (its meshes read from the bundle when first needed)."""
+        from backend import jobs  # which imports this module for scene_bvh
+
         frame = self.bundle.frame(frame_number)
         request = frame.request
         scene = resolve(frame.instances, self._mesh)

@@ -22,6 +22,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from backend.frames import scene_bvh
+
 log = logging.getLogger("scenesort.jobs")
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
@@ -430,13 +432,6 @@ def warm_up(device: str) -> None:
         kernels.render_ao(bvh, *rays, spp=1)
     except Exception:  # noqa: BLE001 - never stop the service over a warm-up
         log.exception("warm-up on %s failed", device)
-
-
-def scene_bvh(store: Any, scene: Any, method: str, leaf_size: int, device: str) -> Any:
-    """`backend.frames.scene_bvh` (imported here: frames imports this module)."""
-    from backend.frames import scene_bvh as make
-
-    return make(store, scene, method, leaf_size, device)
 
 
 def get_or_build_bvh(
