@@ -77,6 +77,7 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
     """The mesh's BVH: cached, else refit from the BVH of an earlier mesh of its topology
     (one that `in_use`, the meshes of the same frame, does not hold), else built."""
     import kernels
+    from kernels.bvh import refit_bvh
 
     key = bvh_key(mesh.scene_id, method, leaf_size)
     bvh = store.get(key)
@@ -89,13 +90,12 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
                      and bvh_key(d, method, leaf_size) in store), None)
     if donor_id is not None:
         donor = store.get(bvh_key(donor_id, method, leaf_size))
-        bvh = report.measure("refit", lambda: kernels.refit_bvh(donor, mesh.vertices))
-        if bvh is donor:  # refit in place: the donor's BVH and top levels are the new mesh's
-            _forget(store, donor_id, method, leaf_size)
-            donors.remove(donor_id)
-            report.refit.append(mesh.scene_id)
-        else:  # the engine's rule chose a rebuild (the refit tree would cost too much)
-            report.built.append(mesh.scene_id)
+        bvh = report.measure("refit", lambda: refit_bvh(donor, mesh.vertices))
+        # The refit works in place, also when the engine's rule then rebuilds (the refit
+        # tree would cost too much): the donor's BVH and its top levels are stale now.
+        _forget(store, donor_id, method, leaf_size)
+        donors.remove(donor_id)
+        (report.refit if bvh is donor else report.built).append(mesh.scene_id)
     else:
         bvh = report.measure("build", lambda: kernels.build_bvh(
             mesh.vertices, mesh.indices, method=method, leaf_size=leaf_size, device=device))
