@@ -537,6 +537,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if scene is None:
             try:
                 scene = resolve(listing, lambda mesh_id: _mesh_or_none(store, mesh_id))
+            except ValueError as exc:
+                raise ApiError(422, "body (mesh ids)", str(exc), "upload the mesh with one "
+                               "terminator offset repeated over its triangles",
+                               "invalid_parameter") from None
             except KeyError as exc:
                 k = listing.mesh_ids.index(exc.args[0])
                 raise ApiError(
