@@ -227,3 +227,20 @@ def test_a_deformed_scene_is_refit_and_renders_as_a_fresh_build(api) -> None:  #
     o, d, tmin, tmax = cam.rays()
     direct = kernels.render_ao(fresh, o, d, spp=4, seed=2, distance=0.5, tmin=tmin, tmax=tmax)
     np.testing.assert_array_equal(second["ao"], direct.ao)
+
+
+def test_varying_terminator_offsets_are_refused_in_an_instance_list(api) -> None:  # noqa: ANN001
+    """An instance has one terminator offset (Blender's is per object): a mesh whose
+    triangles carry different ones cannot be instanced, and the 422 says so."""
+    v, i = cube()
+    normals = np.tile(np.float32([0, 0, 1]), (len(i), 3, 1))
+    offsets = np.linspace(0.0, 0.5, len(i), dtype=np.float32)
+    body = scene_body(v, i) + normals.astype("<f4").tobytes() + offsets.astype("<f4").tobytes()
+    name = wire.scene_hash(len(v), len(i), body)
+    put = api.client.put(f"/v1/meshes/{name}", content=body, headers=OCTET, params={
+        "vertices": len(v), "triangles": len(i), "normals": "true",
+        "terminator_offsets": "true"})
+    assert put.status_code == 201, put.text
+    answer = post_instances(api, [name], [0], transforms((0, 0, 0)))
+    assert answer.status_code == 422 and answer.json()["parameter"] == "body (mesh ids)"
+    assert "terminator offsets" in answer.json()["detail"]
