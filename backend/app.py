@@ -596,6 +596,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         time in the service (including the statistics the engine computes after it)."""
         t0 = time.perf_counter()
         scene = _scene_or_404(store, scene_id)
+        if isinstance(scene, wire.InstanceScene):
+            raise ApiError(
+                422, "scene_id",
+                f"scene {scene_id} is an instance list: its two levels are built by the jobs "
+                "and AO requests that render it",
+                "render it (POST /v1/jobs); the job status's build says what was built",
+                "instance_list",
+            )
         started: list[float] = []
         signal = deadline()
 

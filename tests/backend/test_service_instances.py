@@ -244,3 +244,28 @@ def test_varying_terminator_offsets_are_refused_in_an_instance_list(api) -> None
     answer = post_instances(api, [name], [0], transforms((0, 0, 0)))
     assert answer.status_code == 422 and answer.json()["parameter"] == "body (mesh ids)"
     assert "terminator offsets" in answer.json()["detail"]
+
+
+def test_ao_on_an_instance_list_is_the_flattened_scenes(api, meshes) -> None:  # noqa: ANN001
+    """POST .../ao on an instance list gives the flattened triangles' AO, bit for bit (same
+    rays and samples), and its BVH route says that jobs build its levels."""
+    from conftest import rays_towards_floor
+
+    import kernels
+
+    placed = transforms((0.0, 0.0, 0.0), (0.4, 0.3, -0.2))
+    placed[1, :, :3] = np.diag([-0.5, 0.7, 0.5])  # mirrored, non-uniform
+    scene_id = post_instances(api, [meshes["floor"], meshes["cube"]], [0, 1], placed)
+    scene_id = scene_id.json()["scene_id"]
+    o, d = rays_towards_floor(300, seed=4)
+    answer = api.ao(scene_id, o, d, spp=8, seed=3, distance=0.5)
+    assert answer.status_code == 200, answer.text
+    (fv, fi), (cv, ci) = floor_and_box(), cube()
+    world = cv.astype(np.float64) @ placed[1, :, :3].T.astype(np.float64) + placed[1, :, 3]
+    vertices = np.concatenate([fv, world.astype(np.float32)])
+    indices = np.concatenate([fi, ci[:, ::-1] + len(fv)])  # the mirror flips the winding
+    direct = kernels.ambient_occlusion(kernels.build_bvh(vertices, indices), o, d, spp=8,
+                                       seed=3, distance=0.5)
+    np.testing.assert_array_equal(np.frombuffer(answer.content, "<f4"), direct)
+    refused = api.client.post(f"/v1/scenes/{scene_id}/bvh", json={})
+    assert refused.status_code == 422 and refused.json()["parameter"] == "scene_id"
