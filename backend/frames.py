@@ -73,9 +73,11 @@ TOPOLOGY_DONORS = 8  # meshes remembered per topology as refit donors, newest la
 
 
 def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, device: str,
-             report: BuildReport, in_use: frozenset[str] = frozenset()) -> Any:
+             report: BuildReport, in_use: frozenset[str] | None = None) -> Any:
     """The mesh's BVH: cached, else refit from the BVH of an earlier mesh of its topology
-    (one that `in_use`, the meshes of the same frame, does not hold), else built."""
+    (one that `in_use`, the meshes of the same instance list, does not hold), else built.
+    `in_use` None: a single-mesh scene, built as the single-mesh API always has (with the
+    statistics of a fresh build), and never a refit's donor."""
     import kernels
 
     key = bvh_key(mesh.scene_id, method, leaf_size)
@@ -84,9 +86,11 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
         report.reused.append(mesh.scene_id)
         return bvh
     topo = topology_key(mesh.topology, method, leaf_size)
-    donors = [d for d in store.get(topo) or [] if d != mesh.scene_id]
-    donor_id = next((d for d in reversed(donors) if d not in in_use
-                     and bvh_key(d, method, leaf_size) in store), None)
+    donors, donor_id = [], None
+    if in_use is not None:
+        donors = [d for d in store.get(topo) or [] if d != mesh.scene_id]
+        donor_id = next((d for d in reversed(donors) if d not in in_use
+                         and bvh_key(d, method, leaf_size) in store), None)
     if donor_id is not None:
         donor = store.get(bvh_key(donor_id, method, leaf_size))
         bvh = report.measure("refit", lambda: kernels.refit_bvh(donor, mesh.vertices))
@@ -100,7 +104,8 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
             mesh.vertices, mesh.indices, method=method, leaf_size=leaf_size, device=device))
         report.built.append(mesh.scene_id)
     store.put(key, bvh, bvh_nbytes(bvh))
-    store.put(topo, [*donors, mesh.scene_id][-TOPOLOGY_DONORS:], 64 * TOPOLOGY_DONORS)
+    if in_use is not None:
+        store.put(topo, [*donors, mesh.scene_id][-TOPOLOGY_DONORS:], 64 * TOPOLOGY_DONORS)
     return bvh
 
 
@@ -118,9 +123,8 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     single mesh's BVH, or an instance list's two levels (the top level over the meshes'
     BVHs, each from `mesh_bvh`). An instance list is kept in the store with its top level,
     which lives no longer than it (store.py drops a scene's BVHs with it)."""
-    from kernels.scene import bvh_nbytes as mesh_bytes
-
     import kernels
+    from kernels.scene import bvh_nbytes as mesh_bytes
 
     report = BuildReport()
     if isinstance(scene, wire.SceneArrays):
