@@ -41,7 +41,7 @@ from kernels.scene import bvh_nbytes  # noqa: E402
 REFIT_FLOOR = 0.3  # refit time / rebuild time, at most
 MEMORY_FLOOR = 1.1  # scene bytes / (one bunny + top level), at most
 TRACE_FLOOR = 0.7  # two-level trace speed / flattened, at least
-WAVES = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4)  # deformation amplitudes, of the box diagonal
+WAVES = (0.0, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)  # deformation amplitudes, of the box diagonal
 
 
 def median_ms(fn, repeat: int) -> float:
@@ -51,6 +51,15 @@ def median_ms(fn, repeat: int) -> float:
         fn()
         times.append((time.perf_counter() - t0) * 1e3)
     return float(np.median(times))
+
+
+def time_ratio(run, a, b, repeat: int) -> float:
+    """Median over `repeat` interleaved pairs of run(a)'s time over run(b)'s, after a
+    warm-up of each."""
+    run(a)
+    run(b)
+    return float(np.median([median_ms(lambda: run(a), 1) / median_ms(lambda: run(b), 1)
+                            for _ in range(repeat)]))
 
 
 def load() -> str:
@@ -99,14 +108,21 @@ def part_refit(args) -> tuple[list[str], dict]:
         refit_tree = kernels.build_bvh(v, f)
         refit_tree = kernels.refit_bvh(refit_tree, frame, rebuild_ratio=np.inf)
         fresh = kernels.build_bvh(frame, f)
-        kernels.trace(fresh, o, d, tmin, tmax)
-        tr = median_ms(lambda t=refit_tree: kernels.trace(t, o, d, tmin, tmax), args.repeat)
-        tf = median_ms(lambda t=fresh: kernels.trace(t, o, d, tmin, tmax), args.repeat)
-        rows.append({"amount": amount, "sah_ratio": refit_tree.stats["sah_ratio"],
-                     "fresh_ratio": fresh.stats["sah_cost"] / refit_tree.stats["build_sah_cost"],
-                     "trace_ratio": tr / tf})
-        print(f"  wave {amount:5.2f}: SAH refit/built {rows[-1]['sah_ratio']:.3f}, fresh/built "
-              f"{rows[-1]['fresh_ratio']:.3f}, trace refit/fresh {tr / tf:.3f}")
+        dist = default_distance(fresh)
+
+        def trace_rays(t):
+            kernels.trace(t, o, d, tmin, tmax)
+
+        def render(t, dist=dist):
+            kernels.render_ao(t, o, d, 4, dist, tmin=tmin, tmax=tmax)
+
+        row = {"amount": amount, "sah_ratio": refit_tree.stats["sah_ratio"],
+               "fresh_ratio": fresh.stats["sah_cost"] / refit_tree.stats["build_sah_cost"],
+               "trace": time_ratio(trace_rays, refit_tree, fresh, args.repeat),
+               "ao": time_ratio(render, refit_tree, fresh, args.repeat)}
+        rows.append(row)
+        print(f"  wave {amount:5.2f}: SAH refit/built {row['sah_ratio']:.3f}, fresh/built "
+              f"{row['fresh_ratio']:.3f}, refit/fresh trace {row['trace']:.3f} AO {row['ao']:.3f}")
     ratio = refit_ms / rebuild_ms
     lines = [
         f"Run: `{args.command}`, load average {load()} on {cpu_cores()} cores (shared with "
@@ -125,13 +141,15 @@ def part_refit(args) -> tuple[list[str], dict]:
         f"{'met' if ratio <= REFIT_FLOOR else 'NOT met'}) |",
         "",
         f"The rebuild rule's measurement (`REBUILD_RATIO` = {kernels.REBUILD_RATIO}): waves of "
-        f"growing amplitude; closest-hit camera rays ({len(o):,}) through the refit tree "
-        "against a fresh build of the deformed mesh.",
+        f"growing amplitude; time of closest-hit camera rays ({len(o):,}) and of a 4-spp AO "
+        "render of them through the refit tree over a fresh build's of the deformed mesh "
+        f"(medians of {args.repeat} interleaved ratios).",
         "",
-        "| wave (x diagonal) | SAH refit / built | SAH fresh / built | trace refit / fresh |",
-        "|---:|---:|---:|---:|",
+        "| wave (x diagonal) | SAH refit / built | SAH fresh / built | trace refit / fresh | "
+        "AO refit / fresh |",
+        "|---:|---:|---:|---:|---:|",
         *(f"| {r['amount']:.2f} | {r['sah_ratio']:.3f} | {r['fresh_ratio']:.3f} | "
-          f"{r['trace_ratio']:.3f} |" for r in rows),
+          f"{r['trace']:.3f} | {r['ao']:.3f} |" for r in rows),
     ]
     return lines, {"refit_ratio": ratio}
 
