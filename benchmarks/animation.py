@@ -70,12 +70,20 @@ def median_ms(fn, repeat: int) -> float:
     return float(np.median(times))
 
 
+def cpu_ms(fn) -> float:
+    """The process's CPU time of fn() (every host thread's): on a machine shared with other
+    work the steadiest measure of work done (another process's load does not count)."""
+    t0 = time.process_time()
+    fn()
+    return (time.process_time() - t0) * 1e3
+
+
 def time_ratio(run, a, b, repeat: int) -> float:
-    """Median over `repeat` interleaved pairs of run(a)'s time over run(b)'s, after a
+    """Median over `repeat` interleaved pairs of run(a)'s CPU time over run(b)'s, after a
     warm-up of each."""
     run(a)
     run(b)
-    return float(np.median([median_ms(lambda: run(a), 1) / median_ms(lambda: run(b), 1)
+    return float(np.median([cpu_ms(lambda: run(a)) / cpu_ms(lambda: run(b))
                             for _ in range(repeat)]))
 
 
@@ -158,9 +166,10 @@ def part_refit(args) -> tuple[list[str], dict]:
         f"{'met' if ratio <= REFIT_FLOOR else 'NOT met'}) |",
         "",
         f"The rebuild rule's measurement (`REBUILD_RATIO` = {kernels.REBUILD_RATIO}): waves of "
-        f"growing amplitude; time of closest-hit camera rays ({len(o):,}) and of a 4-spp AO "
-        "render of them through the refit tree over a fresh build's of the deformed mesh "
-        f"(medians of {args.repeat} interleaved ratios).",
+        f"growing amplitude; CPU time (both host threads; steadier than wall time under "
+        f"load) of closest-hit camera rays ({len(o):,}) and of a 4-spp AO render of them "
+        "through the refit tree over a fresh build's of the deformed mesh (medians of "
+        f"{args.repeat} interleaved ratios).",
         "",
         "| wave (x diagonal) | SAH refit / built | SAH fresh / built | trace refit / fresh | "
         "AO refit / fresh |",

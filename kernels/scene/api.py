@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ..bvh.api import Bvh, build_over_boxes, empty_bounds
+from ..bvh.api import METHODS, Bvh, build_over_boxes, empty_bounds
 from ..bvh.api import trace as trace_bvh
 from ..bvh.node import empty_root
 from ..bvh.traversal import STACK_SIZE
@@ -136,6 +136,8 @@ def build_scene(meshes: Sequence[Bvh], mesh_ids, transforms, *,
     instances left out of the top level (their indices stay those of the full list)."""
     if not meshes:
         raise ValueError("meshes must hold at least one Bvh (build_bvh of each mesh)")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {sorted(METHODS)}, got {method!r}")
     device = meshes[0].device
     if any(b.device != device for b in meshes):
         raise ValueError("every mesh's Bvh must be on the same device")

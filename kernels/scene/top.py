@@ -55,7 +55,7 @@ class MeshRecord:
 
 @wp.struct
 class InstanceRecord:
-    """One instance: its mesh and transform, float64 (240 bytes: 3 mat33d, 1 vec3d, 2 int)."""
+    """One instance: its mesh and transform, float64 (248 bytes: 3 mat33d, 1 vec3d, 2 int)."""
 
     lin: wp.mat33d  # M, object to world (the caller's float32 values)
     inv: wp.mat33d  # A = M^-1

@@ -237,6 +237,8 @@ def test_bad_input_names_the_field():
         kernels.build_scene([bvh], [0], np.eye(4, dtype=np.float32)[None])
     with pytest.raises(ValueError, match="NaN"):
         kernels.build_scene([bvh], [0], eye * np.nan)
+    with pytest.raises(ValueError, match="method must be one of"):
+        kernels.build_scene([bvh], [0], eye, method="lbvh")
     with pytest.raises(ValueError, match="at least one"):
         kernels.build_scene([], [], np.zeros((0, 3, 4), np.float32))
     scene = kernels.build_scene([bvh], [0], eye)
