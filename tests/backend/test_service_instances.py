@@ -7,6 +7,7 @@ from __future__ import annotations
 import httpx
 import numpy as np
 import pytest
+from bundles import instance_body, mesh_id
 from conftest import OCTET, floor_and_box, scene_body
 
 from backend import wire
@@ -21,20 +22,11 @@ def cube() -> tuple[np.ndarray, np.ndarray]:
     return v, np.array(f, np.int32)
 
 
-def mesh_id(vertices: np.ndarray, indices: np.ndarray) -> str:
-    return wire.scene_hash(len(vertices), len(indices), scene_body(vertices, indices))
-
-
 def put_mesh(api, vertices, indices, name: str | None = None, **params) -> httpx.Response:  # noqa: ANN001
     return api.client.put(
         f"/v1/meshes/{name or mesh_id(vertices, indices)}",
         params={"vertices": len(vertices), "triangles": len(indices), **params},
         content=scene_body(vertices, indices), headers=OCTET)
-
-
-def instance_body(ids: list[str], mesh_index: list[int], transforms: np.ndarray) -> bytes:
-    return ("".join(ids).encode() + np.asarray(mesh_index, "<i4").tobytes()
-            + np.asarray(transforms, "<f4").tobytes())
 
 
 def post_instances(api, ids, mesh_index, transforms, **params) -> httpx.Response:  # noqa: ANN001
