@@ -8,7 +8,7 @@ import httpx
 import numpy as np
 import pytest
 from bundles import instance_body, mesh_id
-from conftest import OCTET, floor_and_box, scene_body
+from conftest import OCTET, floor_and_box, rays_towards_floor, scene_body
 
 from backend import wire
 
@@ -267,3 +267,44 @@ def test_ao_on_an_instance_list_is_the_flattened_scenes(api, meshes) -> None:  #
     np.testing.assert_array_equal(np.frombuffer(answer.content, "<f4"), direct)
     refused = api.client.post(f"/v1/scenes/{scene_id}/bvh", json={})
     assert refused.status_code == 422 and refused.json()["parameter"] == "scene_id"
+
+
+@pytest.mark.parametrize("mirrored", [False, True])
+def test_smooth_meshes_shade_as_their_flattened_triangles(api, mirrored) -> None:  # noqa: ANN001
+    """Object-space corner normals of a mesh in an instance list (a rotated, stretched and,
+    or not, mirrored instance; a terminator offset) shade as the flattened scene with
+    world-space normals (the inverse transpose; a mirror reverses the winding and the
+    corners, as addon/export.py flattens) does, bit for bit."""
+    import kernels
+
+    v, i = floor_and_box(4)
+    normals = (v[i] + np.float32([0.0, 0.5, 0.0]))  # smooth, pointing away from below
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    offsets = np.full(len(i), 0.3, np.float32)
+    body = (scene_body(v, i) + normals.astype("<f4").tobytes()
+            + offsets.astype("<f4").tobytes())
+    name = wire.scene_hash(len(v), len(i), body)
+    put = api.client.put(f"/v1/meshes/{name}", content=body, headers=OCTET, params={
+        "vertices": len(v), "triangles": len(i), "normals": "true",
+        "terminator_offsets": "true"})
+    assert put.status_code in (200, 201), put.text
+    c, s = np.cos(0.4), np.sin(0.4)
+    placed = transforms((0.0, 0.0, 0.0), (0.3, 0.1, 0.2))
+    stretch = np.diag([-0.6 if mirrored else 0.6, 0.4, 0.5])
+    placed[1, :, :3] = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]) @ stretch
+    listing = post_instances(api, [name], [0, 0], placed).json()["scene_id"]
+    o, d = rays_towards_floor(400, seed=6)
+    answer = api.ao(listing, o, d, spp=8, seed=5, distance=0.4)
+    assert answer.status_code == 200, answer.text
+    world_v, world_i, world_n = [], [], []
+    for k, m in enumerate(placed.astype(np.float64)):
+        world_v.append((v @ m[:, :3].T + m[:, 3]).astype(np.float32))
+        n = normals.astype(np.float64) @ np.linalg.inv(m[:, :3])  # rows: (M^-T n)^T
+        n /= np.linalg.norm(n, axis=-1, keepdims=True)
+        flip = np.linalg.det(m[:, :3]) < 0
+        world_i.append((i[:, ::-1] if flip else i) + k * len(v))
+        world_n.append((n[:, ::-1] if flip else n).astype(np.float32))
+    bvh = kernels.build_bvh(np.concatenate(world_v), np.concatenate(world_i))
+    direct = kernels.ambient_occlusion(bvh, o, d, spp=8, seed=5, distance=0.4,
+                                       normals=np.concatenate(world_n), terminator_offset=0.3)
+    np.testing.assert_array_equal(np.frombuffer(answer.content, "<f4"), direct)
