@@ -2,7 +2,7 @@
 scene, with the issue's floors.
 
     python benchmarks/animation.py [--part refit|instances|frames|all] [--repeat 3] [--no-docs]
-        [--subdivide 2] [--instances 1000] [--flat-instances 64] [--size 384]
+        [--subdivide 2] [--instances 1000] [--flat-instances 256] [--size 384]
         [--frames 100] [--frame-instances 200] [--frame-triangles 6000] [--frame-size 64]
         [--flat-every 5]
 
@@ -13,8 +13,9 @@ refit: the bunny subdivided `--subdivide` times (4x triangles each: 2 -> 1.1 M) 
   trace time (camera rays, closest hit) against a fresh build's.
 instances: `--instances` bunnies (rotated, scaled, on a grid): the scene's device bytes
   against one bunny's plus the top level's; trace speed (camera rays closest hit, and AO)
-  of the two-level scene against the flattened one at `--flat-instances` (flattening 1,000
-  bunnies, 69 M triangles, does not fit this machine's memory beside the others' work).
+  of the two-level scene against the flattened one at `--flat-instances` (256 by default:
+  flattening 1,000 bunnies, 69 M triangles, does not fit this machine's memory beside the
+  others' work; 512 was not tried, to leave the others room).
 frames: `--frames` frames of one deforming bunny (full resolution) among
   `--frame-instances` instances of the bunny, dragon and buddha (vertex-clustered to about
   `--frame-triangles` triangles each) and an orbiting camera, through a real `scenesort
@@ -282,8 +283,9 @@ def part_instances(args) -> tuple[list[str], dict]:
         f"of {args.repeat} interleaved runs: the two-level scene against the flattened one "
         f"at {n_flat} instances (flattening {args.instances:,} bunnies, "
         f"{args.instances * len(f) / 1e6:.0f} M triangles, needs about "
-        f"{args.instances * flat_bytes_per_bunny / 2**30:.0f} GiB: more than this machine "
-        "spares), and the two-level scene alone at the full count.",
+        f"{args.instances * flat_bytes_per_bunny / 2**30:.0f} GiB for its BVH and mesh alone "
+        "and about twice that while it is built: more than this 23 GB machine spares beside "
+        "the other work), and the two-level scene alone at the full count.",
         "",
         "| instances | closest hit ms (two-level / flat) | AO 4 spp ms (two-level / flat) | "
         "speed two-level / flat |",
@@ -525,7 +527,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--subdivide", type=int, default=2)
     parser.add_argument("--instances", type=int, default=1000)
-    parser.add_argument("--flat-instances", type=int, default=64)
+    parser.add_argument("--flat-instances", type=int, default=256)
     parser.add_argument("--size", type=int, default=384, help="image width (height 3/4)")
     parser.add_argument("--frames", type=int, default=100, help="frames: frames timed")
     parser.add_argument("--frame-instances", type=int, default=200,

@@ -39,8 +39,8 @@ wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
 # The refit tree's SAH cost over the last build's above which `refit_bvh` rebuilds: between
 # the measured ratios where the refit tree's trace and AO time were within the measurement's
-# noise of a fresh build's (1.21: 1.01-1.09x; identical trees 1.03-1.08x) and ~15% above it
-# (1.64: 1.07-1.19x), 1.1 M triangles (benchmarks/animation.py --part refit; docs/
+# noise of a fresh build's (1.21: 1.01-1.09x; identical trees 0.98-1.08x) and ~15-25% above
+# it (1.64: 1.07-1.26x), 1.1 M triangles (benchmarks/animation.py --part refit; docs/
 # architecture.md, "Refit").
 REBUILD_RATIO = 1.5
 

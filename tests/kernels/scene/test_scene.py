@@ -261,3 +261,18 @@ def test_empty_scene_and_culled_instances_miss():
     hidden = kernels.build_scene([kernels.build_bvh(v, f)], [0],
                                  np.eye(3, 4, dtype=np.float32)[None], visible=np.array([False]))
     assert not kernels.trace(hidden, o, o * -1).hit.any()
+
+
+def test_scene_results_do_not_depend_on_host_threads():
+    """Trace and AO of a scene split between host threads equal one thread's, bit for bit."""
+    rng = np.random.default_rng(6)
+    v, f = torus()
+    ts = instance_set(rng)[:4]
+    scene = kernels.build_scene([kernels.build_bvh(v, f)], np.zeros(4, np.int32), ts)
+    o, d = rays_at(flatten([((v, f), t) for t in ts])[0], rng, 20000, 0.5)
+    a, b = kernels.trace(scene, o, d, threads=1), kernels.trace(scene, o, d, threads=2)
+    for name in ("t", "triangle", "u", "v", "instance"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+    ra = kernels.render_ao(scene, o, d, 4, 0.5, threads=1)
+    rb = kernels.render_ao(scene, o, d, 4, 0.5, threads=2)
+    assert np.array_equal(ra.ao, rb.ao)
