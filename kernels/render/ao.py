@@ -83,6 +83,7 @@ from ..core.mesh import DeviceMesh, Shading, triangle_corners
 from ..core.ray import make_ray
 from ..core.validate import as_rays, ray_range
 from ..dacrt.api import dacrt_trace_mesh, dacrt_warp_modules
+from .denoise import denoise_ao, require_denoiser
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -116,18 +117,23 @@ class AoResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion, rounds
     # Estimated RMSE over hit pixels against the converged AO (see the module docstring);
-    # None when no ray hit.
+    # None when no ray hit. Always the raw render's, also when `denoised`.
     rmse_estimate: float | None = None
+    # (R, 3) float32 unit shading normal of each primary hit (0 where the ray missed)
+    normals: np.ndarray | None = None
+    denoised: bool = False  # `ao` is OIDN's output (render_ao(denoise=True))
+    raw_ao: np.ndarray | None = None  # (R,) the render before denoising, when denoised
 
     def stats(self) -> dict[str, float | int | None]:
-        """What the render achieved: estimated RMSE, mean and largest spp over hit
-        pixels, rays traced (primary and occlusion)."""
+        """What the render achieved: estimated RMSE (of the raw render), mean and largest
+        spp over hit pixels, rays traced (primary and occlusion), whether it was denoised."""
         hit = self.spp_used[self.spp_used > 0]
         return {
             "rmse_estimate": self.rmse_estimate,
             "spp_mean": float(hit.mean()) if len(hit) else 0.0,
             "spp_max": int(hit.max()) if len(hit) else 0,
             "rays": int(self.rays.get("primary", 0) + self.rays.get("occlusion", 0)),
+            "denoised": self.denoised,
         }
 
 
@@ -536,6 +542,8 @@ def render_ao(
     normals: np.ndarray | None = None,
     terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
     progress: Progress | None = None,
+    denoise: bool = False,
+    image_shape: tuple[int, int] | None = None,
 ) -> AoResult:
     """AO per primary ray (see the module docstring for the definition and guarantees).
 
@@ -558,6 +566,10 @@ def render_ao(
     use it. Both arrays are read once per set of objects and taken as read-only.
     `progress(fraction, phase)` is called between rounds; an exception it raises cancels
     the render.
+    `denoise=True` (needs the `scenesort[denoise]` extra, checked before tracing) runs
+    OIDN on the image (`denoise.denoise_ao`): the rays must be a row-major `image_shape` =
+    (height, width) image. `ao` is then the denoised image, `raw_ao` the render's own;
+    `rmse_estimate` stays the raw render's (nothing measures the denoised error here).
     """
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
@@ -569,6 +581,11 @@ def render_ao(
     _check_args(spp, distance, seed,
                 {"target_error": target_error, "max_pixel_error": max_pixel_error},
                 (min_spp, int(max_spp)))
+    if denoise:
+        require_denoiser()
+        if image_shape is None or int(np.prod(image_shape)) != len(origins):
+            raise ValueError(f"denoise=True needs image_shape=(height, width) with height * "
+                             f"width = the number of rays ({len(origins)}), got {image_shape!r}")
     sampler_id = _sampler(sampler)
     origins, directions = as_rays(origins, directions)
     scene_mesh(bvh).shading(normals, terminator_offset)  # checked (and kept) before tracing
@@ -649,9 +666,16 @@ def render_ao(
 
     ao = np.ones(r, dtype=np.float32)
     spp_used = np.zeros(r, dtype=np.int32)
+    normals_out = np.zeros((r, 3), dtype=np.float32)
     if h:
         ao[hits.pixels] = (counts.open / counts.done).astype(np.float32)
         spp_used[hits.pixels] = counts.done.astype(np.int32)
+        normals_out[hits.pixels] = hits.surfaces.numpy()["n"]
+    raw_ao = None
+    if denoise:
+        t0 = time.perf_counter()
+        raw_ao, ao = ao, denoise_ao(ao, normals_out, spp_used > 0, image_shape)
+        timings["denoise"] = (time.perf_counter() - t0) * 1e3
     timings["total"] = (time.perf_counter() - t_start) * 1e3
     report(1.0, "done")
     return AoResult(
@@ -660,6 +684,9 @@ def render_ao(
         timings_ms=timings,
         rays={"primary": hits.traced, "occlusion": int(counts.done.sum()), "rounds": rounds},
         rmse_estimate=math.sqrt(counts.mse()) if h else None,
+        normals=normals_out,
+        denoised=denoise,
+        raw_ao=raw_ao,
     )
 
 
