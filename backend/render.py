@@ -165,7 +165,9 @@ def run(args: argparse.Namespace) -> int:
         _check(args)
         return _render(args, console)
     except ValueError as exc:
-        console.print(f"[red]error:[/red] {exc}")
+        from rich.markup import escape
+
+        console.print(f"[red]error:[/red] {escape(str(exc))}")  # "[denoise]" is no markup
         return 2
 
 
