@@ -45,9 +45,11 @@ Adaptive sampling, two stopping rules (issue 19), which may be combined:
   minimum spp (in two halves, so that the sampler's rate is measured before the first
   decision), then each round doubles the pixels below their Neyman count, those with
   the largest sigma_i^2 / n_i^2 (the variance each new ray removes) first, until the
-  doubled set is predicted to remove DROP_SHORT of what is left above the aim; sigma_i^2
-  is the Jeffreys-smoothed variance below, so that a pixel whose few samples agreed
-  still earns more.
+  doubled set is predicted to remove DROP_SHORT of what is left above the aim (all of
+  it, with at least MIN_ROUND of the rays so far, when that round would be smaller; every
+  pixel when it would take FULL_ROUND of the rays left: a round's fixed cost is worth
+  more than a small overshoot); sigma_i^2 is the Jeffreys-smoothed variance below, so
+  that a pixel whose few samples agreed still earns more.
 - `max_pixel_error` bounds every pixel (the rule `target_error` had before issue 19):
   pixels whose 95% half-width z * sqrt(spread * s^2 / n) is still >= it double their
   samples (`half_width`; spread as below).
@@ -98,6 +100,8 @@ RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's mar
 # variance O(n^(-1 - 1/d)) = n^-1.5 (He and Wang 2015), so doubling keeps >= 2^-1.5 of it
 RHO_MIN = 2.0**-1.5
 DROP_SHORT = 0.8  # target_error: a round aims at this fraction of the MSE still to go
+FULL_ROUND = 0.75  # target_error: a round with this fraction of the rays left doubles all
+MIN_ROUND = 1.0 / 32.0  # target_error: fewest rays in a round, as a fraction of those so far
 DEFAULT_MAX_SPP = 1024
 EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
 EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in a round
@@ -784,24 +788,38 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
         # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
         drop = contribution * (1.0 - counts.rho_at(n))
         need = (contribution.mean() - aim**2) * len(n) - drop[want].sum()
-        if need > 0.0:
+        if need > 0.0 and np.any(room & ~want):
             sigma = np.sqrt(eff * smoothed_variance(k, n))
             neyman = sigma * sigma.sum() / (len(n) * aim**2)
             gain = sigma**2 / n**2  # variance removed per ray by doubling
-            free = room & ~want
-            for part in (free & (neyman > math.sqrt(2.0) * n), free):
-                order = np.flatnonzero(part)
-                order = order[np.argsort(-gain[order], kind="stable")]
-                # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
-                # often falls faster than the last measured rho says, and an overshoot
-                # cannot be undone, while a shortfall costs one more small round
-                enough = np.cumsum(drop[order]) >= DROP_SHORT * need
-                take = order[: int(np.argmax(enough)) + 1] if enough.any() else order
-                want[take] = True
-                need -= drop[take].sum()
-                if need <= 0.0:
-                    break
+            order = np.flatnonzero(room & ~want)
+            order = order[np.argsort(-gain[order], kind="stable")]
+            under = neyman[order] > math.sqrt(2.0) * n[order]
+            order = np.concatenate([order[under], order[~under]])  # below Neyman first
+            dropped = np.cumsum(drop[order])
+            rays = np.cumsum(n[order])  # doubling a pixel traces as many rays as it has
+            # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
+            # often falls faster than the last measured rho says, and an overshoot cannot
+            # be undone, while a shortfall costs one more round. Unless that round would be
+            # small: then it aims at the whole need and traces at least MIN_ROUND of the
+            # rays so far, as a round's fixed cost (launches, this allocation over every
+            # hit pixel) outweighs a small overshoot (issue 19: tails of 1-19 pixels)
+            end = _first(dropped >= DROP_SHORT * need)
+            floor = MIN_ROUND * float(n.sum())
+            if rays[min(end, len(rays) - 1)] < floor:
+                end = max(_first(dropped >= need), _first(rays >= floor))
+            want[order[: end + 1]] = True
+            # a round that would double most of the image doubles all of it: the pixels
+            # left out would be the next round's (their own fixed cost), and one launch
+            # over every pixel in order keeps neighbouring rays together
+            if rays[end] >= FULL_ROUND * rays[-1]:
+                want[order] = True
     return np.flatnonzero(want)
+
+
+def _first(condition: np.ndarray) -> int:
+    """Index of the first True (the last index when there is none)."""
+    return int(np.argmax(condition)) if condition.any() else len(condition) - 1
 
 
 def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
