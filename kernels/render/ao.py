@@ -47,7 +47,8 @@ Adaptive sampling, two stopping rules (issue 19), which may be combined:
   the largest sigma_i^2 / n_i^2 (the variance each new ray removes) first, until the
   doubled set is predicted to remove DROP_SHORT of what is left above the aim (all of
   it, with at least MIN_ROUND of the rays so far, when that round would be smaller; every
-  pixel when it would take FULL_ROUND of the rays left: a round's fixed cost is worth
+  pixel when it would take FULL_ROUND of the rays left, unless even the fastest Sobol
+  rate could then take it below FULL_ROUND_AIM of the aim: a round's fixed cost is worth
   more than a small overshoot); sigma_i^2 is the Jeffreys-smoothed variance below, so
   that a pixel whose few samples agreed still earns more.
 - `max_pixel_error` bounds every pixel (the rule `target_error` had before issue 19):
@@ -100,7 +101,8 @@ RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's mar
 # variance O(n^(-1 - 1/d)) = n^-1.5 (He and Wang 2015), so doubling keeps >= 2^-1.5 of it
 RHO_MIN = 2.0**-1.5
 DROP_SHORT = 0.8  # target_error: a round aims at this fraction of the MSE still to go
-FULL_ROUND = 0.75  # target_error: a round with this fraction of the rays left doubles all
+FULL_ROUND = 0.5  # target_error: a round with this fraction of the rays left doubles all,
+FULL_ROUND_AIM = 0.9  # if that is predicted to stay above this fraction of the aim
 MIN_ROUND = 1.0 / 32.0  # target_error: fewest rays in a round, as a fraction of those so far
 DEFAULT_MAX_SPP = 1024
 EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
@@ -809,10 +811,13 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
             if rays[min(end, len(rays) - 1)] < floor:
                 end = max(_first(dropped >= need), _first(rays >= floor))
             want[order[: end + 1]] = True
-            # a round that would double most of the image doubles all of it: the pixels
-            # left out would be the next round's (their own fixed cost), and one launch
-            # over every pixel in order keeps neighbouring rays together
-            if rays[end] >= FULL_ROUND * rays[-1]:
+            # a round that would double most of the image doubles all of it (the pixels
+            # left out would be the next round's, with its own fixed cost), unless that
+            # could land below FULL_ROUND_AIM of the aim (the calibration band) if the
+            # variance fell as fast as Sobol's can (RHO_MIN), not as fast as measured
+            fastest = contribution.sum() - (1.0 - RHO_MIN) * contribution[room].sum()
+            if (rays[end] >= FULL_ROUND * rays[-1]
+                    and fastest >= (FULL_ROUND_AIM * aim) ** 2 * len(n)):
                 want[order] = True
     return np.flatnonzero(want)
 
