@@ -46,11 +46,12 @@ Adaptive sampling, two stopping rules (issue 19), which may be combined:
   decision), then each round doubles the pixels below their Neyman count, those with
   the largest sigma_i^2 / n_i^2 (the variance each new ray removes) first, until the
   doubled set is predicted to remove DROP_SHORT of what is left above the aim (all of
-  it, with at least MIN_ROUND of the rays so far, when that round would be smaller; every
-  pixel when it would take FULL_ROUND of the rays left, unless even the fastest Sobol
-  rate could then take it below FULL_ROUND_AIM of the aim: a round's fixed cost is worth
-  more than a small overshoot); sigma_i^2 is the Jeffreys-smoothed variance below, so
-  that a pixel whose few samples agreed still earns more.
+  it, with at least MIN_ROUND of the rays so far, when that round would trace less than
+  TAIL_ROUND of them; every pixel when it would take FULL_ROUND of the rays left, unless
+  even the fastest Sobol rate could then take it below FULL_ROUND_AIM of the aim: a
+  round's fixed cost is worth more than a small overshoot); sigma_i^2 is the
+  Jeffreys-smoothed variance below, so that a pixel whose few samples agreed still earns
+  more.
 - `max_pixel_error` bounds every pixel (the rule `target_error` had before issue 19):
   pixels whose 95% half-width z * sqrt(spread * s^2 / n) is still >= it double their
   samples (`half_width`; spread as below).
@@ -103,6 +104,7 @@ RHO_MIN = 2.0**-1.5
 DROP_SHORT = 0.8  # target_error: a round aims at this fraction of the MSE still to go
 FULL_ROUND = 0.5  # target_error: a round with this fraction of the rays left doubles all,
 FULL_ROUND_AIM = 0.9  # if that is predicted to stay above this fraction of the aim
+TAIL_ROUND = 0.25  # target_error: a round below this fraction of the rays so far aims at all
 MIN_ROUND = 1.0 / 32.0  # target_error: fewest rays in a round, as a fraction of those so far
 DEFAULT_MAX_SPP = 1024
 EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
@@ -636,6 +638,7 @@ def render_ao(
         counts.before[select] = open_mid
         counts.open[select] += opened
         counts.done[select] += count
+        counts.changed()
 
     if not adaptive:
         count = max(1, min(min_spp, ROUND_RAYS // max(h, 1)))
@@ -711,6 +714,7 @@ class _Counts:
     # pooled, so a small late group does not overwrite what thousands of pixels measured)
     sums: dict[int, np.ndarray] = field(default_factory=dict)
     sums_before: dict[int, np.ndarray] = field(default_factory=dict)
+    cached: np.ndarray | None = None  # `contribution` since the last `changed()`
 
     def measure(self, n: int, mid: int, open_mid: np.ndarray, open_end: np.ndarray,
                 open_before: np.ndarray | None) -> None:
@@ -764,10 +768,22 @@ class _Counts:
         values = np.array([0.5] + [self.rho[m] for m in known])
         return values[np.searchsorted(np.array(known, dtype=np.int64), 2 * n, side="right")]
 
+    def contribution(self) -> np.ndarray:
+        """Each hit pixel's estimated squared error, efficiency * s^2 / n (kept until the
+        next `changed()`: the progress report, the allocation and the result ask for it
+        between two rounds, each a pass over every hit pixel)."""
+        if self.cached is None:
+            eff = self.efficiency_at(self.done)
+            self.cached = eff * posterior_variance(self.open, self.done, eff) / self.done
+        return self.cached
+
+    def changed(self) -> None:
+        """The counts changed (a round was traced): forget `contribution`."""
+        self.cached = None
+
     def mse(self) -> float:
-        """Estimated mean squared error over hit pixels, mean of efficiency * s^2 / n."""
-        eff = self.efficiency_at(self.done)
-        return float(np.mean(eff * posterior_variance(self.open, self.done, eff) / self.done))
+        """Estimated mean squared error over hit pixels, mean of `contribution`."""
+        return float(np.mean(self.contribution()))
 
 
 def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | None,
@@ -786,7 +802,7 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
     if max_pixel_error is not None:
         want |= room & (half_width(k, n, counts.spread_at(n)) >= max_pixel_error)
     if aim is not None:
-        contribution = eff * posterior_variance(k, n, eff) / n  # as counts.mse()
+        contribution = counts.contribution()
         # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
         drop = contribution * (1.0 - counts.rho_at(n))
         need = (contribution.mean() - aim**2) * len(n) - drop[want].sum()
@@ -803,13 +819,14 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
             # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
             # often falls faster than the last measured rho says, and an overshoot cannot
             # be undone, while a shortfall costs one more round. Unless that round would be
-            # small: then it aims at the whole need and traces at least MIN_ROUND of the
-            # rays so far, as a round's fixed cost (launches, this allocation over every
-            # hit pixel) outweighs a small overshoot (issue 19: tails of 1-19 pixels)
+            # small (under TAIL_ROUND of the rays so far): then it aims at the whole need
+            # and traces at least MIN_ROUND of the rays so far, as a round's fixed cost
+            # (launches, this allocation over every hit pixel) outweighs a small
+            # overshoot (issue 19: tails of 1-19 pixels)
             end = _first(dropped >= DROP_SHORT * need)
-            floor = MIN_ROUND * float(n.sum())
-            if rays[min(end, len(rays) - 1)] < floor:
-                end = max(_first(dropped >= need), _first(rays >= floor))
+            so_far = float(n.sum())
+            if rays[end] < TAIL_ROUND * so_far:
+                end = max(_first(dropped >= need), _first(rays >= MIN_ROUND * so_far))
             want[order[: end + 1]] = True
             # a round that would double most of the image doubles all of it (the pixels
             # left out would be the next round's, with its own fixed cost), unless that
