@@ -49,6 +49,8 @@ def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
         meshes = ", ".join(f"{n} {k}" for k, n in kinds.items()) or "none"
         build_ms = sum(float(v) for v in (report.get("timings_ms") or {}).values())
         cached = f" (meshes {meshes}; top level {report['top_level']})"
+    if outcome.denoised:
+        rmse += " before denoising"
     return (
         f"{triangles:,} triangles | build {build_ms:.1f} ms{cached} | "
         f"trace {trace_ms:.1f} ms | total {outcome.render_ms:.0f} ms | "

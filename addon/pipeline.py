@@ -46,6 +46,7 @@ class Settings:
     ao_distance: float  # what the render uses: `ao_distance(scene)`
     seed: int
     engine: str
+    denoise: bool = False
 
     @classmethod
     def from_scene(cls, scene: Any) -> Settings:
@@ -59,6 +60,7 @@ class Settings:
             ao_distance=ao_distance(scene),
             seed=int(props.seed),
             engine=props.engine,
+            denoise=bool(props.use_denoising),
         )
 
 
@@ -84,6 +86,7 @@ class Outcome:
     rays: int = 0
     # what the job built, refit or reused (the job status's `build`; backend/frames.py)
     build_report: dict | None = None
+    denoised: bool = False  # the image is OIDN's output (rmse_estimate is the raw render's)
     requests: list[str] = field(default_factory=list)
 
 
@@ -176,6 +179,8 @@ def job_fields(settings: Settings) -> dict[str, Any]:
         fields["target_error"] = settings.target_error
     if settings.max_pixel_error:
         fields["max_pixel_error"] = settings.max_pixel_error
+    if settings.denoise:
+        fields["denoise"] = True
     return fields
 
 
@@ -209,6 +214,7 @@ def render_job(
     outcome.spp_max = int(job.get("spp_max") or 0)
     outcome.rays = int(job.get("rays") or 0)
     outcome.build_report = job.get("build")
+    outcome.denoised = bool(job.get("denoised"))
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)
     outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")

@@ -233,6 +233,18 @@ def _check_ao(params: AoParams) -> None:
             "a fixed spp",
             "invalid_parameter",
         )
+    if params.denoise:
+        from kernels.render.denoise import EXTRA_HINT, DenoiserMissing, require_denoiser
+
+        try:
+            require_denoiser()
+        except DenoiserMissing as exc:
+            raise ApiError(
+                422, "denoise", f"this service cannot denoise: {exc}",
+                f'install the extra where the service runs ({EXTRA_HINT}) and restart it, '
+                "or send denoise=false",
+                "denoiser_missing",
+            ) from None
 
 
 def _check_engine(scene: Any, params: AoParams) -> None:

@@ -162,6 +162,7 @@ class Job:
     spp_max: int | None = None
     rays: int | None = None
     build: Any = None  # backend.frames.BuildReport: what the job built, refit or reused
+    denoised: bool | None = None
     version: int = 0  # bumped on every change; server-sent events wait on it
     signal: StopSignal = field(default_factory=StopSignal)
     max_seconds: float = float("inf")  # the deadline, counted from the start of the run
@@ -242,6 +243,7 @@ class Job:
                 "rmse_estimate": self.rmse_estimate,
                 "rays": self.rays,
                 "build": None if self.build is None else self.build.to_dict(),
+                "denoised": self.denoised,
                 "error": self.error,
             }
 
@@ -378,6 +380,7 @@ class AoParams:
     max_pixel_error: float | None = None
     engine: Literal["bvh", "dacrt"] = "bvh"
     threads: int | None = None  # host threads (None: all); results do not depend on it
+    denoise: bool = False  # camera jobs only: OIDN on the image
 
     @property
     def adaptive(self) -> bool:
@@ -408,6 +411,7 @@ def ao_params(request: Any, threads: int | None = None) -> AoParams:
         max_pixel_error=request.max_pixel_error,
         engine=request.engine,
         threads=threads,
+        denoise=request.denoise,
     )
 
 
@@ -505,15 +509,16 @@ def render_camera(
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(getattr(bvh, "stats", {}).get("compile_ms", 0.0)))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
-    result = timed(
-        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, params)
-    )
     shape = (camera.height, camera.width)
+    result = timed(
+        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, params, shape)
+    )
     job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
     job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0 spp
     stats = result.stats()
     job.spp_mean, job.spp_max = stats["spp_mean"], stats["spp_max"]
     job.rmse_estimate, job.rays = stats["rmse_estimate"], stats["rays"]
+    job.denoised = stats["denoised"]
     depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
     job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
@@ -544,9 +549,11 @@ def _render_ao(
     tmin: np.ndarray,
     tmax: np.ndarray,
     params: AoParams,
+    shape: tuple[int, int],
 ) -> Any:
     """`kernels.render_ao` within the camera's clip range with the scene's normals,
-    reporting progress between its rounds; its `AoResult`."""
+    reporting progress between its rounds, denoised if asked (an image of `shape`); its
+    `AoResult`."""
     import kernels
 
     def progress(fraction: float, phase: str) -> None:
@@ -554,7 +561,7 @@ def _render_ao(
 
     result = kernels.render_ao(
         bvh, origins, directions, tmin=tmin, tmax=tmax, progress=progress, **params.kwargs(),
-        **scene.shading(),
+        **scene.shading(), denoise=params.denoise, image_shape=shape,
     )
     for name, ms in result.timings_ms.items():
         job.add_timing(f"ao.{name}", float(ms))
