@@ -38,6 +38,8 @@ def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
     cached = " (cached)" if build.get("cached") else ""
     trace_ms = outcome.timings_ms.get("ao", 0.0)
     rmse = "-" if outcome.rmse_estimate is None else f"{outcome.rmse_estimate:.4f}"
+    if outcome.denoised:
+        rmse += " before denoising"
     return (
         f"{triangles:,} triangles | build {build_ms:.1f} ms{cached} | "
         f"trace {trace_ms:.1f} ms | total {outcome.render_ms:.0f} ms | "

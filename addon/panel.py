@@ -46,6 +46,7 @@ def _draw_settings(layout: bpy.types.UILayout, props) -> None:  # noqa: ANN001
     col.prop(props, "spp")
     col.prop(props, "target_error")
     col.prop(props, "max_pixel_error")
+    col.prop(props, "use_denoising")
     col.prop(props, "ao_distance")
     col.prop(props, "seed")
 
@@ -180,6 +181,7 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
     groups = (
         (("spp", "Samples"), ("target_error", "Target Error"),
          ("max_pixel_error", "Max Pixel Error")),
+        (("use_denoising", "Denoise"),),
         (("ao_distance", "AO Distance"), ("seed", "Seed")),
     )
 

@@ -44,6 +44,7 @@ class Settings:
     ao_distance: float  # what the render uses: `ao_distance(scene)`
     seed: int
     engine: str
+    denoise: bool = False
 
     @classmethod
     def from_scene(cls, scene: Any) -> Settings:
@@ -57,6 +58,7 @@ class Settings:
             ao_distance=ao_distance(scene),
             seed=int(props.seed),
             engine=props.engine,
+            denoise=bool(props.use_denoising),
         )
 
 
@@ -80,6 +82,7 @@ class Outcome:
     spp_mean: float = 0.0
     spp_max: int = 0
     rays: int = 0
+    denoised: bool = False  # the image is OIDN's output (rmse_estimate is the raw render's)
     requests: list[str] = field(default_factory=list)
 
 
@@ -154,6 +157,8 @@ def render_job(
         payload["target_error"] = settings.target_error
     if settings.max_pixel_error:
         payload["max_pixel_error"] = settings.max_pixel_error
+    if settings.denoise:
+        payload["denoise"] = True
     start = time.perf_counter()
     job = client.create_job(payload)
     outcome.job_id = job["job_id"]
@@ -174,6 +179,7 @@ def render_job(
     outcome.spp_mean = float(job.get("spp_mean") or 0.0)
     outcome.spp_max = int(job.get("spp_max") or 0)
     outcome.rays = int(job.get("rays") or 0)
+    outcome.denoised = bool(job.get("denoised"))
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)
     outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")

@@ -86,6 +86,16 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
         max=0.99,
         precision=4,
     )
+    use_denoising: BoolProperty(  # type: ignore[valid-type]
+        name="Denoise",
+        description=(
+            "Denoise the rendered image with Intel Open Image Denoise, with the surface "
+            "normals as a guide (as Cycles' Denoise). Needs the service installed with "
+            'pip install "scenesort[denoise]". The estimated RMSE shown stays the one '
+            "before denoising"
+        ),
+        default=False,
+    )
     ao_distance: FloatProperty(  # type: ignore[valid-type]
         name="AO distance",
         description=(

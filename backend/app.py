@@ -224,6 +224,18 @@ def _check_ao(params: AoParams) -> None:
             "a fixed spp",
             "invalid_parameter",
         )
+    if params.denoise:
+        from kernels.render.denoise import EXTRA_HINT, DenoiserMissing, require_denoiser
+
+        try:
+            require_denoiser()
+        except DenoiserMissing as exc:
+            raise ApiError(
+                422, "denoise", f"this service cannot denoise: {exc}",
+                f'install the extra where the service runs ({EXTRA_HINT}) and restart it, '
+                "or send denoise=false",
+                "denoiser_missing",
+            ) from None
 
 
 def _scene_or_404(store: Store, scene_id: str) -> wire.SceneArrays:
@@ -618,6 +630,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             target_error=request.target_error,
             max_pixel_error=request.max_pixel_error,
             engine=request.engine,
+            denoise=request.denoise,
         )
         _check_ao(params)
         _check_work(settings, camera.width * camera.height, "camera.width x camera.height",

@@ -159,6 +159,7 @@ class Job:
     rmse_estimate: float | None = None
     spp_max: int | None = None
     rays: int | None = None
+    denoised: bool | None = None
     version: int = 0  # bumped on every change; server-sent events wait on it
     signal: StopSignal = field(default_factory=StopSignal)
     max_seconds: float = float("inf")  # the deadline, counted from the start of the run
@@ -238,6 +239,7 @@ class Job:
                 "spp_max": self.spp_max,
                 "rmse_estimate": self.rmse_estimate,
                 "rays": self.rays,
+                "denoised": self.denoised,
                 "error": self.error,
             }
 
@@ -373,6 +375,7 @@ class AoParams:
     target_error: float | None = None
     max_pixel_error: float | None = None
     engine: Literal["bvh", "dacrt"] = "bvh"
+    denoise: bool = False  # camera jobs only: OIDN on the image
 
     @property
     def adaptive(self) -> bool:
@@ -486,15 +489,16 @@ def render_camera(
     if not cached:  # of "bvh", the part that was Warp compiling (as "ao.compile" of "ao")
         job.add_timing("bvh.compile", float(bvh.stats.get("compile_ms", 0.0)))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
-    result = timed(
-        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, params)
-    )
     shape = (camera.height, camera.width)
+    result = timed(
+        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, params, shape)
+    )
     job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
     job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0 spp
     stats = result.stats()
     job.spp_mean, job.spp_max = stats["spp_mean"], stats["spp_max"]
     job.rmse_estimate, job.rays = stats["rmse_estimate"], stats["rays"]
+    job.denoised = stats["denoised"]
     depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
     job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
@@ -525,9 +529,11 @@ def _render_ao(
     tmin: np.ndarray,
     tmax: np.ndarray,
     params: AoParams,
+    shape: tuple[int, int],
 ) -> Any:
     """`kernels.render_ao` within the camera's clip range with the scene's normals,
-    reporting progress between its rounds; its `AoResult`."""
+    reporting progress between its rounds, denoised if asked (an image of `shape`); its
+    `AoResult`."""
     import kernels
 
     def progress(fraction: float, phase: str) -> None:
@@ -535,7 +541,7 @@ def _render_ao(
 
     result = kernels.render_ao(
         bvh, origins, directions, tmin=tmin, tmax=tmax, progress=progress, **params.kwargs(),
-        **scene.shading(),
+        **scene.shading(), denoise=params.denoise, image_shape=shape,
     )
     for name, ms in result.timings_ms.items():
         job.add_timing(f"ao.{name}", float(ms))

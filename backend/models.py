@@ -124,7 +124,12 @@ MAX_PIXEL_ERROR_DOC = (
 )
 RMSE_ESTIMATE_DOC = (
     "the render's estimate of its RMSE over hit pixels against the converged AO (AO in "
-    "[0, 1]), from the per-pixel sample variances"
+    "[0, 1]), from the per-pixel sample variances; of the raw render, also when denoised"
+)
+DENOISE_DOC = (
+    "denoise the image with Intel Open Image Denoise (normals as auxiliary input); needs "
+    'the service installed with pip install "scenesort[denoise]". rmse_estimate stays the '
+    "raw render's: the denoised error is not estimated"
 )
 
 
@@ -147,6 +152,7 @@ class JobRequest(Strict):
     engine: Literal["bvh", "dacrt"] = "bvh"
     method: Literal["sah", "median"] = "sah"
     leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
+    denoise: bool = Field(default=False, description=DENOISE_DOC)
 
 
 class JobStatus(Strict):
@@ -162,6 +168,8 @@ class JobStatus(Strict):
     spp_max: int | None = Field(description="most samples any pixel took")
     rmse_estimate: float | None = Field(description=RMSE_ESTIMATE_DOC)
     rays: int | None = Field(description="rays traced: primary and occlusion")
+    denoised: bool | None = Field(default=None,
+                                  description="the image is OIDN's output (denoise=true)")
     error: str | None
 
 

@@ -64,6 +64,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--sampler", choices=SAMPLERS, default="sobol")
+    parser.add_argument(
+        "--denoise",
+        action="store_true",
+        help='denoise with Intel OIDN (pip install "scenesort[denoise]"); the estimated '
+        "RMSE stays the raw render's",
+    )
     parser.add_argument("--engine", choices=("bvh", "dacrt"), default="bvh",
                         help="trace through the BVH, or with the task-pool DACRT (no BVH)")
     parser.add_argument("--threads", type=int, default=None, help="host threads (default: all)")
@@ -142,6 +148,13 @@ def _check(args: argparse.Namespace) -> None:
         value = getattr(args, name)
         if value is not None and not 0 < value < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {value}")
+    if args.denoise:
+        from kernels.render.denoise import DenoiserMissing, require_denoiser
+
+        try:
+            require_denoiser()
+        except DenoiserMissing as exc:
+            raise ValueError(f"--denoise: {exc}") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -152,7 +165,9 @@ def run(args: argparse.Namespace) -> int:
         _check(args)
         return _render(args, console)
     except ValueError as exc:
-        console.print(f"[red]error:[/red] {exc}")
+        from rich.markup import escape
+
+        console.print(f"[red]error:[/red] {escape(str(exc))}")  # "[denoise]" is no markup
         return 2
 
 
@@ -185,6 +200,8 @@ def _render(args: argparse.Namespace, console: Any) -> int:
         threads=args.threads,
         max_spp=args.max_spp,
         sampler=args.sampler,
+        denoise=args.denoise,
+        image_shape=(camera.height, camera.width),
     )
     result = _with_progress(
         kernels, bvh, origins, directions, kwargs, console, not args.no_progress
@@ -237,7 +254,8 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
     title = (
         f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
         f"spp mean {stats['spp_mean']:.1f} (max {stats['spp_max']}), "
-        f"est. RMSE {'-' if rmse is None else f'{rmse:.4f}'} (AO units, hit pixels)"
+        f"est. RMSE {'-' if rmse is None else f'{rmse:.4f}'} (AO units, hit pixels"
+        f"{', before denoising' if stats['denoised'] else ''})"
     )
     table = Table(title=title, min_width=len(title) + 4)
     table.add_column("phase")
@@ -255,6 +273,8 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
     row("build", timings["build"])
     row("primary", ms["primary"], rays["primary"])
     row("occlusion", ms["occlusion"], rays["occlusion"])
+    if "denoise" in ms:
+        row("denoise", ms["denoise"])
     row("write", timings["write"])
     total = timings["load"] + compile_ms + timings["build"] + ms["total"] + timings["write"]
     row("total", total, rays["primary"] + rays["occlusion"])

@@ -24,7 +24,10 @@ Floors (issue 19), on every scene, at target_error 0.05, 0.02 and 0.01:
   the one achieved, and >= 2x less than `max_pixel_error` (the rule target_error had
   before issue 19) given the same number (measured at 0.05 and 0.02: at 0.01 that rule
   needs thousands of samples a pixel).
-Denoising (issue 19, item 3) is not built yet: no denoised curves.
+With --denoise, every point of ours is also denoised (`render_ao(denoise=True)`, OIDN with
+the normal image): "ours sobol denoised" and "ours target_error denoised" are the same
+renders' denoised images, their RMSE against the same reference and their time including
+the denoise (the raw points' time is the same run's total less the denoise).
 Writes docs/figures/ao_error.png and the AO section of docs/benchmarks.md unless --no-docs.
 """
 
@@ -185,10 +188,27 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
         last["result"] = res
         return res.ao, res.timings_ms["total"] / 1e3
 
+    def ours_point(curve: Curve, knob: float, **kw) -> tuple[float, float]:
+        """The raw point (seconds without the denoise, RMSE) of `repeat` renders; with
+        --denoise the same renders' denoised point goes on `curve`."""
+        runs = []
+        for _ in range(args.repeat):
+            ours(**kw, denoise=args.denoise, image_shape=(height, width))
+            runs.append(last["result"])
+        first = runs[0]
+        if not args.denoise:
+            return statistics.median(r.timings_ms["total"] for r in runs) / 1e3, rmse(
+                first.ao, ref, var, hit)
+        curve.points.append((knob, statistics.median(r.timings_ms["total"] for r in runs)
+                             / 1e3, rmse(first.ao, ref, var, hit)))
+        raw_s = statistics.median(r.timings_ms["total"] - r.timings_ms["denoise"] for r in runs)
+        return raw_s / 1e3, rmse(first.raw_ao, ref, var, hit)
+
     curves = [Curve("ours sobol"), Curve("ours random"), Curve("ours target_error"),
               Curve("ours max_pixel_error")]
     if args.peers:
         curves += [Curve("wp.Mesh"), Curve("wp.Mesh 1t"), Curve("Embree")]
+    denoised = [Curve("ours sobol denoised"), Curve("ours target_error denoised")]
     hits = ao.trace_primary(bvh, o, d, tmin, tmax)
     t = time.perf_counter()
     tracers = []
@@ -203,9 +223,11 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
         peer_ao(peer, o[:64], d[:64], hits, 1, dist, "sobol", 0)
     ours(spp=1)
     for spp in spps:
-        for curve, sampler in ((curves[0], "sobol"), (curves[1], "random"))[:2 - args.quick]:
-            s, e = measure(lambda sampler=sampler, spp=spp: ours(spp=spp, sampler=sampler))
-            curve.points.append((spp, s, e))
+        s, e = ours_point(denoised[0], spp, spp=spp)
+        curves[0].points.append((spp, s, e))
+        if not args.quick:
+            s, e = measure(lambda spp=spp: ours(spp=spp, sampler="random"))
+            curves[1].points.append((spp, s, e))
         for curve, peer in zip(curves[4:], tracers if spp in PEER_SPP else [], strict=False):
             def traced(peer=peer, spp=spp):
                 values, s = peer_ao(peer, o, d, hits, spp, dist, "sobol", 0)
@@ -216,13 +238,14 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
             curve.points.append((spp, s, e))
         print(f"  spp {spp:4d}: " + "  ".join(
             f"{c.method} {c.points[-1][1]:.3f}s/{c.points[-1][2]:.4f}"
-            for c in curves if c.points and c.points[-1][0] == spp))
+            for c in curves + denoised[:1] if c.points and c.points[-1][0] == spp))
     floors = []
     for target in targets:
-        s, e = measure(lambda target=target: ours(target_error=target, spp=args.min_spp,
-                                                  max_spp=args.max_spp))
+        s, e = ours_point(denoised[1], target, target_error=target, spp=args.min_spp,
+                             max_spp=args.max_spp)
         curves[2].points.append((target, s, e))
         stats = last["result"].stats()
+        den = denoised[1].points[-1] if args.denoise else (None, None, None)
         print(f"  target {target:.4f}: {s:.3f}s rmse {e:.4f} ({e / target:.2f}x) "
               f"est {stats['rmse_estimate']:.4f} spp {stats['spp_mean']:.1f}")
         if target not in FLOOR_TARGETS:
@@ -237,12 +260,13 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
             print(f"  max_pixel_error {target:.4f}: {s_old:.3f}s rmse {e_old:.4f}")
         floors.append({"target": target, "s": s, "rmse": e, "estimate": stats["rmse_estimate"],
                        "spp_mean": stats["spp_mean"], "spp_fixed": spp_fixed,
-                       "s_fixed": s_fixed, "s_old": s_old})
+                       "s_fixed": s_fixed, "s_old": s_old, "s_denoised": den[1],
+                       "rmse_denoised": den[2]})
     row = {"scene": name, "triangles": scene.triangles, "size": f"{width}x{height}",
            "hit": float(hit.mean()), "distance": dist, "floors": floors,
            "build_ms": {"ours": build_ours * 1e3, "peers (both)": build_peers * 1e3},
            "threads": threads, "info": info.get("file", name)}
-    return row, curves
+    return row, curves + (denoised if args.denoise else [])
 
 
 # --- output -----------------------------------------------------------------------------
@@ -250,6 +274,10 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
 
 def ratio(a: float | None, b: float | None) -> str:
     return f"{a / b:.2f}" if a is not None and b is not None else "n/a"
+
+
+def dash(x: float | None, spec: str) -> str:
+    return "-" if x is None else format(x, spec)
 
 
 def fmt(s: float | None) -> str:
@@ -266,9 +294,13 @@ def table(rows: list[dict], args) -> str:
         f"RMSE is at most the one achieved <= {COST_FLOOR}; max_pixel_error's time at the "
         f"same number over target_error's >= {OLD_RULE_FLOOR}.",
         "",
+        "Denoised: the same render's image after OIDN (its RMSE against the reference; s "
+        "includes the denoise). It claims no target: the render's estimate is the raw one's.",
+        "",
         "| scene | size | hit | target | RMSE | RMSE / target | estimate / RMSE | mean spp "
-        "| s | cheapest fixed (spp, s) | vs fixed | max_pixel_error s | its / ours | floors |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+        "| s | cheapest fixed (spp, s) | vs fixed | max_pixel_error s | its / ours "
+        "| denoised RMSE | denoised s | floors |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in rows:
         for f in r["floors"]:
@@ -283,6 +315,7 @@ def table(rows: list[dict], args) -> str:
                 f"{fixed} | {ratio(f['s'], f['s_fixed'])} | "
                 f"{fmt(f['s_old']) if f['s_old'] else '-'} | "
                 f"{ratio(f['s_old'], f['s']) if f['s_old'] else '-'} | "
+                f"{dash(f.get('rmse_denoised'), '.4f')} | {dash(f.get('s_denoised'), '.3f')} | "
                 f"{verdict} |"
             )
     return "\n".join(lines)
@@ -325,7 +358,8 @@ def plot(results: list[tuple[dict, list[Curve]]], path: Path) -> None:
     rows = math.ceil(n / cols)
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 3.4 * rows), squeeze=False)
     styles = {"ours target_error": "o-", "ours max_pixel_error": "o--", "ours sobol": "s-",
-              "ours random": "s--", "wp.Mesh": "^-", "wp.Mesh 1t": "^--", "Embree": "v-"}
+              "ours random": "s--", "wp.Mesh": "^-", "wp.Mesh 1t": "^--", "Embree": "v-",
+              "ours sobol denoised": "x:", "ours target_error denoised": "*:"}
     for ax, (row, curves) in zip(axes.ravel(), results, strict=False):
         for c in curves:
             pts = [(s, e) for _, s, e in c.points]  # in sweep order: noise shows as noise
@@ -378,6 +412,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true",
                         help="Sobol only (no random curve), the floor targets only, 1024-spp ref")
     parser.add_argument("--no-docs", action="store_true", help="print only")
+    parser.add_argument("--denoise", action="store_true",
+                        help="also denoised curves (needs pip install \"scenesort[denoise]\")")
     parser.add_argument("--no-peers", dest="peers", action="store_false",
                         help="ours only (no wp.Mesh or Embree curves)")
     args = parser.parse_args(argv)

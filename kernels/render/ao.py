@@ -45,9 +45,13 @@ Adaptive sampling, two stopping rules (issue 19), which may be combined:
   minimum spp (in two halves, so that the sampler's rate is measured before the first
   decision), then each round doubles the pixels below their Neyman count, those with
   the largest sigma_i^2 / n_i^2 (the variance each new ray removes) first, until the
-  doubled set is predicted to remove DROP_SHORT of what is left above the aim; sigma_i^2
-  is the Jeffreys-smoothed variance below, so that a pixel whose few samples agreed
-  still earns more.
+  doubled set is predicted to remove DROP_SHORT of what is left above the aim (all of
+  it, with at least MIN_ROUND of the rays so far, when that round would trace less than
+  TAIL_ROUND of them; every pixel when it would take FULL_ROUND of the rays left, unless
+  even the fastest Sobol rate could then take it below FULL_ROUND_AIM of the aim: a
+  round's fixed cost is worth more than a small overshoot); sigma_i^2 is the
+  Jeffreys-smoothed variance below, so that a pixel whose few samples agreed still earns
+  more.
 - `max_pixel_error` bounds every pixel (the rule `target_error` had before issue 19):
   pixels whose 95% half-width z * sqrt(spread * s^2 / n) is still >= it double their
   samples (`half_width`; spread as below).
@@ -96,6 +100,7 @@ from ..scene.top import (
     world_normal,
     world_point,
 )
+from .denoise import denoise_ao, require_denoiser
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -110,6 +115,10 @@ RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's mar
 # variance O(n^(-1 - 1/d)) = n^-1.5 (He and Wang 2015), so doubling keeps >= 2^-1.5 of it
 RHO_MIN = 2.0**-1.5
 DROP_SHORT = 0.8  # target_error: a round aims at this fraction of the MSE still to go
+FULL_ROUND = 0.5  # target_error: a round with this fraction of the rays left doubles all,
+FULL_ROUND_AIM = 0.9  # if that is predicted to stay above this fraction of the aim
+TAIL_ROUND = 0.125  # target_error: a round under this fraction of the rays so far aims at all
+MIN_ROUND = 1.0 / 32.0  # target_error: fewest rays in a round, as a fraction of those so far
 DEFAULT_MAX_SPP = 1024
 EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
 EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in a round
@@ -129,18 +138,23 @@ class AoResult:
     timings_ms: dict[str, float] = field(default_factory=dict)
     rays: dict[str, int] = field(default_factory=dict)  # primary (traced), occlusion, rounds
     # Estimated RMSE over hit pixels against the converged AO (see the module docstring);
-    # None when no ray hit.
+    # None when no ray hit. Always the raw render's, also when `denoised`.
     rmse_estimate: float | None = None
+    # (R, 3) float32 unit shading normal of each primary hit (0 where the ray missed)
+    normals: np.ndarray | None = None
+    denoised: bool = False  # `ao` is OIDN's output (render_ao(denoise=True))
+    raw_ao: np.ndarray | None = None  # (R,) the render before denoising, when denoised
 
     def stats(self) -> dict[str, float | int | None]:
-        """What the render achieved: estimated RMSE, mean and largest spp over hit
-        pixels, rays traced (primary and occlusion)."""
+        """What the render achieved: estimated RMSE (of the raw render), mean and largest
+        spp over hit pixels, rays traced (primary and occlusion), whether it was denoised."""
         hit = self.spp_used[self.spp_used > 0]
         return {
             "rmse_estimate": self.rmse_estimate,
             "spp_mean": float(hit.mean()) if len(hit) else 0.0,
             "spp_max": int(hit.max()) if len(hit) else 0,
             "rays": int(self.rays.get("primary", 0) + self.rays.get("occlusion", 0)),
+            "denoised": self.denoised,
         }
 
 
@@ -658,6 +672,8 @@ def render_ao(
     normals: np.ndarray | None = None,
     terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
     progress: Progress | None = None,
+    denoise: bool = False,
+    image_shape: tuple[int, int] | None = None,
 ) -> AoResult:
     """AO per primary ray (see the module docstring for the definition and guarantees).
 
@@ -684,6 +700,10 @@ def render_ao(
     (I,) per instance, and engine="bvh" only; the rays and the AO are in world space.
     `progress(fraction, phase)` is called between rounds; an exception it raises cancels
     the render.
+    `denoise=True` (needs the `scenesort[denoise]` extra, checked before tracing) runs
+    OIDN on the image (`denoise.denoise_ao`): the rays must be a row-major `image_shape` =
+    (height, width) image. `ao` is then the denoised image, `raw_ao` the render's own;
+    `rmse_estimate` stays the raw render's (nothing measures the denoised error here).
     """
     check_tracer(bvh, engine)
     modules = WARP_MODULES + SCENE_MODULES + (dacrt_warp_modules("pool") if engine == "dacrt"
@@ -695,6 +715,11 @@ def render_ao(
     _check_args(spp, distance, seed,
                 {"target_error": target_error, "max_pixel_error": max_pixel_error},
                 (min_spp, int(max_spp)))
+    if denoise:
+        require_denoiser()
+        if image_shape is None or int(np.prod(image_shape)) != len(origins):
+            raise ValueError(f"denoise=True needs image_shape=(height, width) with height * "
+                             f"width = the number of rays ({len(origins)}), got {image_shape!r}")
     sampler_id = _sampler(sampler)
     origins, directions = as_rays(origins, directions)
     scene_shading(bvh, normals, terminator_offset)  # checked (and kept) before tracing
@@ -739,6 +764,7 @@ def render_ao(
         counts.before[select] = open_mid
         counts.open[select] += opened
         counts.done[select] += count
+        counts.changed()
 
     if not adaptive:
         count = max(1, min(min_spp, ROUND_RAYS // max(h, 1)))
@@ -775,9 +801,16 @@ def render_ao(
 
     ao = np.ones(r, dtype=np.float32)
     spp_used = np.zeros(r, dtype=np.int32)
+    normals_out = np.zeros((r, 3), dtype=np.float32)
     if h:
         ao[hits.pixels] = (counts.open / counts.done).astype(np.float32)
         spp_used[hits.pixels] = counts.done.astype(np.int32)
+        normals_out[hits.pixels] = hits.surfaces.numpy()["n"]
+    raw_ao = None
+    if denoise:
+        t0 = time.perf_counter()
+        raw_ao, ao = ao, denoise_ao(ao, normals_out, spp_used > 0, image_shape)
+        timings["denoise"] = (time.perf_counter() - t0) * 1e3
     timings["total"] = (time.perf_counter() - t_start) * 1e3
     report(1.0, "done")
     return AoResult(
@@ -786,6 +819,9 @@ def render_ao(
         timings_ms=timings,
         rays={"primary": hits.traced, "occlusion": int(counts.done.sum()), "rounds": rounds},
         rmse_estimate=math.sqrt(counts.mse()) if h else None,
+        normals=normals_out,
+        denoised=denoise,
+        raw_ao=raw_ao,
     )
 
 
@@ -804,6 +840,7 @@ class _Counts:
     # pooled, so a small late group does not overwrite what thousands of pixels measured)
     sums: dict[int, np.ndarray] = field(default_factory=dict)
     sums_before: dict[int, np.ndarray] = field(default_factory=dict)
+    cached: np.ndarray | None = None  # `contribution` since the last `changed()`
 
     def measure(self, n: int, mid: int, open_mid: np.ndarray, open_end: np.ndarray,
                 open_before: np.ndarray | None) -> None:
@@ -857,10 +894,22 @@ class _Counts:
         values = np.array([0.5] + [self.rho[m] for m in known])
         return values[np.searchsorted(np.array(known, dtype=np.int64), 2 * n, side="right")]
 
+    def contribution(self) -> np.ndarray:
+        """Each hit pixel's estimated squared error, efficiency * s^2 / n (kept until the
+        next `changed()`: the progress report, the allocation and the result ask for it
+        between two rounds, each a pass over every hit pixel)."""
+        if self.cached is None:
+            eff = self.efficiency_at(self.done)
+            self.cached = eff * posterior_variance(self.open, self.done, eff) / self.done
+        return self.cached
+
+    def changed(self) -> None:
+        """The counts changed (a round was traced): forget `contribution`."""
+        self.cached = None
+
     def mse(self) -> float:
-        """Estimated mean squared error over hit pixels, mean of efficiency * s^2 / n."""
-        eff = self.efficiency_at(self.done)
-        return float(np.mean(eff * posterior_variance(self.open, self.done, eff) / self.done))
+        """Estimated mean squared error over hit pixels, mean of `contribution`."""
+        return float(np.mean(self.contribution()))
 
 
 def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | None,
@@ -879,28 +928,46 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
     if max_pixel_error is not None:
         want |= room & (half_width(k, n, counts.spread_at(n)) >= max_pixel_error)
     if aim is not None:
-        contribution = eff * posterior_variance(k, n, eff) / n  # as counts.mse()
+        contribution = counts.contribution()
         # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
         drop = contribution * (1.0 - counts.rho_at(n))
         need = (contribution.mean() - aim**2) * len(n) - drop[want].sum()
-        if need > 0.0:
+        if need > 0.0 and np.any(room & ~want):
             sigma = np.sqrt(eff * smoothed_variance(k, n))
             neyman = sigma * sigma.sum() / (len(n) * aim**2)
             gain = sigma**2 / n**2  # variance removed per ray by doubling
-            free = room & ~want
-            for part in (free & (neyman > math.sqrt(2.0) * n), free):
-                order = np.flatnonzero(part)
-                order = order[np.argsort(-gain[order], kind="stable")]
-                # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
-                # often falls faster than the last measured rho says, and an overshoot
-                # cannot be undone, while a shortfall costs one more small round
-                enough = np.cumsum(drop[order]) >= DROP_SHORT * need
-                take = order[: int(np.argmax(enough)) + 1] if enough.any() else order
-                want[take] = True
-                need -= drop[take].sum()
-                if need <= 0.0:
-                    break
+            order = np.flatnonzero(room & ~want)
+            order = order[np.argsort(-gain[order], kind="stable")]
+            under = neyman[order] > math.sqrt(2.0) * n[order]
+            order = np.concatenate([order[under], order[~under]])  # below Neyman first
+            dropped = np.cumsum(drop[order])
+            rays = np.cumsum(n[order])  # doubling a pixel traces as many rays as it has
+            # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
+            # often falls faster than the last measured rho says, and an overshoot cannot
+            # be undone, while a shortfall costs one more round. Unless that round would be
+            # small (under TAIL_ROUND of the rays so far): then it aims at the whole need
+            # and traces at least MIN_ROUND of the rays so far, as a round's fixed cost
+            # (launches, this allocation over every hit pixel) outweighs a small
+            # overshoot (issue 19: tails of 1-19 pixels)
+            end = _first(dropped >= DROP_SHORT * need)
+            so_far = float(n.sum())
+            if rays[end] < TAIL_ROUND * so_far:
+                end = max(_first(dropped >= need), _first(rays >= MIN_ROUND * so_far))
+            want[order[: end + 1]] = True
+            # a round that would double most of the image doubles all of it (the pixels
+            # left out would be the next round's, with its own fixed cost), unless that
+            # could land below FULL_ROUND_AIM of the aim (the calibration band) if the
+            # variance fell as fast as Sobol's can (RHO_MIN), not as fast as measured
+            fastest = contribution.sum() - (1.0 - RHO_MIN) * contribution[room].sum()
+            if (rays[end] >= FULL_ROUND * rays[-1]
+                    and fastest >= (FULL_ROUND_AIM * aim) ** 2 * len(n)):
+                want[order] = True
     return np.flatnonzero(want)
+
+
+def _first(condition: np.ndarray) -> int:
+    """Index of the first True (the last index when there is none)."""
+    return int(np.argmax(condition)) if condition.any() else len(condition) - 1
 
 
 def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist,

@@ -104,7 +104,8 @@ def probe(live) -> Iterator[bpy.types.Scene]:
 
 def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
     """AO and coverage of the scene's camera rays from the engine itself (no add-on, no
-    service): `kernels.render_ao` on the exported triangles."""
+    service): `kernels.render_ao` on the exported triangles (denoised as the Sampling
+    panel's Denoise says)."""
     import kernels
     from kernels import Camera
 
@@ -114,10 +115,11 @@ def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
     props = scene.scenesort
     bvh = kernels.build_bvh(mesh.vertices, mesh.indices, method=props.method,
                             leaf_size=props.leaf_size, device="cpu")  # fmt: skip
+    shape = camera.resolution(scene)[::-1]
     result = kernels.render_ao(bvh, origins, directions, spp=props.spp, seed=props.seed,
                                distance=props.ao_distance, tmin=tmin, tmax=tmax,
+                               denoise=props.use_denoising, image_shape=shape,
                                **shading(mesh))  # fmt: skip
-    shape = camera.resolution(scene)[::-1]
     return result.ao.reshape(shape), (result.spp_used > 0).reshape(shape)
 
 
@@ -158,6 +160,21 @@ def test_f12_combined_is_the_engines_ao_with_zero_background(live, tmp_path) -> 
     np.testing.assert_array_equal(rgba[..., 2], rgba[..., 0])
     assert np.all(rgba[..., 3] == 1.0)
     assert rgba[hit, 0].std() > 0.05  # shaded, not flat
+
+
+def test_denoise_checkbox_denoises_f12_and_says_so(probe, tmp_path) -> None:
+    """Sampling > Denoise: F12's Combined is the engine's denoised AO (not the raw one)
+    and the stats line says the estimate is from before denoising."""
+    probe.scenesort.use_denoising = True
+    try:
+        rgba = f12(probe, tmp_path / "denoised")
+        ao, hit = _direct(probe)
+    finally:
+        probe.scenesort.use_denoising = False
+    np.testing.assert_allclose(rgba[..., 0], np.where(hit, ao, 0.0), atol=1e-6)
+    raw, _ = _direct(probe)
+    assert np.abs(rgba[..., 0] - np.where(hit, raw, 0.0)).max() > 0.01  # it did denoise
+    assert any("before denoising" in line for line in Probe.stats), Probe.stats
 
 
 def test_resolution_percentage_renders_fewer_pixels_of_the_same_view(live, tmp_path) -> None:
@@ -475,6 +492,6 @@ def test_engine_panels_draw_the_scenes_settings(live) -> None:
                  bpy.context)  # fmt: skip
         drawn.update({name: owner for owner, name, _ in layout.props})
     assert drawn == {"spp": live.scenesort, "target_error": live.scenesort,
-                     "max_pixel_error": live.scenesort,
+                     "max_pixel_error": live.scenesort, "use_denoising": live.scenesort,
                      "ao_distance": live.scenesort, "seed": live.scenesort,
                      "film_transparent": live.render}  # fmt: skip

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import sys
 
 import numpy as np
 import pytest
@@ -130,3 +131,22 @@ def test_bad_input_is_reported(tmp_path, capsys, argv, message, scenes_dir):
     assert rc == 2
     assert message in capsys.readouterr().out
     assert not (tmp_path / "x.png").exists()
+
+
+def test_denoise_flag(tmp_path, capsys, scenes_dir, monkeypatch):
+    """--denoise writes `render_ao(denoise=True)`'s image and says the estimate is the raw
+    render's; without pyoidn it is a clear error naming the extra."""
+    npy = tmp_path / "d.npy"
+    argv = ["render", "--no-progress", "--scene", "bunny", "--width", "64", "--height", "48",
+            "--spp", "2", "--out", str(tmp_path / "d.png"), "--npy", str(npy), "--denoise"]
+    assert main(argv) == 0
+    assert "before denoising" in capsys.readouterr().out
+    scene = shared_scene("bunny", 64, 48)
+    o, d, tmin, tmax = scene.camera.rays()
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    expected = kernels.render_ao(bvh, o, d, spp=2, tmin=tmin, tmax=tmax, denoise=True,
+                                 image_shape=(48, 64))
+    np.testing.assert_allclose(np.load(npy).ravel(), expected.ao, atol=1e-6)
+    monkeypatch.setitem(sys.modules, "pyoidn", None)
+    assert main(argv) == 2
+    assert 'pip install "scenesort[denoise]"' in capsys.readouterr().out.replace("\n", "")

@@ -9,6 +9,7 @@ import time
 import httpx
 import numpy as np
 import pytest
+from conftest import Api, floor_and_box
 from PIL import Image
 
 import kernels
@@ -81,7 +82,8 @@ def test_a_job_reports_what_it_achieved(api, box_scene, scene_id) -> None:
         assert status["state"] == "done", status
         expected = kernels.render_ao(bvh, origins, directions, tmin=tmin, tmax=tmax,
                                      **params).stats()
-        got = {k: status[k] for k in ("rmse_estimate", "spp_mean", "spp_max", "rays")}
+        got = {k: status[k] for k in ("rmse_estimate", "spp_mean", "spp_max", "rays",
+                                      "denoised")}
         assert got == pytest.approx(expected), (got, expected)
         assert status["spp_max"] >= 8 and status["rmse_estimate"] > 0
 
@@ -206,3 +208,43 @@ def test_a_cancelled_job_stops_and_the_worker_goes_on(api, scene_id) -> None:
     assert api.client.get(f"/v1/jobs/{queued['job_id']}").json()["state"] == "cancelled"
     small = create(api, scene_id, 16, 12, spp=1)
     assert wait(api, small["job_id"], {"done", "failed", "cancelled"})["state"] == "done"
+
+
+def test_denoise_reaches_the_engine_and_the_status_says_so(api, box_scene, scene_id) -> None:
+    """denoise=true: the job's image is `render_ao(denoise=True)`'s, its status says
+    denoised and its estimate is the raw render's."""
+    origins, directions, tmin, tmax = Camera.from_dict(camera(40, 30)).rays()
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    job = create(api, scene_id, 40, 30, spp=2, seed=4, denoise=True)
+    status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+    assert status["state"] == "done", status
+    assert status["denoised"] is True
+    raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": "f32"})
+    got = np.frombuffer(raw.content, "<f4")
+    expected = kernels.render_ao(bvh, origins, directions, spp=2, seed=4, tmin=tmin, tmax=tmax,
+                                 denoise=True, image_shape=(30, 40))
+    np.testing.assert_allclose(got, expected.ao, atol=1e-6)
+    assert status["rmse_estimate"] == pytest.approx(expected.rmse_estimate)
+    plain = wait(api, create(api, scene_id, 40, 30, spp=2, seed=4)["job_id"], {"done"})
+    assert plain["denoised"] is False
+
+
+def test_denoise_without_the_extra_is_a_422_naming_it(start_service, tmp_path) -> None:
+    """A service whose Python cannot import pyoidn refuses denoise=true with a 422 that
+    names the field and the extra to install, and still renders without it."""
+    stub = tmp_path / "hide" / "pyoidn"
+    stub.mkdir(parents=True)
+    (stub / "__init__.py").write_text('raise ImportError("pyoidn hidden by the test")\n')
+    hidden = Api(start_service(env={"PYTHONPATH": str(stub.parent)}))
+    try:
+        sid = hidden.upload(*floor_and_box()).json()["scene_id"]
+        body = {"scene_id": sid, "camera": camera(20, 15), "spp": 2, "denoise": True}
+        response = hidden.client.post("/v1/jobs", json=body)
+        assert response.status_code == 422, response.text
+        problem = response.json()
+        assert problem["parameter"] == "denoise"
+        assert 'pip install "scenesort[denoise]"' in problem["detail"] + problem["fix"]
+        body["denoise"] = False
+        assert hidden.client.post("/v1/jobs", json=body).status_code == 202
+    finally:
+        hidden.client.close()
