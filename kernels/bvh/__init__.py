@@ -4,9 +4,10 @@ closest-hit / any-hit traversal of either."""
 
 from .api import METHODS, Bvh, build_bvh, trace
 from .node import BvhArrays, BvhNode
+from .refit import REBUILD_RATIO, refit_bvh
 from .traversal import STACK_SIZE, closest_hit, traverse
 
 __all__ = [
-    "METHODS", "STACK_SIZE", "Bvh", "BvhArrays", "BvhNode", "build_bvh", "closest_hit", "trace",
-    "traverse",
+    "METHODS", "REBUILD_RATIO", "STACK_SIZE", "Bvh", "BvhArrays", "BvhNode", "build_bvh",
+    "closest_hit", "refit_bvh", "trace", "traverse",
 ]

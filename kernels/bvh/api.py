@@ -60,6 +60,7 @@ class Bvh:
     bounds: np.ndarray  # (2, 3) float32
     stats: dict = field(default_factory=dict)
     mesh: DeviceMesh | None = None  # the mesh on the device, reused by AO and DACRT
+    refit_plan: dict | None = field(default=None, repr=False)  # bvh.refit: levels, once
 
     def nodes(self) -> np.ndarray:
         """The node array as a numpy structured array (lo, first, hi, count)."""
@@ -106,64 +107,20 @@ def build_bvh(
 
     t0 = time.perf_counter()
     m = len(indices)
-    workers = default_workers(device) if workers is None else int(workers)
     mesh = DeviceMesh(vertices, indices, device, validated=True)
     v_wp, f_wp = mesh.v, mesh.f
-    b = BuildData()
     lo, hi = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(2))
     valid = wp.empty(m, dtype=int, device=device)
-    inf = np.float32(np.inf)
-    bounds = wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
-                      dtype=wp.vec3, device=device)
+    bounds = empty_bounds(device)
     wp.launch(bb.triangle_boxes, dim=m,
               inputs=[v_wp, f_wp, lo, hi, valid, bounds], device=device)
-    offsets = wp.empty(m, dtype=int, device=device)
-    if m:
-        wp.utils.array_scan(valid, offsets, inclusive=False)
-    n = int(offsets.numpy()[-1] + valid.numpy()[-1]) if m else 0
-    box = bounds.numpy()
-
-    capacity = pool_capacity or (256 * workers if device.is_cpu else max(4096, 2 * n // leaf_size))
-    b.items, b.spare = (wp.empty(max(n, 1), dtype=BuildItem, device=device) for _ in range(2))
-    b.spare_pos, b.scan = (wp.empty(max(n, 1), dtype=int, device=device) for _ in range(2))
-    b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
-    b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
-        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
-    )
-    bins = (capacity + workers) * int(BINS)  # per slot, then per worker
-    b.bin_count = wp.empty(bins, dtype=int, device=device)
-    b.bin_lo, b.bin_hi, b.bin_clo, b.bin_chi = (
-        wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(4)
-    )
-    b.tasks = wp.empty(capacity, dtype=BuildTask, device=device)
-    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=BvhNode, device=device)
-    b.counters = wp.zeros(2, dtype=int, device=device)
-    b.phase_cycles = wp.zeros(workers * CYCLE_ROW, dtype=wp.int64, device=device)
-    b.worker_bins = capacity
-    b.method = METHODS[method]
-    b.leaf_size = int(leaf_size)
-    b.max_depth = int(max_depth)
-    pool = make_pool(capacity, workers, int(min_chunks), device)
-    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, b],
-              device=device)
-    wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
-    phase_ms["prepare"] = sync_ms(device, t0)
+    tree = build_over_boxes(lo, hi, valid, bounds, method, leaf_size, max_depth, device,
+                            min_chunks=min_chunks, workers=workers,
+                            pool_capacity=pool_capacity, phase_ms=phase_ms, start=t0)
+    n, box, b = tree.count, tree.bounds, tree.data
 
     t0 = time.perf_counter()
-    if n > 0:
-        wp.launch(bb.start_build, dim=1,
-                  inputs=[b, pool, *(wp.vec3(*row) for row in box), n], device=device)
-        launch_workers(bb.build_worker, workers, [b, pool], device)
-    pool_state = check_pool(pool)
-    build_ms = sync_ms(device, t0)
-    spent = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(PHASE_NAMES)]
-    spent = spent.sum(axis=0).astype(np.float64)
-    share = spent / spent.sum() if spent.sum() > 0 else np.zeros_like(spent)
-    for name, s in zip(PHASE_NAMES, share, strict=True):
-        phase_ms[name] = float(build_ms * s)
-
-    t0 = time.perf_counter()
-    node_count, depth = (int(x) for x in b.counters.numpy())
+    node_count, depth = tree.node_count, tree.depth
     tri_verts = wp.empty(max(3 * n, 1), dtype=wp.vec3, device=device)
     tri_ids = wp.empty(n, dtype=int, device=device)
     wp.launch(bb.gather_leaf_triangles, dim=n, inputs=[v_wp, f_wp, b.items, tri_ids, tri_verts],
@@ -199,6 +156,7 @@ def build_bvh(
     bvh.arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
     leaves = int(np.count_nonzero(nodes["count"]))
     bvh.stats = {
+        "action": "build",  # refit_bvh: "refit" or "rebuild"
         "build_ms": total_ms,
         "compile_ms": compile_ms,  # Warp's, apart: seconds on first use, then ~ms
         "phase_ms": phase_ms,
@@ -208,9 +166,9 @@ def build_bvh(
         "sah_cost": sah_cost(nodes) if n > 0 else 0.0,
         "triangles": m,
         "degenerate": int(m - n),
-        "pool_slots_used": int(pool_state[2]),
-        "pool_steps_published": int(pool_state[3]),
-        "workers": workers,
+        "pool_slots_used": int(tree.pool_state[2]),
+        "pool_steps_published": int(tree.pool_state[3]),
+        "workers": tree.workers,
         "method": method,
         "leaf_size": int(leaf_size),
         "width": width,
@@ -218,6 +176,92 @@ def build_bvh(
         "device": str(device),
     }
     return bvh
+
+
+def empty_bounds(device) -> wp.array:
+    """The four boxes a box kernel widens by atomics before `build_over_boxes`: the items'
+    box (lo, hi) and their centroids' box (lo, hi), empty."""
+    inf = np.float32(np.inf)
+    return wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
+                    dtype=wp.vec3, device=device)
+
+
+@dataclass
+class BoxTree:
+    """A binary tree built by the pool over boxes: `data.nodes` (leaves: runs of
+    `data.items` in leaf order, whose `tri` is the caller's index of each box) and the
+    build's counts."""
+
+    data: BuildData
+    count: int  # boxes built (the valid ones)
+    node_count: int
+    depth: int
+    bounds: np.ndarray  # (4, 3) float32: the boxes' box and their centroids' box
+    pool_state: np.ndarray
+    workers: int
+
+
+def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.array,
+                     method: str, leaf_size: int, max_depth: int, device, *,
+                     min_chunks: int = DEFAULT_MIN_CHUNKS, workers: int | None = None,
+                     pool_capacity: int | None = None, phase_ms: dict[str, float],
+                     start: float) -> BoxTree:
+    """The pool's build (2012 paper, sec. 4) over any boxes: `build_bvh`'s triangle boxes
+    or a scene's instance boxes (kernels.scene). Boxes with `valid` 0 are left out;
+    `bounds` is `empty_bounds` widened over the valid boxes and their centroids. Adds the
+    "prepare" phase (from `start`, a perf_counter reading) and the build's phases to
+    `phase_ms`."""
+    m = lo.shape[0]
+    workers = default_workers(device) if workers is None else int(workers)
+    b = BuildData()
+    offsets = wp.empty(m, dtype=int, device=device)
+    if m:
+        wp.utils.array_scan(valid, offsets, inclusive=False)
+    n = int(offsets.numpy()[-1] + valid.numpy()[-1]) if m else 0
+    box = bounds.numpy()
+
+    capacity = pool_capacity or (256 * workers if device.is_cpu else max(4096, 2 * n // leaf_size))
+    b.items, b.spare = (wp.empty(max(n, 1), dtype=BuildItem, device=device) for _ in range(2))
+    b.spare_pos, b.scan = (wp.empty(max(n, 1), dtype=int, device=device) for _ in range(2))
+    b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
+    b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
+        wp.empty(max(n, 1), dtype=wp.vec3, device=device) for _ in range(4)
+    )
+    bins = (capacity + workers) * int(BINS)  # per slot, then per worker
+    b.bin_count = wp.empty(bins, dtype=int, device=device)
+    b.bin_lo, b.bin_hi, b.bin_clo, b.bin_chi = (
+        wp.empty(bins, dtype=wp.vec3, device=device) for _ in range(4)
+    )
+    b.tasks = wp.empty(capacity, dtype=BuildTask, device=device)
+    b.nodes = wp.empty(max(2 * n - 1, 1), dtype=BvhNode, device=device)
+    b.counters = wp.zeros(2, dtype=int, device=device)
+    b.phase_cycles = wp.zeros(workers * CYCLE_ROW, dtype=wp.int64, device=device)
+    b.worker_bins = capacity
+    b.method = METHODS[method]
+    b.leaf_size = int(leaf_size)
+    b.max_depth = int(max_depth)
+    pool = make_pool(capacity, workers, int(min_chunks), device)
+    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, b],
+              device=device)
+    wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
+    phase_ms["prepare"] = sync_ms(device, start)
+
+    t0 = time.perf_counter()
+    if n > 0:
+        wp.launch(bb.start_build, dim=1,
+                  inputs=[b, pool, *(wp.vec3(*row) for row in box), n], device=device)
+        launch_workers(bb.build_worker, workers, [b, pool], device)
+    pool_state = check_pool(pool)
+    build_ms = sync_ms(device, t0)
+    spent = b.phase_cycles.numpy().reshape(workers, -1)[:, : len(PHASE_NAMES)]
+    spent = spent.sum(axis=0).astype(np.float64)
+    share = spent / spent.sum() if spent.sum() > 0 else np.zeros_like(spent)
+    for name, s in zip(PHASE_NAMES, share, strict=True):
+        phase_ms[name] = float(build_ms * s)
+
+    node_count, depth = (int(x) for x in b.counters.numpy())
+    return BoxTree(data=b, count=n, node_count=node_count, depth=depth, bounds=box,
+                   pool_state=pool_state, workers=workers)
 
 
 def trace(

@@ -426,6 +426,17 @@ def compact_valid(
         b.items[offsets[i]] = it
 
 
+@wp.func
+def store_leaf_triangle(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+                        tri: int, i: int, tri_verts: wp.array(dtype=wp.vec3)):
+    """Leaf position i's three vertices (triangle `tri` of the mesh), one after the other,
+    so a leaf reads one contiguous block."""
+    t = triangle_corners(vertices, indices, tri)
+    tri_verts[3 * i] = t[0]
+    tri_verts[3 * i + 1] = t[1]
+    tri_verts[3 * i + 2] = t[2]
+
+
 @wp.kernel
 def gather_leaf_triangles(
     vertices: wp.array(dtype=wp.vec3),
@@ -434,15 +445,11 @@ def gather_leaf_triangles(
     tri_ids: wp.array(dtype=int),
     tri_verts: wp.array(dtype=wp.vec3),
 ):
-    """Triangles in leaf order: the caller's index of each, and three vertices each, so a
-    leaf reads one contiguous block."""
+    """Triangles in leaf order: the caller's index of each, and its vertices."""
     i = wp.tid()
     tri = items[i].tri
     tri_ids[i] = tri
-    t = triangle_corners(vertices, indices, tri)
-    tri_verts[3 * i] = t[0]
-    tri_verts[3 * i + 1] = t[1]
-    tri_verts[3 * i + 2] = t[2]
+    store_leaf_triangle(vertices, indices, tri, i, tri_verts)
 
 
 WARP_MODULES = (build_worker.module,)  # this module's kernels (see core.launch.load_modules)
