@@ -281,11 +281,18 @@ def occlusion_origin(s: Surface, w: wp.vec3) -> wp.vec3:
 
 @wp.func
 def surface_at(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, d: wp.vec3, u: float, v: float,
-               smooth: bool, n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, cutoff: float) -> Surface:
+               smooth: bool, n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, cutoff: float,
+               mirrored: bool) -> Surface:
     """The spawn point, normals and terminator lift of a hit at (u, v) on the triangle
-    (v0, v1, v2) (world space), with corner normals n0..n2 where `smooth` (see `Surface`)."""
+    (v0, v1, v2) (world space), with corner normals n0..n2 where `smooth` (see `Surface`).
+    `mirrored`: the corners are a mirrored instance's, whose world winding is reversed."""
     # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
+    # A mirror reverses the winding against the (inverse-transpose) corner normals: the
+    # front face is the other side, as for a flattened mirrored mesh (addon/export.py
+    # reverses its corners).
     n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
+    if mirrored:
+        n = -n
     backfacing = wp.dot(n, wp.vec3d(d)) > wp.float64(0.0)
     if backfacing:
         n = -n
@@ -316,7 +323,8 @@ def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i)
         n1 = shading.normals[3 * triangle + 1]
         n2 = shading.normals[3 * triangle + 2]
         cutoff = shading.offsets[triangle]
-    return surface_at(t[0], t[1], t[2], d, u, v, shading.smooth != 0, n0, n1, n2, cutoff)
+    return surface_at(t[0], t[1], t[2], d, u, v, shading.smooth != 0, n0, n1, n2, cutoff,
+                      False)
 
 
 @wp.func
@@ -324,8 +332,9 @@ def instance_surface(scene: SceneArrays, shading: SceneShading, d: wp.vec3,
                      ih: InstanceHit) -> Surface:
     """`surface_at` of a hit in an instance: its triangle and corner normals taken to world
     space (points by M, rounded once as a flattened scene's vertices would be; normals by
-    the inverse transpose), so the geometric normal follows the world winding (a mirrored
-    instance's flips) and the Surface is the world-space one."""
+    the inverse transpose); a mirrored instance's front face is the side its normals
+    face, as when it is flattened with its corners reversed. The Surface is the world-space
+    one."""
     rec = scene.instances[ih.instance]
     mesh = scene.meshes[rec.mesh]
     tri = ih.hit.triangle
@@ -342,7 +351,7 @@ def instance_surface(scene: SceneArrays, shading: SceneShading, d: wp.vec3,
         n2 = world_normal(rec, shading.normals[base + 3 * tri + 2])
     return surface_at(world_point(rec, t[0]), world_point(rec, t[1]), world_point(rec, t[2]),
                       d, ih.hit.u, ih.hit.v, base >= 0, n0, n1, n2,
-                      shading.offsets[ih.instance])
+                      shading.offsets[ih.instance], wp.determinant(rec.lin) < wp.float64(0.0))
 
 
 @wp.struct

@@ -39,14 +39,20 @@ def instance_set(rng) -> np.ndarray:
     ])
 
 
+def mirrors(t: np.ndarray) -> bool:
+    return bool(np.linalg.det(t[:, :3].astype(np.float64)) < 0)
+
+
 def flatten(instances, dtype=np.float32):
     """The world-space triangle list of ((vertices, indices), transform) instances (vertices
-    M v + T in float64, rounded once to float32 as the scene's surfaces are, or exact)."""
+    M v + T in float64, rounded once to float32 as the scene's surfaces are, or exact); a
+    mirroring transform's triangles reversed to keep their faces outward, as the add-on
+    flattens them (addon/export.py)."""
     verts, faces, base = [], [], 0
     for (mv, mf), t in instances:
         w = mv.astype(np.float64) @ t[:, :3].astype(np.float64).T + t[:, 3]
         verts.append(w.astype(dtype))
-        faces.append(mf + base)
+        faces.append((mf[:, ::-1] if mirrors(t) else mf) + base)
         base += len(mv)
     return np.vstack(verts), np.vstack(faces).astype(np.int32)
 
@@ -193,6 +199,8 @@ def test_ao_of_instances_equals_the_flattened_scene(scale):
     normals = v[f] / np.linalg.norm(v[f], axis=2, keepdims=True)
     a_inv_t = np.linalg.inv(t[:, :3].astype(np.float64)).T
     world_n = (normals.astype(np.float64) @ a_inv_t.T).astype(np.float32)
+    if mirrors(t):
+        world_n = world_n[:, ::-1]  # the corners follow the reversed triangles
     floor_f = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
     flat_v = np.vstack([fv, floor])
     flat_f = np.vstack([ff, floor_f + len(fv)])
