@@ -269,14 +269,7 @@ def test_ao_on_an_instance_list_is_the_flattened_scenes(api, meshes) -> None:  #
     assert refused.status_code == 422 and refused.json()["parameter"] == "scene_id"
 
 
-MIRRORED_SMOOTH = pytest.mark.xfail(
-    strict=True, reason="engine (kernels/render/ao.py instance_surface): a mirrored instance's "
-    "geometric normal keeps the object-space winding, so its smooth normal is flipped for "
-    "front-facing hits, where the flattened scene reverses the winding (reported to the "
-    "engine's side of issue 18); strict: it fails once fixed")
-
-
-@pytest.mark.parametrize("mirrored", [False, pytest.param(True, marks=MIRRORED_SMOOTH)])
+@pytest.mark.parametrize("mirrored", [False, True])
 def test_smooth_meshes_shade_as_their_flattened_triangles(api, mirrored) -> None:  # noqa: ANN001
     """Object-space corner normals of a mesh in an instance list (a rotated, stretched and,
     or not, mirrored instance; a terminator offset) shade as the flattened scene with
