@@ -10,9 +10,9 @@ Relative imports only, so it also registers when imported as a plain package.
 
 from __future__ import annotations
 
-from . import engine, operators, panel, prefs, props, service
+from . import animation, engine, operators, panel, prefs, props, service
 
-_MODULES = (prefs, props, operators, engine, panel)
+_MODULES = (prefs, props, operators, engine, panel, animation)
 
 
 def register() -> None:

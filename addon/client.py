@@ -41,6 +41,13 @@ def scene_id(vertex_count: int, triangle_count: int, body: bytes) -> str:
     return digest.hexdigest()[:SCENE_HASH_CHARS]
 
 
+def instances_id(mesh_count: int, instance_count: int, body: bytes) -> str:
+    """The service's content id of an instance list (same rule as backend/wire.py)."""
+    digest = hashlib.sha256(b"scenesort-instances-v1 %d %d\n" % (mesh_count, instance_count))
+    digest.update(body)
+    return digest.hexdigest()[:SCENE_HASH_CHARS]
+
+
 def _opener() -> urllib.request.OpenerDirector:
     # An empty ProxyHandler: no proxy from the environment or system settings.
     return urllib.request.build_opener(urllib.request.ProxyHandler({}))
@@ -149,6 +156,31 @@ class Client:
             {"vertices": vertex_count, "triangles": triangle_count, **(blocks or {})})
         _, _, data = self._request(
             "POST", f"/v1/scenes?{query}", body, "application/octet-stream", UPLOAD_TIMEOUT_S
+        )
+        return json.loads(data)
+
+    def has_mesh(self, mesh_id: str) -> bool:
+        """`HEAD /v1/meshes/{id}`: whether the service already holds this mesh."""
+        status, _, _ = self._request("HEAD", f"/v1/meshes/{mesh_id}", timeout=HEALTH_TIMEOUT_S)
+        return status == 200
+
+    def put_mesh(self, mesh_id: str, vertex_count: int, triangle_count: int, body: bytes,
+                 blocks: dict[str, str] | None = None) -> dict:
+        """`PUT /v1/meshes/{id}`: one mesh of an instance list, in its own space."""
+        query = urllib.parse.urlencode(
+            {"vertices": vertex_count, "triangles": triangle_count, **(blocks or {})})
+        _, _, data = self._request(
+            "PUT", f"/v1/meshes/{mesh_id}?{query}", body, "application/octet-stream",
+            UPLOAD_TIMEOUT_S,
+        )
+        return json.loads(data)
+
+    def upload_instances(self, mesh_count: int, instance_count: int, body: bytes) -> dict:
+        """`POST /v1/instance-scenes`: an instance list over meshes the service holds."""
+        query = urllib.parse.urlencode({"meshes": mesh_count, "instances": instance_count})
+        _, _, data = self._request(
+            "POST", f"/v1/instance-scenes?{query}", body, "application/octet-stream",
+            UPLOAD_TIMEOUT_S,
         )
         return json.loads(data)
 

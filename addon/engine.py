@@ -6,6 +6,11 @@ main thread when headless). The work is the one render path, `pipeline.render_jo
 a worker thread, while this thread polls `test_break()` (Esc cancels the service's job)
 and shows the step in the status bar. Blender writes the files of Ctrl-F12 itself.
 
+Frame ranges (Ctrl-F12) with the BVH engine send the scene as an instance list
+(`export.export_instances`): per frame each mesh is asked for by its hash (HEAD) and sent
+only when the service lacks it, and the list of instances is sent when it changed; the
+service then builds only what changed (backend/frames.py). F12 sends the flattened scene.
+
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
 alpha = coverage with Film > Transparent and 1 without; `AO` (one channel, 0 on
 background); `Depth` (camera-space Z, 1e10 on background).
@@ -38,6 +43,12 @@ def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
     cached = " (cached)" if build.get("cached") else ""
     trace_ms = outcome.timings_ms.get("ao", 0.0)
     rmse = "-" if outcome.rmse_estimate is None else f"{outcome.rmse_estimate:.4f}"
+    report = outcome.build_report
+    if report is not None:  # an instance list: what the frame built
+        kinds = {k: len(report[k]) for k in ("built", "refit", "reused") if report[k]}
+        meshes = ", ".join(f"{n} {k}" for k, n in kinds.items()) or "none"
+        build_ms = sum(float(v) for v in (report.get("timings_ms") or {}).values())
+        cached = f" (meshes {meshes}; top level {report['top_level']})"
     if outcome.denoised:
         rmse += " before denoising"
     return (
@@ -94,7 +105,8 @@ class AoEngine:
         transparent = scene.render.film_transparent
         view = camera.view(scene, depsgraph, self.camera_override)
         self.show("exporting the scene")
-        mesh = export.export_scene(depsgraph)
+        instanced = self.is_animation and scene.scenesort.engine == "bvh"
+        mesh = (export.export_instances if instanced else export.export_scene)(depsgraph)
         if mesh.triangles == 0:
             frame = view["window"] or view["camera"]
             size = (frame["width"], frame["height"])
@@ -114,7 +126,8 @@ class AoEngine:
     # --- steps ----------------------------------------------------------------------
 
     def _run(
-        self, depsgraph: bpy.types.Depsgraph, mesh: export.SceneMesh, view: dict
+        self, depsgraph: bpy.types.Depsgraph, mesh: export.SceneMesh | export.InstanceExport,
+        view: dict,
     ) -> pipeline.Outcome:
         """The job on a worker thread while this one polls Esc and shows progress."""
         settings = pipeline.Settings.from_scene(depsgraph.scene)

@@ -11,6 +11,10 @@ a flat-shaded triangle has zero corners, which the engine reads as "the geometri
 faces sends no normals at all, so its upload is what it was before normals existed.
 Each object's Shadow Terminator Geometry Offset goes with its triangles when some object's
 differs from Blender's default (the service's default).
+
+`export_instances` reads the same depsgraph without flattening it: each distinct mesh once,
+in its own space (a `SceneMesh` whose content hash is its id), and per instance its mesh
+and 3x4 object-to-world transform: the service's instance list (docs/api.md).
 """
 
 from __future__ import annotations
@@ -20,6 +24,9 @@ from dataclasses import dataclass
 
 import bpy
 import numpy as np
+
+from .client import instances_id
+from .client import scene_id as content_id
 
 # Object types whose evaluated geometry can be turned into a mesh.
 _CONVERTIBLE = {"CURVE", "SURFACE", "FONT", "META"}
@@ -69,6 +76,21 @@ class _MeshArrays:
 
 
 _EMPTY = _MeshArrays(np.zeros((0, 3)), np.zeros((0, 3), np.int32), None)
+
+
+def _source_arrays(obj: bpy.types.Object, cache: dict[int, _MeshArrays]) -> _MeshArrays:
+    """The object's evaluated mesh in its own space, read once per mesh data."""
+    key = obj.data.as_pointer() if obj.type == "MESH" and obj.data else obj.as_pointer()
+    if key not in cache:
+        if obj.type == "MESH":
+            cache[key] = _mesh_arrays(obj.data)
+        else:
+            mesh = obj.to_mesh()
+            try:
+                cache[key] = _mesh_arrays(mesh) if mesh else _EMPTY
+            finally:
+                obj.to_mesh_clear()
+    return cache[key]
 
 
 def _mesh_arrays(mesh: bpy.types.Mesh) -> _MeshArrays:
@@ -181,17 +203,7 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
         obj = inst.object
         if obj.type != "MESH" and obj.type not in _CONVERTIBLE:
             continue
-        key = obj.data.as_pointer() if obj.type == "MESH" and obj.data else obj.as_pointer()
-        if key not in cache:
-            if obj.type == "MESH":
-                cache[key] = _mesh_arrays(obj.data)
-            else:
-                mesh = obj.to_mesh()
-                try:
-                    cache[key] = _mesh_arrays(mesh) if mesh else _EMPTY
-                finally:
-                    obj.to_mesh_clear()
-        arrays = cache[key]
+        arrays = _source_arrays(obj, cache)
         tris, normals = arrays.indices, arrays.normals
         if len(tris) == 0:
             continue
@@ -234,3 +246,81 @@ def _shading(index_parts: list[np.ndarray], normal_parts: list[np.ndarray | None
         return normals, None
     offsets = np.repeat(np.asarray(offset_parts, np.float32), sizes)
     return normals, np.ascontiguousarray(offsets, dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class InstanceExport:
+    """The scene as an instance list: `meshes` by id (first use first), each in its own
+    space; instance i is `meshes[ids[mesh_index[i]]]` under `transforms[i]` (3x4 float32)."""
+
+    meshes: dict[str, SceneMesh]
+    mesh_index: np.ndarray
+    transforms: np.ndarray
+
+    @property
+    def triangles(self) -> int:
+        """Triangles the instances stand for (what the flattened scene would hold)."""
+        counts = np.array([m.triangles for m in self.meshes.values()], np.int64)
+        return int(counts[self.mesh_index].sum()) if len(self.mesh_index) else 0
+
+    @property
+    def objects(self) -> int:
+        return len(self.mesh_index)
+
+    def body(self) -> bytes:
+        """The body of `POST /v1/instance-scenes`: K*32 hex ids, N int32, N*12 float32."""
+        ids = "".join(self.meshes).encode("ascii")
+        return (ids + np.ascontiguousarray(self.mesh_index, "<i4").tobytes()
+                + np.ascontiguousarray(self.transforms, "<f4").tobytes())
+
+    @property
+    def scene_id(self) -> str:
+        return instances_id(len(self.meshes), len(self.mesh_index), self.body())
+
+
+def _local_mesh(arrays: _MeshArrays, terminator_offset: float) -> SceneMesh:
+    """One mesh in its own space; the object's terminator offset goes with its smooth
+    triangles when it is not the default (it is then part of the mesh's content)."""
+    offsets = None
+    if arrays.normals is not None and (
+            np.float32(terminator_offset) != np.float32(DEFAULT_TERMINATOR_OFFSET)):
+        offsets = np.full(len(arrays.indices), terminator_offset, np.float32)
+    return SceneMesh(np.ascontiguousarray(arrays.vertices, np.float32),
+                     np.ascontiguousarray(arrays.indices, np.int32), 1, arrays.normals, offsets)
+
+
+def mesh_id(mesh: SceneMesh) -> str:
+    """The service's id of a mesh: the content hash of its upload body."""
+    return content_id(len(mesh.vertices), mesh.triangles, mesh.body())
+
+
+def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
+    """What `export_scene` renders, as meshes and instances: instanced meshes are read and
+    hashed once, not expanded; instances scaled to nothing (no area) are left out."""
+    cache: dict[int, _MeshArrays] = {}
+    local: dict[tuple[int, float], str] = {}  # (arrays, terminator offset) -> mesh id
+    meshes: dict[str, SceneMesh] = {}
+    position: dict[str, int] = {}  # mesh id -> its place in `meshes`
+    index: list[int] = []
+    transforms: list[np.ndarray] = []
+    for inst in _instances(depsgraph):
+        obj = inst.object
+        if obj.type != "MESH" and obj.type not in _CONVERTIBLE:
+            continue
+        arrays = _source_arrays(obj, cache)
+        m = np.array(inst.matrix_world, dtype=np.float32)[:3]
+        if len(arrays.indices) == 0 or np.linalg.det(m[:, :3].astype(np.float64)) == 0.0:
+            continue
+        key = (id(arrays), float(obj.shadow_terminator_geometry_offset))
+        if key not in local:
+            mesh = _local_mesh(arrays, key[1])
+            local[key] = mesh_id(mesh)
+            position.setdefault(local[key], len(meshes))
+            meshes.setdefault(local[key], mesh)
+        index.append(position[local[key]])
+        transforms.append(m)
+    return InstanceExport(
+        meshes,
+        np.asarray(index, np.int32),
+        np.asarray(transforms, np.float32).reshape(-1, 3, 4),
+    )

@@ -15,10 +15,12 @@ import numpy as np
 from .client import Client, ServiceError
 from .client import scene_id as content_id
 from .connection import Connection, Target, connect
-from .export import SceneMesh
+from .export import InstanceExport, SceneMesh
 from .tasks import Task
 
 NO_WORLD_AO_DISTANCE = 10.0  # Cycles' AO distance in a scene without a World
+NOTHING_TO_SEND = ("The scene has no visible, renderable mesh triangles to send: "
+                   "unhide an object or enable it for rendering")
 
 
 def ao_distance(scene: Any) -> float:
@@ -82,6 +84,8 @@ class Outcome:
     spp_mean: float = 0.0
     spp_max: int = 0
     rays: int = 0
+    # what the job built, refit or reused (the job status's `build`; backend/frames.py)
+    build_report: dict | None = None
     denoised: bool = False  # the image is OIDN's output (rmse_estimate is the raw render's)
     requests: list[str] = field(default_factory=list)
 
@@ -89,10 +93,7 @@ class Outcome:
 def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) -> str:
     """The scene id on the service, uploading the scene only if the service lacks it."""
     if mesh.triangles == 0:
-        raise ServiceError(
-            "The scene has no visible, renderable mesh triangles to send: "
-            "unhide an object or enable it for rendering"
-        )
+        raise ServiceError(NOTHING_TO_SEND)
     task.set_step("hashing the scene")
     body = mesh.body()
     scene_id = content_id(len(mesh.vertices), mesh.triangles, body)
@@ -108,6 +109,31 @@ def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) 
     return scene_id
 
 
+def ensure_instances(task: Task, client: Client, scene: InstanceExport,
+                     outcome: Outcome) -> str:
+    """The instance list's id on the service, sending only what it lacks: each mesh after
+    a HEAD by its hash, then the list itself (its own hash: an unchanged list, as when
+    only the camera moved, is not sent again)."""
+    if scene.triangles == 0:
+        raise ServiceError(NOTHING_TO_SEND)
+    task.set_step(f"checking {len(scene.meshes)} meshes on the service")
+    for mesh_id, mesh in scene.meshes.items():
+        if not client.has_mesh(mesh_id):
+            body = mesh.body()
+            task.set_step(f"uploading a mesh of {mesh.triangles:,} triangles "
+                          f"({len(body) / 1e6:.1f} MB)")
+            client.put_mesh(mesh_id, len(mesh.vertices), mesh.triangles, body, mesh.query())
+            outcome.uploaded_bytes += len(body)
+    scene_id = scene.scene_id
+    if not client.has_scene(scene_id):
+        task.set_step(f"sending {scene.objects:,} instances")
+        body = scene.body()
+        client.upload_instances(len(scene.meshes), scene.objects, body)
+        outcome.uploaded_bytes += len(body)
+    outcome.scene_id = scene_id
+    return scene_id
+
+
 def build(task: Task, target: Target, settings: Settings, mesh: SceneMesh) -> Outcome:
     """Make sure the scene is on the service and build (or reuse) its BVH."""
     client, outcome, _ = prepare(task, target, replace(settings, engine="bvh"), mesh)
@@ -116,12 +142,15 @@ def build(task: Task, target: Target, settings: Settings, mesh: SceneMesh) -> Ou
 
 
 def prepare(
-    task: Task, target: Target, settings: Settings, mesh: SceneMesh
+    task: Task, target: Target, settings: Settings, mesh: SceneMesh | InstanceExport
 ) -> tuple[Client, Outcome, str]:
     """What both renders do first: the service (started if allowed), the scene on it and,
-    for the BVH engine, its BVH. Returns the client, the outcome so far, the scene's id."""
+    for the BVH engine and a flattened scene, its BVH (an instance list's job builds its
+    own and says what it did). Returns the client, the outcome so far, the scene's id."""
     outcome = Outcome(connection=connect(task, target))
     client = outcome.connection.client
+    if isinstance(mesh, InstanceExport):
+        return client, outcome, ensure_instances(task, client, mesh, outcome)
     scene_id = ensure_scene(task, client, mesh, outcome)
     if settings.engine == "bvh":
         started = outcome.connection.started
@@ -136,16 +165,9 @@ def prepare(
 JOB_POLL_S = 0.03  # a finished job waits this long at most to be seen (one small GET a poll)
 
 
-def render_job(
-    task: Task, target: Target, settings: Settings, mesh: SceneMesh, view: dict
-) -> Outcome:
-    """The one render path (F12, animations, the panel's Render AO, scripts): scene, BVH,
-    then a service job for `view` (`camera.view()`: camera, window, pixel aspect) with
-    progress; cancelling the task cancels the job on the service."""
-    client, outcome, scene_id = prepare(task, target, settings, mesh)
-    payload = {
-        **view,
-        "scene_id": scene_id,
+def job_fields(settings: Settings) -> dict[str, Any]:
+    """The settings' fields of a service job (POST /v1/jobs), as a frame bundle keeps them."""
+    fields: dict[str, Any] = {
         "spp": settings.spp,
         "seed": settings.seed,
         "engine": settings.engine,
@@ -154,11 +176,23 @@ def render_job(
         "distance": settings.ao_distance,
     }
     if settings.target_error:
-        payload["target_error"] = settings.target_error
+        fields["target_error"] = settings.target_error
     if settings.max_pixel_error:
-        payload["max_pixel_error"] = settings.max_pixel_error
+        fields["max_pixel_error"] = settings.max_pixel_error
     if settings.denoise:
-        payload["denoise"] = True
+        fields["denoise"] = True
+    return fields
+
+
+def render_job(
+    task: Task, target: Target, settings: Settings, mesh: SceneMesh | InstanceExport,
+    view: dict,
+) -> Outcome:
+    """The one render path (F12, animations, the panel's Render AO, scripts): scene, BVH,
+    then a service job for `view` (`camera.view()`: camera, window, pixel aspect) with
+    progress; cancelling the task cancels the job on the service."""
+    client, outcome, scene_id = prepare(task, target, settings, mesh)
+    payload = {**view, "scene_id": scene_id, **job_fields(settings)}
     start = time.perf_counter()
     job = client.create_job(payload)
     outcome.job_id = job["job_id"]
@@ -179,6 +213,7 @@ def render_job(
     outcome.spp_mean = float(job.get("spp_mean") or 0.0)
     outcome.spp_max = int(job.get("spp_max") or 0)
     outcome.rays = int(job.get("rays") or 0)
+    outcome.build_report = job.get("build")
     outcome.denoised = bool(job.get("denoised"))
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)

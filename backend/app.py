@@ -29,6 +29,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
 
 from backend import __version__, jobs, wire
+from backend.frames import resolve
 from backend.jobs import (
     TOO_LARGE,
     AoParams,
@@ -47,6 +48,7 @@ from backend.models import (
     BvhStats,
     CacheUse,
     Health,
+    InstanceSceneInfo,
     JobRequest,
     JobStatus,
     SceneInfo,
@@ -67,6 +69,13 @@ SceneId = Annotated[
     str, Path(pattern=r"^[0-9a-f]{32}$", description="32 hex characters (see docs/api.md)")
 ]
 JobId = Annotated[str, Path(pattern=r"^[0-9a-f]{16}$", description="16 hex characters")]
+# The counts and flags of a scene or mesh body (query parameters).
+Vertices = Annotated[int, Query(ge=1, le=wire.MAX_INDEXABLE_VERTICES)]
+Triangles = Annotated[int, Query(ge=1, le=2**31 - 1)]
+Normals = Annotated[bool, Query(description="the body ends with T*9 float32 corner normals "
+                                "(smooth shading)")]
+Offsets = Annotated[bool, Query(description="after the normals, T float32 shadow terminator "
+                                "offsets")]
 
 
 @dataclass(frozen=True)
@@ -238,7 +247,23 @@ def _check_ao(params: AoParams) -> None:
             ) from None
 
 
-def _scene_or_404(store: Store, scene_id: str) -> wire.SceneArrays:
+def _check_engine(scene: Any, params: AoParams) -> None:
+    """DACRT traces one flat triangle list: instance lists are for the BVH engine."""
+    if params.engine == "dacrt" and isinstance(scene, wire.InstanceScene):
+        raise ApiError(
+            422, "engine", "engine dacrt traces single-mesh scenes; this is an instance list",
+            "use engine bvh for instance lists, or upload the flattened scene with "
+            "POST /v1/scenes for dacrt",
+            "invalid_parameter",
+        )
+
+
+def _mesh_or_none(store: Store, mesh_id: str) -> wire.SceneArrays | None:
+    found = store.get(mesh_id)
+    return found if isinstance(found, wire.SceneArrays) else None
+
+
+def _scene_or_404(store: Store, scene_id: str) -> wire.SceneArrays | wire.InstanceScene:
     scene = store.get(scene_id)
     if scene is None:
         raise ApiError(
@@ -405,29 +430,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             active_jobs=manager.active(),
         )
 
-    @app.post(
-        "/v1/scenes",
-        response_model=SceneInfo,
-        status_code=201,
-        responses={200: {"model": SceneInfo, "description": "already known"}, **common},
-        openapi_extra=binary_body(
-            "V*3 little-endian float32 positions, then T*3 little-endian int32 indices "
-            "(0-based), then with normals=true T*9 float32 shading normals (three corners "
-            "per triangle), then with terminator_offsets=true T float32 shadow terminator "
-            "offsets; no header or padding: exactly 12*V + 12*T (+ 36*T) (+ 4*T) bytes."
-        ),
-    )
-    async def upload_scene(
-        request: Request,
-        response: Response,
-        vertices: Annotated[int, Query(ge=1, le=wire.MAX_INDEXABLE_VERTICES)],
-        triangles: Annotated[int, Query(ge=1, le=2**31 - 1)],
-        normals: Annotated[bool, Query(description="the body ends with T*9 float32 "
-                                       "corner normals (smooth shading)")] = False,
-        terminator_offsets: Annotated[bool, Query(description="after the normals, T float32 "
-                                                  "shadow terminator offsets")] = False,
+    async def store_mesh(
+        request: Request, response: Response, counts: tuple[int, int],
+        blocks: tuple[bool, bool], mesh_id: str | None = None,
     ) -> SceneInfo:
-        """Upload a triangle mesh; its content hash is its id (201 new, 200 known)."""
+        """Read, hash, decode and keep a scene or mesh body (201 new, 200 known); with
+        `mesh_id`, the body must hash to it."""
+        (vertices, triangles), (normals, terminator_offsets) = counts, blocks
         t0 = time.perf_counter()
         wire.check_blocks(normals, terminator_offsets)
         expected = wire.scene_body_length(vertices, triangles, normals, terminator_offsets)
@@ -435,6 +444,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         t1 = time.perf_counter()
         scene_id = await run_in_threadpool(wire.scene_hash, vertices, triangles, body)
         t2 = time.perf_counter()
+        if mesh_id is not None and scene_id != mesh_id:
+            raise ApiError(
+                422, "mesh_id", f"the body hashes to {scene_id}, not to mesh_id {mesh_id}",
+                "name the mesh by its content hash (docs/api.md, the scene id rule), and send "
+                "the counts and flags it was hashed with", "mesh_id_mismatch",
+            )
         scene = store.get(scene_id)
         if scene is None:  # only new scenes pay for decoding and validation
             try:
@@ -445,15 +460,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 )
             except (MemoryError, RuntimeError) as exc:
                 raise _out_of_memory(exc) from None
-            if scene.nbytes > settings.cache_bytes:
-                raise ApiError(
-                    413,
-                    "body",
-                    f"the scene needs {scene.nbytes} bytes of cache, more than the "
-                    f"whole cache ({settings.cache_bytes})",
-                    "start the service with a larger --cache-mb",
-                    "scene_too_large",
-                )
+            _fits_cache(scene.nbytes, "scene")
             store.put(scene_id, scene, scene.nbytes)
         else:
             response.status_code = 200
@@ -463,6 +470,105 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         response.headers["Location"] = f"/v1/scenes/{scene_id}"
         response.headers["ETag"] = _etag(scene_id)
         return _scene_info(scene_id, scene)
+
+    def _fits_cache(nbytes: int, what: str) -> None:
+        if nbytes > settings.cache_bytes:
+            raise ApiError(
+                413, "body",
+                f"the {what} needs {nbytes} bytes of cache, more than the whole cache "
+                f"({settings.cache_bytes})",
+                "start the service with a larger --cache-mb", f"{what}_too_large",
+            )
+
+    scene_layout = (
+        "V*3 little-endian float32 positions, then T*3 little-endian int32 indices "
+        "(0-based), then with normals=true T*9 float32 shading normals (three corners "
+        "per triangle), then with terminator_offsets=true T float32 shadow terminator "
+        "offsets; no header or padding: exactly 12*V + 12*T (+ 36*T) (+ 4*T) bytes."
+    )
+
+    uploaded: dict[str, Any] = {  # 201 new, 200 known: what both mesh uploads answer
+        "response_model": SceneInfo, "status_code": 201,
+        "responses": {200: {"model": SceneInfo, "description": "already known"}, **common},
+    }
+
+    @app.post("/v1/scenes", **uploaded, openapi_extra=binary_body(scene_layout + " World space."))
+    async def upload_scene(
+        request: Request, response: Response, vertices: Vertices, triangles: Triangles,
+        normals: Normals = False, terminator_offsets: Offsets = False,
+    ) -> SceneInfo:
+        """Upload a triangle mesh; its content hash is its id (201 new, 200 known)."""
+        return await store_mesh(request, response, (vertices, triangles),
+                                (normals, terminator_offsets))
+
+    @app.put("/v1/meshes/{mesh_id}", **uploaded,
+             openapi_extra=binary_body(scene_layout + " The mesh's own (object) space."))
+    async def put_mesh(
+        request: Request, response: Response, mesh_id: SceneId, vertices: Vertices,
+        triangles: Triangles, normals: Normals = False, terminator_offsets: Offsets = False,
+    ) -> SceneInfo:
+        """Upload a mesh of an instance list under its content hash (201 new, 200 known).
+        A mesh is a single-mesh scene too: its id works wherever a scene id does."""
+        return await store_mesh(request, response, (vertices, triangles),
+                                (normals, terminator_offsets), mesh_id)
+
+    @app.head(
+        "/v1/meshes/{mesh_id}",
+        responses={404: {"description": "unknown mesh"}},
+    )
+    async def has_mesh(mesh_id: SceneId) -> Response:
+        """200 if the service holds this mesh, else 404: clients skip unchanged meshes."""
+        if not isinstance(store.get(mesh_id), wire.SceneArrays):
+            return Response(status_code=404)
+        return Response(status_code=200, headers={"ETag": _etag(mesh_id)})
+
+    @app.post(
+        "/v1/instance-scenes",
+        response_model=InstanceSceneInfo,
+        status_code=201,
+        responses={200: {"model": InstanceSceneInfo, "description": "already known"},
+                   **error_responses(404, *common)},
+        openapi_extra=binary_body(
+            "K*32 ASCII hex mesh ids (each PUT /v1/meshes/{mesh_id} first), then N "
+            "little-endian int32 mesh indices (0-based into those ids), then N*12 float32 "
+            "object-to-world transforms (3x4, row-major); exactly 32*K + 52*N bytes."
+        ),
+    )
+    async def upload_instances(
+        request: Request, response: Response,
+        meshes: Annotated[int, Query(ge=1, le=2**20)],
+        instances: Annotated[int, Query(ge=1, le=2**24)],
+    ) -> InstanceSceneInfo:
+        """A scene as an instance list over uploaded meshes; its content hash is its id
+        (201 new, 200 known). Jobs render it with two levels: the meshes' BVHs, built once
+        per mesh, and a top level over the instances."""
+        body = await read_body(request, wire.instance_body_length(meshes, instances))
+        listing = await run_in_threadpool(wire.decode_instances, body, meshes, instances)
+        del body
+        scene = store.get(listing.scene_id)
+        if scene is None:
+            try:
+                scene = resolve(listing, lambda mesh_id: _mesh_or_none(store, mesh_id))
+            except ValueError as exc:
+                raise ApiError(422, "body (mesh ids)", str(exc), "upload the mesh with one "
+                               "terminator offset repeated over its triangles",
+                               "invalid_parameter") from None
+            except KeyError as exc:
+                k = listing.mesh_ids.index(exc.args[0])
+                raise ApiError(
+                    404, "body (mesh ids)",
+                    f"mesh id {k} ({exc.args[0]}) is not on this service (or evicted)",
+                    "PUT /v1/meshes/{mesh_id} for every mesh the service lacks (HEAD tells)"
+                    ", then send the instance list again",
+                    "unknown_mesh",
+                ) from None
+            _fits_cache(scene.nbytes, "scene")
+            store.put(listing.scene_id, scene, scene.nbytes)
+        else:
+            response.status_code = 200
+        response.headers["Location"] = f"/v1/scenes/{listing.scene_id}"
+        response.headers["ETag"] = _etag(listing.scene_id)
+        return _instances_info(scene)
 
     @app.head(
         "/v1/scenes/{scene_id}",
@@ -478,7 +584,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.get(
         "/v1/scenes/{scene_id}",
-        response_model=SceneInfo,
+        response_model=SceneInfo | InstanceSceneInfo,
         responses={304: {"description": "If-None-Match matched"}, **error_responses(404, 422)},
     )
     async def scene_info(request: Request, scene_id: SceneId, response: Response) -> Any:
@@ -487,6 +593,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if _not_modified(request, scene_id):
             return Response(status_code=304, headers={"ETag": _etag(scene_id)})
         response.headers["ETag"] = _etag(scene_id)
+        if isinstance(scene, wire.InstanceScene):
+            return _instances_info(scene)
         return _scene_info(scene_id, scene)
 
     @app.post("/v1/scenes/{scene_id}/bvh", response_model=BvhInfo,
@@ -500,6 +608,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         time in the service (including the statistics the engine computes after it)."""
         t0 = time.perf_counter()
         scene = _scene_or_404(store, scene_id)
+        if isinstance(scene, wire.InstanceScene):
+            raise ApiError(
+                422, "scene_id",
+                f"scene {scene_id} is an instance list: its two levels are built by the jobs "
+                "and AO requests that render it",
+                "render it (POST /v1/jobs); the job status's build says what was built",
+                "instance_list",
+            )
         started: list[float] = []
         signal = deadline()
 
@@ -559,6 +675,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             max_pixel_error=max_pixel_error, engine=engine,
         )
         _check_ao(params)
+        _check_engine(scene, params)
         _check_work(settings, rays, "rays", params)
         body = await read_body(request, 24 * rays)
         t1 = time.perf_counter()
@@ -602,11 +719,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     )
     async def create_job(request: JobRequest, response: Response) -> JobStatus:
         """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
-        from backend.framing import framed
-
         try:
-            window = None if request.window is None else request.window.model_dump()
-            camera = framed(request.camera.model_dump(), window, request.pixel_aspect)
+            camera = jobs.job_camera(request)
         except ValueError as exc:
             raise ApiError(
                 422,
@@ -623,19 +737,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "render a smaller image or tiles",
                 "too_many_pixels",
             )
-        params = AoParams(
-            spp=request.spp,
-            distance=request.distance,
-            seed=request.seed,
-            target_error=request.target_error,
-            max_pixel_error=request.max_pixel_error,
-            engine=request.engine,
-            denoise=request.denoise,
-        )
+        params = jobs.ao_params(request)
         _check_ao(params)
         _check_work(settings, camera.width * camera.height, "camera.width x camera.height",
                     params)
         scene = _scene_or_404(store, request.scene_id)
+        _check_engine(scene, params)
 
         def work(job: jobs.Job) -> None:
             jobs.render_camera(
@@ -787,6 +894,17 @@ def with_bearer_scheme(app: FastAPI) -> None:
         return app.openapi_schema
 
     app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _instances_info(scene: wire.InstanceScene) -> InstanceSceneInfo:
+    return InstanceSceneInfo(
+        scene_id=scene.scene_id,
+        meshes=[m.scene_id for m in scene.meshes],
+        instances=scene.instances,
+        triangles=scene.triangles,
+        bounds=scene.bounds,
+        bytes=scene.nbytes,
+    )
 
 
 def _scene_info(scene_id: str, scene: wire.SceneArrays) -> SceneInfo:

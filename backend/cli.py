@@ -11,6 +11,8 @@ import sys
 # `scenesort --help` does not pay for Warp or FastAPI.
 COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("backend.render", "render a scene (default: the built-in scene) and print timings"),
+    "render-frames": ("backend.render_frames",
+                      "render a frame bundle (File > Export > scenesort animation)"),
     "bench": ("backend.bench", "build and trace a scene with every engine and peer, print a table"),
     "serve": ("backend.serve", "run the local HTTP service (FastAPI + uvicorn)"),
     "addon-zip": ("backend.addon_zip", "build the installable Blender extension zip"),

@@ -22,6 +22,8 @@ from typing import Any, Literal
 
 import numpy as np
 
+from backend.frames import scene_bvh
+
 log = logging.getLogger("scenesort.jobs")
 
 JobState = Literal["queued", "running", "done", "failed", "cancelled"]
@@ -159,6 +161,7 @@ class Job:
     rmse_estimate: float | None = None
     spp_max: int | None = None
     rays: int | None = None
+    build: Any = None  # backend.frames.BuildReport: what the job built, refit or reused
     denoised: bool | None = None
     version: int = 0  # bumped on every change; server-sent events wait on it
     signal: StopSignal = field(default_factory=StopSignal)
@@ -239,6 +242,7 @@ class Job:
                 "spp_max": self.spp_max,
                 "rmse_estimate": self.rmse_estimate,
                 "rays": self.rays,
+                "build": None if self.build is None else self.build.to_dict(),
                 "denoised": self.denoised,
                 "error": self.error,
             }
@@ -375,6 +379,7 @@ class AoParams:
     target_error: float | None = None
     max_pixel_error: float | None = None
     engine: Literal["bvh", "dacrt"] = "bvh"
+    threads: int | None = None  # host threads (None: all); results do not depend on it
     denoise: bool = False  # camera jobs only: OIDN on the image
 
     @property
@@ -391,7 +396,32 @@ class AoParams:
         if self.max_pixel_error is not None:
             out["max_pixel_error"] = self.max_pixel_error
         out["engine"] = self.engine
+        if self.threads is not None:
+            out["threads"] = self.threads
         return out
+
+
+def ao_params(request: Any, threads: int | None = None) -> AoParams:
+    """The AO settings of a job request (models.JobRequest, or a frame of a bundle)."""
+    return AoParams(
+        spp=request.spp,
+        distance=request.distance,
+        seed=request.seed,
+        target_error=request.target_error,
+        max_pixel_error=request.max_pixel_error,
+        engine=request.engine,
+        threads=threads,
+        denoise=request.denoise,
+    )
+
+
+def job_camera(request: Any) -> Any:
+    """The framed camera of a job request (its camera, window and pixel aspect); raises
+    ValueError naming the camera field at fault."""
+    from backend.framing import framed
+
+    window = None if request.window is None else request.window.model_dump()
+    return framed(request.camera.model_dump(), window, request.pixel_aspect)
 
 
 def warm_up(device: str) -> None:
@@ -411,20 +441,10 @@ def warm_up(device: str) -> None:
 def get_or_build_bvh(
     store: Any, scene: Any, method: str, leaf_size: int, device: str
 ) -> tuple[Any, bool]:
-    """The BVH for these parameters from the store, else built and stored; (bvh, cached)."""
-    from backend.store import bvh_key, bvh_nbytes
-
-    key = bvh_key(scene.scene_id, method, leaf_size)
-    bvh = store.get(key)
-    if bvh is not None:
-        return bvh, True
-    import kernels  # the engine is imported only where it is used
-
-    bvh = kernels.build_bvh(
-        scene.vertices, scene.indices, method=method, leaf_size=leaf_size, device=device
-    )
-    store.put(key, bvh, bvh_nbytes(bvh))
-    return bvh, False
+    """What a scene traces with these parameters (a mesh's BVH, or an instance list's two
+    levels) from the store, else made and stored; (bvh, cached)."""
+    bvh, report = scene_bvh(store, scene, method, leaf_size, device)
+    return bvh, report.cached
 
 
 def bvh_for_ao(
@@ -485,9 +505,9 @@ def render_camera(
         job.add_timing(phase, 1000.0 * (time.perf_counter() - start))
         return out
 
-    bvh, cached = timed("bvh", lambda: get_or_build_bvh(store, scene, method, leaf_size, device))
-    if not cached:  # of "bvh", the part that was Warp compiling (as "ao.compile" of "ao")
-        job.add_timing("bvh.compile", float(bvh.stats.get("compile_ms", 0.0)))
+    bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device))
+    if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
+        job.add_timing("bvh.compile", float(getattr(bvh, "stats", {}).get("compile_ms", 0.0)))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
     result = timed(

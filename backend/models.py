@@ -56,6 +56,29 @@ class SceneInfo(Strict):
     bytes: int
 
 
+class InstanceSceneInfo(Strict):
+    """An instance list on the service: its meshes (by id) under per-instance transforms."""
+
+    scene_id: str
+    meshes: list[str] = Field(description="the mesh ids the instances refer to, in order")
+    instances: int
+    triangles: int = Field(description="triangles the instances stand for (not stored again)")
+    bounds: list[list[float]] = Field(description="[[xmin, ymin, zmin], [xmax, ymax, zmax]]")
+    bytes: int = Field(description="bytes of the instance list (the meshes are apart)")
+
+
+class BuildReport(Strict):
+    """What a job did to have its BVHs (backend/frames.py's skip rules)."""
+
+    built: list[str] = Field(description="mesh ids whose BVH was built from scratch")
+    refit: list[str] = Field(description="mesh ids refit from an earlier mesh of the same "
+                             "topology (a deformed mesh)")
+    reused: list[str] = Field(description="mesh ids whose cached BVH was used as it was")
+    top_level: Literal["built", "reused", "none"] = Field(
+        description="the instance list's top level (none: a single-mesh scene)")
+    timings_ms: dict[str, float] = Field(description="build, refit, top_level: ms spent")
+
+
 class BvhRequest(Strict):
     method: Literal["sah", "median"] = "sah"
     leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
@@ -168,6 +191,8 @@ class JobStatus(Strict):
     spp_max: int | None = Field(description="most samples any pixel took")
     rmse_estimate: float | None = Field(description=RMSE_ESTIMATE_DOC)
     rays: int | None = Field(description="rays traced: primary and occlusion")
+    build: BuildReport | None = Field(
+        default=None, description="what the job built, refit or reused (once it has its BVH)")
     denoised: bool | None = Field(default=None,
                                   description="the image is OIDN's output (denoise=true)")
     error: str | None

@@ -10,7 +10,7 @@ In order, for every HTTP request (docs/security.md says what each check stops):
 3. A cap on requests in flight (503 with Retry-After); /v1/health is exempt.
 4. The bearer token on every route but /v1/health and the schema pages (401): scheme
    case-insensitive, compared in constant time.
-5. POST bodies: the declared Content-Type of the route (415); JSON bodies at most
+5. POST and PUT bodies: the declared Content-Type of the route (415); JSON bodies at most
    `max_json_bytes`, refused from Content-Length or as soon as the stream passes it
    (413); binary bodies at most `max_body_bytes` and within a budget of bytes in flight
    over all uploads (503); every body must keep arriving (408 for a slow one).
@@ -43,7 +43,9 @@ OPEN_PATH = "/v1/health"  # answers without the token, and then only status and 
 # button then takes the token, which a browser could not otherwise add to /docs).
 PUBLIC_PATHS = frozenset({OPEN_PATH, "/openapi.json", "/docs"})
 AUTHORIZED = "scenesort.authorized"  # scope key the middleware sets for the routes
-_BINARY_ROUTES = re.compile(r"^/v1/scenes(/[^/]+/ao)?$")  # raw little-endian bodies
+# raw little-endian bodies: scenes, rays, meshes, instance lists
+_BINARY_ROUTES = re.compile(r"^/v1/(scenes(/[^/]+/ao)?|meshes/[^/]+|instance-scenes)$")
+BODY_METHODS = frozenset({"POST", "PUT"})  # the methods whose bodies are checked and metered
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\\]")
 
 Receive = Callable[[], Awaitable[dict]]
@@ -163,7 +165,7 @@ class Guard:
                 "(or the $SCENESORT_TOKEN the service was started with)",
                 "unauthorized",
             )
-        if scope["method"] == "POST":
+        if scope["method"] in BODY_METHODS:
             return self._content_problem(scope)
         return None
 
@@ -206,7 +208,7 @@ class Guard:
     ) -> tuple[Receive, ApiError | None]:
         """The receive the app gets: JSON bodies read here whole (bounded), binary ones
         metered as they stream; or the problem that ends the request now."""
-        if scope["method"] != "POST":
+        if scope["method"] not in BODY_METHODS:
             return receive, None
         if _BINARY_ROUTES.match(scope["path"]) is None:
             return await self._json_body(receive)

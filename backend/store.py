@@ -109,6 +109,19 @@ class Store:
             self._bytes -= self._entries.pop(k).nbytes
         return dropped
 
+    def discard(self, prefix: str) -> list[str]:
+        """Remove every entry whose key starts with `prefix`; return their keys."""
+        with self._lock:
+            dropped = [k for k in self._entries if k.startswith(prefix)]
+            for k in dropped:
+                self._bytes -= self._entries.pop(k).nbytes
+            return dropped
+
+    def values_of(self, kind: type) -> list[Any]:
+        """The values that are instances of `kind` (a snapshot; none is touched)."""
+        with self._lock:
+            return [e.value for e in self._entries.values() if isinstance(e.value, kind)]
+
     def latest_with_prefix(self, prefix: str) -> tuple[str, Any] | None:
         """The most recently used entry whose key starts with `prefix` (not touched)."""
         with self._lock:

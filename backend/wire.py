@@ -7,6 +7,9 @@ testable without a server. Layouts (also in docs/api.md):
 - scene body: V*3 float32 positions, then T*3 int32 indices, then (with `normals`) T*9
   float32 shading normals, corner by corner, then (with `terminator_offsets`, only with
   normals) T float32 shadow terminator offsets; little-endian, no padding.
+- mesh body (`PUT /v1/meshes/{id}`): the scene body's layout, in the mesh's own space.
+- instance list: K*32 ASCII hex mesh ids, then N int32 mesh indices (into those ids), then
+  N*12 float32 object-to-world transforms (3x4, row-major), little-endian, no padding.
 - ray body: R*6 float32 (origin xyz, direction xyz per ray), little-endian.
 - AO result: R float32, little-endian.
 """
@@ -60,6 +63,88 @@ class SceneArrays:
         columns = self.vertices.T
         return [[float(c.min()) for c in columns], [float(c.max()) for c in columns]]
 
+    @cached_property
+    def topology(self) -> str:
+        """Id of the mesh's connectivity (vertex count and indices): meshes that share it
+        differ only in positions (and normals), so one's BVH refits into the other's."""
+        digest = hashlib.sha256(b"scenesort-topology-v1 %d %d\n"
+                                % (len(self.vertices), len(self.indices)))
+        digest.update(self.indices.astype(I32).tobytes())
+        return digest.hexdigest()[:SCENE_HASH_CHARS]
+
+
+@dataclass(frozen=True)
+class InstanceScene:
+    """A decoded instance list with its meshes resolved: instance i is `meshes[mesh_index[i]]`
+    under the 3x4 object-to-world `transforms[i]` (float32, row-major)."""
+
+    scene_id: str
+    meshes: tuple[SceneArrays, ...]
+    mesh_index: np.ndarray  # (N,) int32
+    transforms: np.ndarray  # (N, 3, 4) float32
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the instance list itself; the meshes are store entries of their own."""
+        return int(self.mesh_index.nbytes + self.transforms.nbytes)
+
+    @property
+    def instances(self) -> int:
+        return len(self.mesh_index)
+
+    def shading(self) -> dict[str, object]:
+        """The engine's keyword arguments for the meshes' normals (one entry per mesh, in
+        object space) and the instances' terminator offsets (none: all flat)."""
+        return self._shading
+
+    @cached_property
+    def _shading(self) -> dict[str, object]:
+        # Made once per list: the engine keeps its device copy for the same objects.
+        from kernels.render.ao import DEFAULT_TERMINATOR_OFFSET
+
+        normals = [m.normals for m in self.meshes]
+        if all(n is None for n in normals):
+            return {}
+        out: dict[str, object] = {"normals": normals}
+        offsets = [m.terminator_offsets for m in self.meshes]
+        if any(o is not None for o in offsets):
+            per_mesh = np.array([DEFAULT_TERMINATOR_OFFSET if o is None else o[0]
+                                 for o in offsets], np.float32)
+            out["terminator_offset"] = per_mesh[self.mesh_index]
+        return out
+
+    @property
+    def triangles(self) -> int:
+        """Triangles the instances stand for (each instance counts its mesh once)."""
+        counts = np.array([len(m.indices) for m in self.meshes], np.int64)
+        return int(counts[self.mesh_index].sum())
+
+    @property
+    def vertices(self) -> int:
+        counts = np.array([len(m.vertices) for m in self.meshes], np.int64)
+        return int(counts[self.mesh_index].sum())
+
+    @property
+    def degenerate(self) -> int:
+        counts = np.array([m.degenerate for m in self.meshes], np.int64)
+        return int(counts[self.mesh_index].sum())
+
+    @cached_property
+    def bounds(self) -> list[list[float]]:
+        """The world box of every instance's transformed mesh box (its 8 corners)."""
+        lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+        for k, mesh in enumerate(self.meshes):
+            chosen = self.transforms[self.mesh_index == k].astype(np.float64)
+            if not len(chosen):
+                continue
+            box = np.array(mesh.bounds, np.float64)
+            corners = np.array([[box[i, 0], box[j, 1], box[m, 2]]
+                                for i in (0, 1) for j in (0, 1) for m in (0, 1)])
+            world = corners @ chosen[:, :, :3].transpose(0, 2, 1) + chosen[:, None, :, 3]
+            lo = np.minimum(lo, world.reshape(-1, 3).min(axis=0))
+            hi = np.maximum(hi, world.reshape(-1, 3).max(axis=0))
+        return [lo.tolist(), hi.tolist()]
+
 
 def scene_hash(vertex_count: int, triangle_count: int, body: bytes | memoryview) -> str:
     """Content id of a scene: sha256 of b"scenesort-scene-v1 V T\\n" + body, first 32 hex.
@@ -70,6 +155,14 @@ def scene_hash(vertex_count: int, triangle_count: int, body: bytes | memoryview)
     value to skip uploading an unchanged scene.
     """
     digest = hashlib.sha256(b"scenesort-scene-v1 %d %d\n" % (vertex_count, triangle_count))
+    digest.update(body)
+    return digest.hexdigest()[:SCENE_HASH_CHARS]
+
+
+def instances_hash(mesh_count: int, instance_count: int, body: bytes | memoryview) -> str:
+    """Content id of an instance list: sha256 of b"scenesort-instances-v1 K N\\n" + body,
+    first 32 hex. It names the meshes by their ids, so a changed mesh is a new list."""
+    digest = hashlib.sha256(b"scenesort-instances-v1 %d %d\n" % (mesh_count, instance_count))
     digest.update(body)
     return digest.hexdigest()[:SCENE_HASH_CHARS]
 
@@ -184,6 +277,74 @@ def decode_scene(
         normals=corner_normals,
         terminator_offsets=offsets,
     )
+
+
+MESH_ID_BYTES = SCENE_HASH_CHARS  # a mesh id travels as its 32 ASCII hex characters
+_HEX = frozenset(b"0123456789abcdef")
+
+
+def instance_body_length(mesh_count: int, instance_count: int) -> int:
+    """Bytes of an instance list with K mesh ids and N instances."""
+    return MESH_ID_BYTES * mesh_count + 52 * instance_count
+
+
+@dataclass(frozen=True)
+class InstanceList:
+    """A decoded, validated instance list whose meshes are still ids."""
+
+    scene_id: str
+    mesh_ids: tuple[str, ...]
+    mesh_index: np.ndarray  # (N,) int32 into mesh_ids
+    transforms: np.ndarray  # (N, 3, 4) float32
+
+
+def decode_instances(body: bytes, mesh_count: int, instance_count: int) -> InstanceList:
+    """Decode and validate an instance list (layout in the module docstring); raise
+    `ApiError` naming the bad part. Its id is `instances_hash` of the body."""
+    layout = (f"{mesh_count}*32 hex mesh ids + {instance_count} int32 mesh indices"
+              f" + {instance_count}*12 float32 transforms")
+    expected = instance_body_length(mesh_count, instance_count)
+    expect_body_length("meshes and instances", len(body), expected, layout)
+    ids = []
+    for k in range(mesh_count):
+        raw = body[MESH_ID_BYTES * k:MESH_ID_BYTES * (k + 1)]
+        if not _HEX.issuperset(raw):
+            raise ApiError(
+                400, "body (mesh ids)",
+                f"mesh id {k} ({bytes(raw)[:32]!r}) is not 32 lowercase hex characters",
+                "send each mesh's id as PUT /v1/meshes/{mesh_id} names it (docs/api.md)",
+                "bad_mesh_id",
+            )
+        ids.append(bytes(raw).decode("ascii"))
+    at = MESH_ID_BYTES * mesh_count
+    mesh_index = np.frombuffer(body, I32, count=instance_count, offset=at).astype(np.int32)
+    bad = (mesh_index < 0) | (mesh_index >= mesh_count)
+    if bad.any():
+        row = int(np.argmax(bad))
+        raise ApiError(
+            400, "body (mesh indices)",
+            f"instance {row} refers to mesh {int(mesh_index[row])}, outside 0..{mesh_count - 1}"
+            f" (meshes={mesh_count})",
+            "mesh indices are 0-based into the body's mesh ids; fix the instance or raise meshes",
+            "index_out_of_range",
+        )
+    at += 4 * instance_count
+    transforms = np.frombuffer(body, F32, count=12 * instance_count, offset=at)
+    transforms = transforms.reshape(-1, 3, 4)
+    _check_finite("body (transforms)", transforms, "the transform of instance")
+    transforms = transforms.astype(np.float32)
+    singular = np.linalg.det(transforms[:, :, :3].astype(np.float64)) == 0.0
+    if singular.any():
+        row = int(np.argmax(singular))
+        raise ApiError(
+            400, "body (transforms)",
+            f"the transform of instance {row} is singular (its 3x3 part has determinant 0): "
+            "rays cannot be taken into its space",
+            "leave out instances scaled to nothing (their triangles have no area)",
+            "singular_transform",
+        )
+    return InstanceList(instances_hash(mesh_count, instance_count, body), tuple(ids),
+                        mesh_index, transforms)
 
 
 def decode_rays(body: bytes, ray_count: int) -> tuple[np.ndarray, np.ndarray]:

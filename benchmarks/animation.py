@@ -1,8 +1,10 @@
 """Scenes that change (issue 18): refit against rebuild, and instances against the flattened
 scene, with the issue's floors.
 
-    python benchmarks/animation.py [--part refit|instances|all] [--repeat 3] [--no-docs]
+    python benchmarks/animation.py [--part refit|instances|frames|all] [--repeat 3] [--no-docs]
         [--subdivide 2] [--instances 1000] [--flat-instances 256] [--size 384]
+        [--frames 100] [--frame-instances 200] [--frame-triangles 6000] [--frame-size 64]
+        [--flat-every 5]
 
 refit: the bunny subdivided `--subdivide` times (4x triangles each: 2 -> 1.1 M) and deformed
   by a smooth wave, frame after frame: `refit_bvh` of the deformed mesh against `build_bvh`
@@ -14,6 +16,13 @@ instances: `--instances` bunnies (rotated, scaled, on a grid): the scene's devic
   of the two-level scene against the flattened one at `--flat-instances` (256 by default:
   flattening 1,000 bunnies, 69 M triangles, does not fit this machine's memory beside the
   others' work; 512 was not tried, to leave the others room).
+frames: `--frames` frames of one deforming bunny (full resolution) among
+  `--frame-instances` instances of the bunny, dragon and buddha (vertex-clustered to about
+  `--frame-triangles` triangles each) and an orbiting camera, through a real `scenesort
+  serve`: per frame the flattened scene hashed, uploaded and built (POST /v1/scenes, a job),
+  against the meshes and instance list with only what changed sent (HEAD first) and built
+  (a refit and a top level); interleaved frame by frame after two warm-up frames, the
+  flattened path (the same work every frame) on every `--flat-every`-th frame.
 Warp's compile time is paid in the warm-up and not counted. Writes its sections of
 docs/benchmarks.md ("Dynamic scenes"), marked as measured on a loaded machine.
 """
@@ -22,9 +31,11 @@ from __future__ import annotations
 
 import argparse
 import os
+import statistics
 import sys
 import time
 
+import httpx
 import numpy as np
 import trimesh
 import warp as wp
@@ -34,7 +45,9 @@ wp.config.quiet = True
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
 import kernels  # noqa: E402
-from backend.scenes import shared_scene  # noqa: E402
+from backend import wire  # noqa: E402
+from backend.scenes import load_mesh, shared_scene, shared_scenes_dir  # noqa: E402
+from kernels import Camera  # noqa: E402
 from kernels.core import cpu_cores  # noqa: E402
 from kernels.render import default_distance  # noqa: E402
 from kernels.scene import bvh_nbytes  # noqa: E402
@@ -42,6 +55,10 @@ from kernels.scene import bvh_nbytes  # noqa: E402
 REFIT_FLOOR = 0.3  # refit time / rebuild time, at most
 MEMORY_FLOOR = 1.1  # scene bytes / (one bunny + top level), at most
 TRACE_FLOOR = 0.7  # two-level trace speed / flattened, at least
+FRAMES_FLOOR = 0.25  # two-level frames' total time / the flattened scene's, at most
+STATIC = ("bunny", "dragon", "buddha")  # frames: the instanced meshes
+DEFORMER = "bunny"  # frames: the deforming mesh, at full resolution
+OCTET = {"Content-Type": "application/octet-stream"}
 WAVES = (0.0, 0.02, 0.05, 0.1, 0.15, 0.2, 0.3, 0.4)  # deformation amplitudes, of the box diagonal
 
 
@@ -283,7 +300,225 @@ def part_instances(args) -> tuple[list[str], dict]:
     return lines, {"memory_ratio": mem_ratio, **{f"speed_{k}": x for k, x in speed.items()}}
 
 
-PARTS = {"refit": part_refit, "instances": part_instances}
+def decimate(vertices: np.ndarray, indices: np.ndarray, target: int) -> tuple[np.ndarray,
+                                                                             np.ndarray]:
+    """Vertex clustering on a grid, made finer until at least `target` triangles remain:
+    a low-poly copy of a shared mesh (collapsed and repeated triangles dropped)."""
+    lo, extent = vertices.min(0), float(np.ptp(vertices, axis=0).max())
+    for cells in (8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384, 512):
+        key = np.minimum(((vertices - lo) / extent * cells).astype(np.int64), cells)
+        flat = (key[:, 0] * (cells + 1) + key[:, 1]) * (cells + 1) + key[:, 2]
+        _, inverse, counts = np.unique(flat, return_inverse=True, return_counts=True)
+        merged = np.zeros((len(counts), 3))
+        np.add.at(merged, inverse, vertices)
+        tris = inverse[indices]
+        keep = ((tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2])
+                & (tris[:, 0] != tris[:, 2]))
+        _, first = np.unique(np.sort(tris[keep], axis=1), axis=0, return_index=True)
+        tris = tris[keep][np.sort(first)]
+        if len(tris) >= target or cells == 512:
+            return (merged / counts[:, None]).astype(np.float32), tris.astype(np.int32)
+    raise AssertionError("unreachable")
+
+
+def unit(vertices: np.ndarray) -> np.ndarray:
+    """Centred on the origin, its longest side 1."""
+    lo, hi = vertices.min(0), vertices.max(0)
+    return ((vertices - (lo + hi) / 2) / float((hi - lo).max())).astype(np.float32)
+
+
+def body_of(vertices: np.ndarray, indices: np.ndarray) -> bytes:
+    return vertices.astype("<f4").tobytes() + indices.astype("<i4").tobytes()
+
+
+class Animation:
+    """One deforming bunny among `instances` instances of three low-poly shared meshes on
+    a grid, and a camera orbiting them; frame k's arrays, the same for both paths."""
+
+    def __init__(self, instances: int, triangles: int, width: int, height: int) -> None:
+        folder = shared_scenes_dir()
+        if folder is None:
+            raise SystemExit("no shared scenes folder: set $SCENESORT_SCENES")
+        self.static = []
+        for name in STATIC:
+            v, f = load_mesh(folder / f"{name}.ply")
+            v, f = decimate(unit(v), f, triangles)
+            self.static.append((v, f))
+        v, f = load_mesh(folder / f"{DEFORMER}.ply")
+        self.rest, self.deformer_indices = unit(v) * 3.0, f
+        rng = np.random.default_rng(7)
+        side = int(np.ceil(np.sqrt(instances)))
+        self.mesh_index = np.arange(instances, dtype=np.int32) % len(STATIC)
+        self.transforms = np.zeros((instances, 3, 4), np.float32)
+        for i in range(instances):
+            angle, scale = rng.uniform(0, 2 * np.pi), rng.uniform(0.6, 1.0)
+            c, s = np.cos(angle), np.sin(angle)
+            rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]]) * scale
+            x, z = (i % side - side / 2) * 1.3, (i // side - side / 2) * 1.3
+            self.transforms[i, :, :3] = rotation
+            self.transforms[i, :, 3] = (x, 0.0, z)
+        self.radius = 1.3 * side * 0.75
+        self.size = (width, height)
+
+    def deformed(self, frame: int) -> np.ndarray:
+        """The bunny under a travelling wave (same topology every frame), above the grid."""
+        return deform(self.rest, 0.03, 0.3 * frame) + np.float32([0.0, 1.5, 0.0])
+
+    def camera(self, frame: int) -> dict:
+        angle = 2 * np.pi * frame / 100.0
+        position = (self.radius * np.cos(angle), 0.6 * self.radius, self.radius * np.sin(angle))
+        cam = Camera.look_at(position, (0.0, 0.5, 0.0), (0, 1, 0), 50.0, *self.size,
+                             clip_start=0.01, clip_end=1e4)
+        return cam.to_dict()
+
+    def flattened(self, deformed: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The frame as one world-space triangle list, as a flattening client sends it."""
+        vertices, indices, start = [], [], 0
+        for k, m in zip(self.mesh_index, self.transforms, strict=True):
+            v, f = self.static[k]
+            vertices.append(v @ m[:, :3].T + m[:, 3])
+            indices.append(f + start)
+            start += len(v)
+        vertices.append(deformed)
+        indices.append(self.deformer_indices + start)
+        return np.concatenate(vertices).astype(np.float32), np.concatenate(indices)
+
+
+class Session:
+    """httpx against one service, the job settings fixed."""
+
+    def __init__(self, url: str, auth: dict[str, str], settings: dict) -> None:
+        self.http = httpx.Client(base_url=url, headers=auth, timeout=600)
+        self.settings = settings
+
+    def render(self, scene_id: str, camera: dict) -> dict:
+        job = self.http.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera,
+                                               **self.settings})
+        job.raise_for_status()
+        job_id = job.json()["job_id"]
+        while True:
+            status = self.http.get(f"/v1/jobs/{job_id}").json()
+            if status["state"] not in ("queued", "running"):
+                break
+            time.sleep(0.002)
+        if status["state"] != "done":
+            raise SystemExit(f"job failed: {status}")
+        self.http.get(f"/v1/jobs/{job_id}/result", params={"format": "f32"}).raise_for_status()
+        return status
+
+    def flat_frame(self, anim: Animation, frame: int, deformed: np.ndarray) -> dict:
+        v, f = anim.flattened(deformed)
+        body = body_of(v, f)
+        scene_id = wire.scene_hash(len(v), len(f), body)
+        if self.http.head(f"/v1/scenes/{scene_id}").status_code == 404:
+            self.http.post("/v1/scenes", params={"vertices": len(v), "triangles": len(f)},
+                           content=body, headers=OCTET).raise_for_status()
+        return self.render(scene_id, anim.camera(frame))
+
+    def instanced_frame(self, anim: Animation, frame: int, deformed: np.ndarray) -> dict:
+        meshes = [*anim.static, (deformed, anim.deformer_indices)]
+        ids = []
+        for v, f in meshes:
+            body = body_of(v, f)
+            ids.append(wire.scene_hash(len(v), len(f), body))
+            if self.http.head(f"/v1/meshes/{ids[-1]}").status_code == 404:
+                self.http.put(f"/v1/meshes/{ids[-1]}", content=body, headers=OCTET,
+                              params={"vertices": len(v), "triangles": len(f)}
+                              ).raise_for_status()
+        index = np.append(anim.mesh_index, len(STATIC)).astype("<i4")
+        placed = np.concatenate([anim.transforms, np.eye(3, 4, dtype=np.float32)[None]])
+        body = "".join(ids).encode() + index.tobytes() + placed.astype("<f4").tobytes()
+        scene_id = wire.instances_hash(len(ids), len(index), body)
+        if self.http.head(f"/v1/scenes/{scene_id}").status_code == 404:
+            self.http.post("/v1/instance-scenes", content=body, headers=OCTET,
+                           params={"meshes": len(ids), "instances": len(index)}
+                           ).raise_for_status()
+        return self.render(scene_id, anim.camera(frame))
+
+
+def part_frames(args) -> tuple[list[str], dict]:
+    """Both paths frame by frame, interleaved, through one `scenesort serve`: per frame the
+    flattened scene uploaded and built, then the meshes and instance list with only what
+    changed sent and built. Frame 0 of each is the warm-up (Warp's compile, the first
+    builds) and not counted."""
+    from service import start_service  # benchmarks/service.py
+
+    width = args.frame_size
+    anim = Animation(args.frame_instances, args.frame_triangles, width, width * 3 // 4)
+    proc, url, auth = start_service()
+    try:
+        lines, figures = _frames(args, anim, Session(url, auth, {
+            "spp": args.frame_spp, "seed": 1, "distance": 0.5}))
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    return lines, figures
+
+
+WARM_UP = 2  # frames before the timed ones: the first builds, then the first refit (compile)
+
+
+def _frames(args, anim: Animation, session: Session) -> tuple[list[str], dict]:
+    """Frames -WARM_UP..-1 warm up; of frames 0..frames-1 the two-level path runs every one
+    and the flattened path every `--flat-every`-th, interleaved (its total is its mean
+    frame times the frames: every flattened frame is the same work, a full upload and
+    build)."""
+    times: dict[str, list[float]] = {"flattened": [], "two levels": []}
+    phases: dict[str, dict[str, float]] = {k: {"bvh": 0.0, "ao": 0.0} for k in times}
+    reports = []
+    for frame in range(-WARM_UP, args.frames):
+        deformed = anim.deformed(frame)
+        paths = [("two levels", session.instanced_frame)]
+        if frame % args.flat_every == 0 and (frame >= 0 or frame == -WARM_UP):
+            paths.insert(0, ("flattened", session.flat_frame))
+        for name, run in paths:
+            start = time.perf_counter()
+            status = run(anim, frame, deformed)
+            elapsed = time.perf_counter() - start
+            if frame < 0:
+                continue
+            times[name].append(elapsed)
+            for phase in phases[name]:
+                phases[name][phase] += status["timings_ms"].get(phase, 0.0) / 1e3
+            if name == "two levels":
+                reports.append(status["build"])
+    scale = {"flattened": args.frames / len(times["flattened"]), "two levels": 1.0}
+    total = {name: sum(t) * scale[name] for name, t in times.items()}
+    flat_tris = len(anim.flattened(anim.deformed(0))[1])
+    refits = sum(len(r["refit"]) for r in reports)
+    built = sum(len(r["built"]) for r in reports)
+    width, height = anim.size
+    lines = [
+        f"Run: `{args.command}`, load average {load()} on {cpu_cores()} cores (shared with "
+        "other work: indicative figures; the ratio is of the same run).",
+        "",
+        f"{args.frames} frames, {width}x{height}, spp {args.frame_spp}: one deforming bunny "
+        f"({len(anim.deformer_indices):,} triangles) and {len(anim.mesh_index)} instances "
+        f"of {', '.join(STATIC)} (vertex-clustered to "
+        f"{', '.join(f'{len(f):,}' for _, f in anim.static)} triangles), an orbiting camera; "
+        f"flattened: {flat_tris:,} triangles a frame. Through `scenesort serve`; a frame's "
+        "time is the client's: flattening (flattened path), hashing and sending what the "
+        "service lacks (HEAD first), the job, and fetching its AO.",
+        "",
+        "| path | frames timed | total s (for all frames) | median ms/frame | BVH s (jobs) "
+        "| render s (jobs) |",
+        "|---|---:|---:|---:|---:|---:|",
+    ]
+    for name, t in times.items():
+        lines.append(f"| {name} | {len(t)} | {total[name]:.1f} | "
+                     f"{1e3 * statistics.median(t):.1f} | {phases[name]['bvh'] * scale[name]:.1f}"
+                     f" | {phases[name]['ao'] * scale[name]:.2f} |")
+    ratio = total["two levels"] / total["flattened"]
+    lines += ["", f"Two levels / flattened, total time: **{ratio:.3f}x** (floor <= "
+              f"{FRAMES_FLOOR}: {'met' if ratio <= FRAMES_FLOOR else 'NOT met'}). The "
+              f"flattened path ran every {args.flat_every}th frame, interleaved; its total is "
+              f"its frames' sum scaled to {args.frames}. What the two-level frames built "
+              f"(the jobs' build reports): {refits} refits, {built} builds, "
+              f"{sum(r['top_level'] == 'built' for r in reports)} top levels."]
+    return lines, {"frames_ratio": ratio}
+
+
+PARTS = {"refit": part_refit, "instances": part_instances, "frames": part_frames}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -294,6 +529,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--instances", type=int, default=1000)
     parser.add_argument("--flat-instances", type=int, default=256)
     parser.add_argument("--size", type=int, default=384, help="image width (height 3/4)")
+    parser.add_argument("--frames", type=int, default=100, help="frames: frames timed")
+    parser.add_argument("--frame-instances", type=int, default=200,
+                        help="frames: instances of the three static meshes")
+    parser.add_argument("--frame-triangles", type=int, default=6000,
+                        help="frames: the static meshes vertex-clustered to at least this")
+    parser.add_argument("--frame-size", type=int, default=64, help="frames: image width")
+    parser.add_argument("--frame-spp", type=int, default=4, help="frames: AO samples")
+    parser.add_argument("--flat-every", type=int, default=5,
+                        help="frames: the flattened path on every n-th frame (its total scaled)")
     parser.add_argument("--no-docs", action="store_true", help="print only")
     args = parser.parse_args(argv)
     args.command = "python benchmarks/animation.py " + " ".join(argv or sys.argv[1:])

@@ -6,6 +6,7 @@ unregisters it afterwards (which also stops any service it started).
 
 from __future__ import annotations
 
+import math
 import socket
 import sys
 from collections.abc import Iterator
@@ -138,3 +139,40 @@ def ctrl_f12(scene: bpy.types.Scene, folder: Path, first: int = 1, last: int = 3
     assert names == [f"frame_{f:04d}.png" for f in range(first, last + 1)]
     return [Image.open(folder / name) for name in names]
 
+
+FRAMES = (1, 2, 3, 4)  # animated_scene's: the blob deforms from 1 to 3 and holds on 4
+
+
+def animated_scene(scene: bpy.types.Scene) -> bpy.types.Scene:
+    """A floor; one cube mesh under three objects, one of them moving and one mirrored,
+    and in a collection instance; a grid deformed by an animated shape key; a moving camera."""
+    add_object(scene, "Floor", grid_mesh("Floor", 4, 8.0))
+    cube = box_mesh("Cube", 1.0)
+    for i in range(3):
+        add_object(scene, f"Cube{i}", cube, (2.0 * i - 2.0, 0.0, 0.5))
+    bpy.data.objects["Cube2"].scale = (-1.0, 1.0, 2.0)  # mirrored, non-uniform
+    mover = bpy.data.objects["Cube1"]
+    mover.keyframe_insert("location", frame=1)
+    mover.location.z = 2.0
+    mover.keyframe_insert("location", frame=3)
+    blob = add_object(scene, "Blob", grid_mesh("Blob", 3, 1.0), (0.0, 2.0, 1.0))
+    blob.shape_key_add(name="Basis")
+    key = blob.shape_key_add(name="Up")
+    for point in key.data:
+        point.co.z += 0.3 * point.co.x
+    key.value = 0.0
+    key.keyframe_insert("value", frame=1)
+    key.value = 1.0
+    key.keyframe_insert("value", frame=3)
+    parts = bpy.data.collections.new("Parts")
+    parts.objects.link(bpy.data.objects.new("Part", cube))
+    empty = add_object(scene, "Instancer", None, (0.0, -2.0, 0.0))
+    empty.instance_type, empty.instance_collection = "COLLECTION", parts
+    cam = add_camera(scene, (0.0, -8.0, 4.0), (math.radians(60), 0.0, 0.0), 32, 24)
+    cam.keyframe_insert("location", frame=1)
+    cam.location.x = 1.0
+    cam.keyframe_insert("location", frame=4)
+    scene.frame_start, scene.frame_end = FRAMES[0], FRAMES[-1]
+    scene.scenesort.spp, scene.scenesort.seed, scene.scenesort.ao_distance = 4, 3, 1.5
+    scene.frame_set(2)
+    return scene

@@ -1,0 +1,282 @@
+"""Frames that redo only what changed: the per-mesh BVH cache, the skip rules, and the
+frame renderer that the service's jobs and `scenesort render-frames` both run.
+
+The cache is a `Store` (backend/store.py) keyed by content hash:
+
+- a mesh's BVH under `bvh_key(mesh_id, method, leaf_size)`: the same mesh data under many
+  objects or instances is built once;
+- its topology (vertex count and indices, `SceneArrays.topology`) under
+  `topology_key(...)`, naming the last mesh built with it: a deformed mesh (same topology,
+  new positions) is refit from that one's BVH, and the engine's `refit_bvh` decides whether
+  to rebuild anyway;
+- an instance list's top level under `bvh_key(scene_id, ...)`, where the scene id is the
+  list's content hash (mesh ids and transforms).
+
+Hence the skip rules: a frame whose instance list is unchanged (only the camera moved)
+builds nothing; one whose transforms changed builds only the top level; a mesh that
+deformed is refit and nothing else is touched. `BuildReport` says per frame what was done.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+
+from backend import wire
+from backend.bundle import Bundle, read_bundle
+from backend.store import Store, bvh_key, bvh_nbytes
+
+TopLevel = Literal["built", "reused", "none"]
+DEFAULT_CACHE_BYTES = 4096 * 2**20
+
+
+def topology_key(topology: str, method: str, leaf_size: int) -> str:
+    """The cache key naming the last mesh with this topology whose BVH was made."""
+    return f"{topology}/topology/{method}/{leaf_size}"
+
+
+@dataclass
+class BuildReport:
+    """What a frame (or a job) did to have its BVHs: mesh ids built from scratch, refit
+    from an earlier mesh of the same topology, or reused; the top level built, reused, or
+    none (a single-mesh scene has no top level); and the time of each part in ms."""
+
+    built: list[str] = field(default_factory=list)
+    refit: list[str] = field(default_factory=list)
+    reused: list[str] = field(default_factory=list)
+    top_level: TopLevel = "none"
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def cached(self) -> bool:
+        """Whether nothing was built or refit."""
+        return not self.built and not self.refit and self.top_level != "built"
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"built": list(self.built), "refit": list(self.refit),
+                "reused": list(self.reused), "top_level": self.top_level,
+                "timings_ms": dict(self.timings_ms)}
+
+    def measure(self, name: str, fn: Callable[[], Any]) -> Any:
+        start = time.perf_counter()
+        out = fn()
+        self.timings_ms[name] = self.timings_ms.get(name, 0.0) + 1e3 * (time.perf_counter() - start)
+        return out
+
+
+TOPOLOGY_DONORS = 8  # meshes remembered per topology as refit donors, newest last
+
+
+def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, device: str,
+             report: BuildReport, in_use: frozenset[str] | None = None) -> Any:
+    """The mesh's BVH: cached, else refit from the BVH of an earlier mesh of its topology
+    (one that `in_use`, the meshes of the same instance list, does not hold), else built.
+    `in_use` None: a single-mesh scene, built as the single-mesh API always has (with the
+    statistics of a fresh build), and never a refit's donor."""
+    import kernels
+
+    key = bvh_key(mesh.scene_id, method, leaf_size)
+    bvh = store.get(key)
+    if bvh is not None:
+        report.reused.append(mesh.scene_id)
+        return bvh
+    topo = topology_key(mesh.topology, method, leaf_size)
+    donors, donor_id = [], None
+    if in_use is not None:
+        donors = [d for d in store.get(topo) or [] if d != mesh.scene_id]
+        donor_id = next((d for d in reversed(donors) if d not in in_use
+                         and bvh_key(d, method, leaf_size) in store), None)
+    if donor_id is not None:
+        donor = store.get(bvh_key(donor_id, method, leaf_size))
+        bvh = report.measure("refit", lambda: kernels.refit_bvh(donor, mesh.vertices))
+        # The refit works in place, also when the engine's rule then rebuilds (the refit
+        # tree would cost too much): the donor's BVH and its top levels are stale now.
+        _forget(store, donor_id, method, leaf_size)
+        donors.remove(donor_id)
+        (report.refit if bvh is donor else report.built).append(mesh.scene_id)
+    else:
+        bvh = report.measure("build", lambda: kernels.build_bvh(
+            mesh.vertices, mesh.indices, method=method, leaf_size=leaf_size, device=device))
+        report.built.append(mesh.scene_id)
+    store.put(key, bvh, bvh_nbytes(bvh))
+    if in_use is not None:
+        store.put(topo, [*donors, mesh.scene_id][-TOPOLOGY_DONORS:], 64 * TOPOLOGY_DONORS)
+    return bvh
+
+
+def _forget(store: Store, mesh_id: str, method: str, leaf_size: int) -> None:
+    """Drop a mesh's BVH and the top levels over it: its BVH now holds another mesh."""
+    store.discard(bvh_key(mesh_id, method, leaf_size))
+    for scene in store.values_of(wire.InstanceScene):
+        if any(m.scene_id == mesh_id for m in scene.meshes):
+            store.discard(bvh_key(scene.scene_id, method, leaf_size))
+
+
+def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method: str,
+              leaf_size: int, device: str) -> tuple[Any, BuildReport]:
+    """What a render traces for `scene`, with the report of what it took to have it: a
+    single mesh's BVH, or an instance list's two levels (the top level over the meshes'
+    BVHs, each from `mesh_bvh`). An instance list is kept in the store with its top level,
+    which lives no longer than it (store.py drops a scene's BVHs with it)."""
+    import kernels
+    from kernels.scene import bvh_nbytes as mesh_bytes
+
+    report = BuildReport()
+    if isinstance(scene, wire.SceneArrays):
+        return mesh_bvh(store, scene, method, leaf_size, device, report), report
+    key = bvh_key(scene.scene_id, method, leaf_size)
+    levels = store.get(key)
+    if levels is not None:
+        report.reused.extend(m.scene_id for m in scene.meshes)
+        report.top_level = "reused"
+        return levels, report
+    if scene.scene_id not in store:
+        store.put(scene.scene_id, scene, scene.nbytes)
+    in_use = frozenset(m.scene_id for m in scene.meshes)
+    bottoms = [mesh_bvh(store, m, method, leaf_size, device, report, in_use)
+               for m in scene.meshes]
+    levels = report.measure("top_level", lambda: kernels.build_scene(
+        bottoms, scene.mesh_index, scene.transforms))
+    report.top_level = "built"
+    # Its own bytes: the meshes' BVHs are entries of their own.
+    store.put(key, levels, max(levels.nbytes - sum(map(mesh_bytes, bottoms)), 1))
+    return levels, report
+
+
+def resolve(listing: wire.InstanceList,
+            mesh: Callable[[str], wire.SceneArrays | None]) -> wire.InstanceScene:
+    """The instance list with its meshes looked up by id (`mesh` returns None for one it
+    lacks: KeyError naming the first such id). ValueError for a mesh whose terminator
+    offsets vary over its triangles: an instance has one (Blender's is per object)."""
+    meshes = []
+    for k, mesh_id in enumerate(listing.mesh_ids):
+        found = mesh(mesh_id)
+        if found is None:
+            raise KeyError(mesh_id)
+        offsets = found.terminator_offsets
+        if offsets is not None and np.any(offsets != offsets[0]):
+            raise ValueError(f"mesh {k} ({mesh_id}) has terminator offsets that vary over "
+                             "its triangles; in an instance list each mesh has one (send it "
+                             "repeated, as the object's value)")
+        meshes.append(found)
+    return wire.InstanceScene(listing.scene_id, tuple(meshes), listing.mesh_index,
+                              listing.transforms)
+
+
+# --- the frame renderer ---------------------------------------------------------------
+
+
+@dataclass
+class FrameResult:
+    """One rendered frame: AO, coverage and depth (height, width) float32, row 0 at the
+    top, as the service's job result has them; its PNG; what the build did; timings."""
+
+    frame: int
+    ao: np.ndarray
+    coverage: np.ndarray
+    depth: np.ndarray
+    png: bytes
+    build: BuildReport
+    timings_ms: dict[str, float]
+
+
+class FrameRenderer:
+    """Renders a bundle's frames in any order, keeping the BVHs between them (`cache_bytes`
+    bounds what it keeps). Each frame is the service's camera job on the frame's instance
+    list, so the images are the service's."""
+
+    def __init__(self, bundle: Bundle | str | Path, *, device: str | None = None,
+                 threads: int | None = None, cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
+        self.bundle = bundle if isinstance(bundle, Bundle) else read_bundle(bundle)
+        self.device = device or "cpu"
+        self.threads = threads
+        self.store = Store(cache_bytes)
+
+    def _mesh(self, mesh_id: str) -> wire.SceneArrays:
+        found = self.store.get(mesh_id)
+        if found is None:
+            found = self.bundle.mesh(mesh_id)
+            self.store.put(mesh_id, found, found.nbytes)
+        return found
+
+    def render(self, frame_number: int) -> FrameResult:
+        """Render one frame (its meshes read from the bundle when first needed)."""
+        from backend import jobs  # which imports this module for scene_bvh
+
+        frame = self.bundle.frame(frame_number)
+        request = frame.request
+        scene = resolve(frame.instances, self._mesh)
+        camera = jobs.job_camera(request)
+        job = jobs.Job(job_id=f"frame-{frame_number}", scene_id=scene.scene_id,
+                       width=camera.width, height=camera.height)
+        params = jobs.ao_params(request, threads=self.threads)
+        jobs.render_camera(job, self.store, scene, camera, params, request.method,
+                           request.leaf_size, self.device)
+        assert job.ao is not None and job.coverage is not None and job.depth is not None
+        return FrameResult(frame_number, job.ao, job.coverage, job.depth, job.png or b"",
+                           job.build or BuildReport(), dict(job.timings_ms))
+
+
+def frame_paths(out_dir: Path, frame_number: int) -> tuple[Path, Path]:
+    """Where a frame's 8-bit PNG and float32 AO (.npy) go."""
+    stem = Path(out_dir) / f"{frame_number:06d}"
+    return stem.with_suffix(".png"), stem.with_suffix(".npy")
+
+
+def write_frame(out_dir: str | Path, frame_number: int, result: FrameResult) -> Path:
+    """Write the frame's PNG (the service's `format=png`) and its float32 AO as .npy
+    (row 0 at the top); returns the PNG's path."""
+    png, npy = frame_paths(Path(out_dir), frame_number)
+    png.parent.mkdir(parents=True, exist_ok=True)
+    np.save(npy, result.ao.astype(np.float32))
+    png.write_bytes(result.png)  # last: a frame counts as done (resume) once its PNG exists
+    return png
+
+
+def render_frames(bundle_path: str | Path, out_dir: str | Path, *,
+                  frames: Iterable[int] | None = None, resume: bool = False,
+                  threads: int | None = None, progress: bool = True,
+                  device: str | None = None) -> list[tuple[int, BuildReport | None]]:
+    """Render the bundle's frames (all, or `frames`) into `out_dir`, with a rich progress
+    bar; `resume` skips frames whose files exist. Returns (frame, report) per frame, the
+    report None for a frame skipped."""
+    renderer = FrameRenderer(bundle_path, device=device, threads=threads)
+    wanted = list(renderer.bundle.frames if frames is None else frames)
+    done: list[tuple[int, BuildReport | None]] = []
+
+    def one(number: int) -> None:
+        png, npy = frame_paths(Path(out_dir), number)
+        if resume and png.exists() and npy.exists():
+            done.append((number, None))
+            return
+        result = renderer.render(number)
+        write_frame(out_dir, number, result)
+        done.append((number, result.build))
+
+    if not progress:
+        for number in wanted:
+            one(number)
+        return done
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
+
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
+               TimeElapsedColumn(), TimeRemainingColumn())
+    with Progress(*columns, transient=True) as bar:
+        task = bar.add_task("frames", total=len(wanted))
+        for number in wanted:
+            bar.update(task, description=f"frame {number}")
+            one(number)
+            bar.advance(task)
+    return done
