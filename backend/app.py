@@ -537,6 +537,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         if scene is None:
             try:
                 scene = resolve(listing, lambda mesh_id: _mesh_or_none(store, mesh_id))
+            except ValueError as exc:
+                raise ApiError(422, "body (mesh ids)", str(exc), "upload the mesh with one "
+                               "terminator offset repeated over its triangles",
+                               "invalid_parameter") from None
             except KeyError as exc:
                 k = listing.mesh_ids.index(exc.args[0])
                 raise ApiError(
@@ -592,6 +596,14 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         time in the service (including the statistics the engine computes after it)."""
         t0 = time.perf_counter()
         scene = _scene_or_404(store, scene_id)
+        if isinstance(scene, wire.InstanceScene):
+            raise ApiError(
+                422, "scene_id",
+                f"scene {scene_id} is an instance list: its two levels are built by the jobs "
+                "and AO requests that render it",
+                "render it (POST /v1/jobs); the job status's build says what was built",
+                "instance_list",
+            )
         started: list[float] = []
         signal = deadline()
 

@@ -78,7 +78,6 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
     """The mesh's BVH: cached, else refit from the BVH of an earlier mesh of its topology
     (one that `in_use`, the meshes of the same frame, does not hold), else built."""
     import kernels
-    from kernels.bvh import refit_bvh
 
     key = bvh_key(mesh.scene_id, method, leaf_size)
     bvh = store.get(key)
@@ -91,7 +90,7 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
                      and bvh_key(d, method, leaf_size) in store), None)
     if donor_id is not None:
         donor = store.get(bvh_key(donor_id, method, leaf_size))
-        bvh = report.measure("refit", lambda: refit_bvh(donor, mesh.vertices))
+        bvh = report.measure("refit", lambda: kernels.refit_bvh(donor, mesh.vertices))
         # The refit works in place, also when the engine's rule then rebuilds (the refit
         # tree would cost too much): the donor's BVH and its top levels are stale now.
         _forget(store, donor_id, method, leaf_size)
@@ -120,6 +119,8 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     single mesh's BVH, or an instance list's two levels (the top level over the meshes'
     BVHs, each from `mesh_bvh`). An instance list is kept in the store with its top level,
     which lives no longer than it (store.py drops a scene's BVHs with it)."""
+    from kernels.scene import bvh_nbytes as mesh_bytes
+
     import kernels
 
     report = BuildReport()
@@ -137,21 +138,28 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     bottoms = [mesh_bvh(store, m, method, leaf_size, device, report, in_use)
                for m in scene.meshes]
     levels = report.measure("top_level", lambda: kernels.build_scene(
-        bottoms, scene.mesh_index, scene.transforms, device=device))
+        bottoms, scene.mesh_index, scene.transforms))
     report.top_level = "built"
-    store.put(key, levels, bvh_nbytes(levels))
+    # Its own bytes: the meshes' BVHs are entries of their own.
+    store.put(key, levels, max(levels.nbytes - sum(map(mesh_bytes, bottoms)), 1))
     return levels, report
 
 
 def resolve(listing: wire.InstanceList,
             mesh: Callable[[str], wire.SceneArrays | None]) -> wire.InstanceScene:
     """The instance list with its meshes looked up by id (`mesh` returns None for one it
-    lacks: KeyError naming the first such id)."""
+    lacks: KeyError naming the first such id). ValueError for a mesh whose terminator
+    offsets vary over its triangles: an instance has one (Blender's is per object)."""
     meshes = []
-    for mesh_id in listing.mesh_ids:
+    for k, mesh_id in enumerate(listing.mesh_ids):
         found = mesh(mesh_id)
         if found is None:
             raise KeyError(mesh_id)
+        offsets = found.terminator_offsets
+        if offsets is not None and np.any(offsets != offsets[0]):
+            raise ValueError(f"mesh {k} ({mesh_id}) has terminator offsets that vary over "
+                             "its triangles; in an instance list each mesh has one (send it "
+                             "repeated, as the object's value)")
         meshes.append(found)
     return wire.InstanceScene(listing.scene_id, tuple(meshes), listing.mesh_index,
                               listing.transforms)

@@ -92,6 +92,27 @@ class InstanceScene:
     def instances(self) -> int:
         return len(self.mesh_index)
 
+    def shading(self) -> dict[str, object]:
+        """The engine's keyword arguments for the meshes' normals (one entry per mesh, in
+        object space) and the instances' terminator offsets (none: all flat)."""
+        return self._shading
+
+    @cached_property
+    def _shading(self) -> dict[str, object]:
+        # Made once per list: the engine keeps its device copy for the same objects.
+        from kernels.render.ao import DEFAULT_TERMINATOR_OFFSET
+
+        normals = [m.normals for m in self.meshes]
+        if all(n is None for n in normals):
+            return {}
+        out: dict[str, object] = {"normals": normals}
+        offsets = [m.terminator_offsets for m in self.meshes]
+        if any(o is not None for o in offsets):
+            per_mesh = np.array([DEFAULT_TERMINATOR_OFFSET if o is None else o[0]
+                                 for o in offsets], np.float32)
+            out["terminator_offset"] = per_mesh[self.mesh_index]
+        return out
+
     @property
     def triangles(self) -> int:
         """Triangles the instances stand for (each instance counts its mesh once)."""

@@ -2,17 +2,27 @@
 divide-and-conquer ray tracing and ambient occlusion.
 
 Packages (each imports only those before it): `core` (geometry, validation, launch helpers,
-device arrays) <- `pool` (the task pool and its worker) <- `bvh`, `dacrt` <- `render`
-(camera, sampling, AO). This module is the public API.
+device arrays) <- `pool` (the task pool and its worker) <- `bvh`, `dacrt` <- `scene` (two
+levels: per-mesh BVHs under instance transforms) <- `render` (camera, sampling, AO,
+culling). This module is the public API.
 """
 
-from .bvh import Bvh, build_bvh, trace
+from .bvh import REBUILD_RATIO, Bvh, build_bvh, refit_bvh
 from .core import Hits
 from .dacrt import dacrt_trace
 from .pool import PoolError
-from .render import AoResult, Camera, ambient_occlusion, render_ao
+from .render import (
+    AoResult,
+    Camera,
+    ambient_occlusion,
+    render_ao,
+    visible_instances,
+    visible_triangles,
+)
+from .scene import Scene, build_scene, trace
 
 __all__ = [
-    "AoResult", "Bvh", "Camera", "Hits", "PoolError", "ambient_occlusion", "build_bvh",
-    "dacrt_trace", "render_ao", "trace",
+    "REBUILD_RATIO", "AoResult", "Bvh", "Camera", "Hits", "PoolError", "Scene",
+    "ambient_occlusion", "build_bvh", "build_scene", "dacrt_trace", "refit_bvh", "render_ao",
+    "trace", "visible_instances", "visible_triangles",
 ]

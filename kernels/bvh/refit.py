@@ -170,10 +170,10 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
     compile_ms = load_modules(device, refit_triangles.module)
     t_total = t0 = time.perf_counter()
     phase_ms: dict[str, float] = {}
-    vertices, indices = as_triangle_mesh(vertices, bvh.indices)
-    if vertices.shape != bvh.vertices.shape:
+    if np.shape(vertices) != bvh.vertices.shape:
         raise ValueError(f"vertices must have the build's shape {bvh.vertices.shape} (same "
-                         f"mesh, moved), got {vertices.shape}: build a new BVH instead")
+                         f"mesh, moved), got {np.shape(vertices)}: build a new BVH instead")
+    vertices, indices = as_triangle_mesh(vertices, bvh.indices)
     build_cost = float(bvh.stats.get("build_sah_cost", bvh.stats.get("sah_cost", 0.0)))
     gained_area = False
     if bvh.stats.get("degenerate", 0):

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -13,6 +13,13 @@ class Hits:
     triangle: np.ndarray  # (R,) int32, -1 on a miss
     u: np.ndarray  # (R,) float32 weight of v1
     v: np.ndarray  # (R,) float32 weight of v2
+    # (R,) int32 instance of a two-level scene's hit, -1 on a miss; for a single mesh 0
+    # where it hits (the mesh is its own one instance)
+    instance: np.ndarray | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        if self.instance is None:
+            self.instance = np.where(self.triangle >= 0, 0, -1).astype(np.int32)
 
     @property
     def hit(self) -> np.ndarray:

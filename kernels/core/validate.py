@@ -106,14 +106,20 @@ def as_shading(normals, terminator_offset, triangles: int) -> tuple[np.ndarray, 
                          f"triangle {int(np.flatnonzero(bad)[0])}); fix them or send zeros")
     length = np.linalg.norm(n, axis=2, keepdims=True)
     unit = np.divide(n, length, out=np.zeros_like(n), where=length > 0.0)
+    return (np.ascontiguousarray(unit, dtype=np.float32),
+            as_terminator_offsets(terminator_offset, triangles, "triangles"))
+
+
+def as_terminator_offsets(terminator_offset, count: int, per: str) -> np.ndarray:
+    """(count,) float32 shadow terminator offsets in [0, 1], one per triangle or instance
+    (`per` names which); a scalar applies to all."""
     offsets = np.asarray(terminator_offset, dtype=np.float64)
     if offsets.ndim == 0:
-        offsets = np.full(triangles, offsets)
-    if offsets.shape != (triangles,):
-        raise ValueError(f"terminator_offset must be a number or have shape ({triangles},), "
-                         f"got {offsets.shape}")
+        offsets = np.full(count, offsets)
+    if offsets.shape != (count,):
+        raise ValueError(f"terminator_offset must be a number or have shape ({count},) (one "
+                         f"per {per}), got {offsets.shape}")
     if not (np.isfinite(offsets).all() and (offsets >= 0.0).all() and (offsets <= 1.0).all()):
         raise ValueError("terminator_offset must lie in [0, 1] (Blender's Shadow Terminator "
                          "Geometry Offset), got values outside it")
-    return (np.ascontiguousarray(unit, dtype=np.float32),
-            np.ascontiguousarray(offsets, dtype=np.float32))
+    return np.ascontiguousarray(offsets, dtype=np.float32)

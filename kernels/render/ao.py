@@ -71,6 +71,7 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 import warp as wp
@@ -83,6 +84,18 @@ from ..core.mesh import DeviceMesh, Shading, triangle_corners
 from ..core.ray import make_ray
 from ..core.validate import as_rays, ray_range
 from ..dacrt.api import dacrt_trace_mesh, dacrt_warp_modules
+from ..scene.api import Scene
+from ..scene.top import WARP_MODULES as SCENE_MODULES
+from ..scene.top import (
+    InstanceHit,
+    SceneArrays,
+    SceneShading,
+    mesh_indices,
+    mesh_vertices,
+    traverse_scene,
+    world_normal,
+    world_point,
+)
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -253,13 +266,10 @@ def occlusion_origin(s: Surface, w: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
-            shading: Shading, d: wp.vec3, triangle: int, u: float, v: float) -> Surface:
-    """The spawn point, normals and terminator lift of a hit (see `Surface`)."""
-    t = triangle_corners(vertices, indices, triangle)
-    v0 = t[0]
-    v1 = t[1]
-    v2 = t[2]
+def surface_at(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, d: wp.vec3, u: float, v: float,
+               smooth: bool, n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, cutoff: float) -> Surface:
+    """The spawn point, normals and terminator lift of a hit at (u, v) on the triangle
+    (v0, v1, v2) (world space), with corner normals n0..n2 where `smooth` (see `Surface`)."""
     # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
     n = wp.normalize(wp.cross(wp.vec3d(v1) - wp.vec3d(v0), wp.vec3d(v2) - wp.vec3d(v0)))
     backfacing = wp.dot(n, wp.vec3d(d)) > wp.float64(0.0)
@@ -271,22 +281,102 @@ def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i)
     s.n = s.ng
     s.lift = wp.vec3(0.0)
     s.cutoff = 0.0
+    if smooth:
+        s.n = shading_normal(n0, n1, n2, u, v, s.ng, backfacing)
+        s.lift = smooth_surface_offset(v0, v1, v2, n0, n1, n2, u, v, s.ng)
+        s.cutoff = cutoff
+    return s
+
+
+@wp.func
+def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+            shading: Shading, d: wp.vec3, triangle: int, u: float, v: float) -> Surface:
+    """`surface_at` of a hit on a mesh's triangle."""
+    t = triangle_corners(vertices, indices, triangle)
+    n0 = wp.vec3(0.0)
+    n1 = wp.vec3(0.0)
+    n2 = wp.vec3(0.0)
+    cutoff = float(0.0)
     if shading.smooth != 0:
         n0 = shading.normals[3 * triangle]
         n1 = shading.normals[3 * triangle + 1]
         n2 = shading.normals[3 * triangle + 2]
-        s.n = shading_normal(n0, n1, n2, u, v, s.ng, backfacing)
-        s.lift = smooth_surface_offset(v0, v1, v2, n0, n1, n2, u, v, s.ng)
-        s.cutoff = shading.offsets[triangle]
-    return s
+        cutoff = shading.offsets[triangle]
+    return surface_at(t[0], t[1], t[2], d, u, v, shading.smooth != 0, n0, n1, n2, cutoff)
+
+
+@wp.func
+def instance_surface(scene: SceneArrays, shading: SceneShading, d: wp.vec3,
+                     ih: InstanceHit) -> Surface:
+    """`surface_at` of a hit in an instance: its triangle and corner normals taken to world
+    space (points by M, rounded once as a flattened scene's vertices would be; normals by
+    the inverse transpose), so the geometric normal follows the world winding (a mirrored
+    instance's flips) and the Surface is the world-space one."""
+    rec = scene.instances[ih.instance]
+    mesh = scene.meshes[rec.mesh]
+    tri = ih.hit.triangle
+    t = triangle_corners(mesh_vertices(mesh), mesh_indices(mesh), tri)
+    base = int(-1)
+    if shading.smooth != 0:
+        base = shading.base[rec.mesh]
+    n0 = wp.vec3(0.0)
+    n1 = wp.vec3(0.0)
+    n2 = wp.vec3(0.0)
+    if base >= 0:
+        n0 = world_normal(rec, shading.normals[base + 3 * tri])
+        n1 = world_normal(rec, shading.normals[base + 3 * tri + 1])
+        n2 = world_normal(rec, shading.normals[base + 3 * tri + 2])
+    return surface_at(world_point(rec, t[0]), world_point(rec, t[1]), world_point(rec, t[2]),
+                      d, ih.hit.u, ih.hit.v, base >= 0, n0, n1, n2,
+                      shading.offsets[ih.instance])
+
+
+@wp.struct
+class MeshTracer:
+    """A single mesh's BVH and triangles: what the render kernels trace and shade."""
+
+    bvh: BvhArrays
+    vertices: wp.array(dtype=wp.vec3)
+    indices: wp.array(dtype=wp.vec3i)
+
+
+@wp.func
+def closest_surface(g: MeshTracer, shading: Shading, o: wp.vec3, d: wp.vec3, tmin: float,
+                    tmax: float):
+    """(Surface, True) of the closest hit in [tmin, tmax], or (anything, False)."""
+    h = closest_hit(g.bvh, o, d, tmin, tmax)
+    if h.triangle >= 0:
+        return surface(g.vertices, g.indices, shading, d, h.triangle, h.u, h.v), True
+    return Surface(), False
+
+
+@wp.func  # a Warp overload of the one above (by the first argument's type)
+def closest_surface(g: SceneArrays, shading: SceneShading, o: wp.vec3, d: wp.vec3,  # noqa: F811
+                    tmin: float, tmax: float):
+    """`closest_surface` through a two-level scene."""
+    ih = traverse_scene(g, o, d, tmin, tmax, False)
+    if ih.instance >= 0:
+        return instance_surface(g, shading, d, ih), True
+    return Surface(), False
+
+
+@wp.func
+def occluded(g: BvhArrays, o: wp.vec3, w: wp.vec3, distance: float, find_any: bool) -> bool:
+    """Whether a triangle lies within `distance` along w from o."""
+    return traverse(g, make_ray(o, w), 0.0, distance, find_any).triangle >= 0
+
+
+@wp.func  # a Warp overload of the one above
+def occluded(g: SceneArrays, o: wp.vec3, w: wp.vec3, distance: float,  # noqa: F811
+             find_any: bool) -> bool:
+    """`occluded` in a two-level scene."""
+    return traverse_scene(g, o, w, 0.0, distance, find_any).instance >= 0
 
 
 @wp.kernel
 def primary_kernel(
-    bvh: BvhArrays,
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.vec3i),
-    shading: Shading,
+    tracer: Any,  # MeshTracer or SceneArrays
+    shading: Any,  # Shading or SceneShading
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
     tmin: wp.array(dtype=float),
@@ -295,10 +385,10 @@ def primary_kernel(
     out_hit: wp.array(dtype=int),
 ):
     i = wp.tid()
-    h = closest_hit(bvh, origins[i], directions[i], tmin[i], tmax[i])
+    s, hit = closest_surface(tracer, shading, origins[i], directions[i], tmin[i], tmax[i])
     out_hit[i] = 0
-    if h.triangle >= 0:
-        out_surface[i] = surface(vertices, indices, shading, directions[i], h.triangle, h.u, h.v)
+    if hit:
+        out_surface[i] = s
         out_hit[i] = 1
 
 
@@ -320,7 +410,7 @@ def surface_kernel(
 
 @wp.kernel
 def occlusion_kernel(
-    bvh: BvhArrays,
+    bvh: Any,  # BvhArrays or SceneArrays
     surfaces: wp.array(dtype=Surface),
     pixels: wp.array(dtype=int),
     active: wp.array(dtype=int),  # hit-pixel index of each slot of this round
@@ -346,8 +436,7 @@ def occlusion_kernel(
     w = cosine_direction(hit.n, sampler, pixel_key(pixels[k], seed), first + s)
     # traverse() with a run-time any-hit flag, as trace_kernel calls it: measured 25-30%
     # faster on CPU than bvh_trace.any_hit, whose flag is the literal True.
-    ray = make_ray(occlusion_origin(hit, w), w)
-    if traverse(bvh, ray, 0.0, distance, find_any != 0).triangle < 0:
+    if not occluded(bvh, occlusion_origin(hit, w), w, distance, find_any != 0):
         out_open[j] += 1
         if s < count / 2:
             out_open_half[j] += 1
@@ -372,10 +461,16 @@ def rays_kernel(
     out_dir[i * count + s] = w
 
 
+for _tracer, _shading in ((MeshTracer, Shading), (SceneArrays, SceneShading)):
+    wp.overload(primary_kernel, {"tracer": _tracer, "shading": _shading})
+wp.overload(occlusion_kernel, {"bvh": BvhArrays})
+wp.overload(occlusion_kernel, {"bvh": SceneArrays})
+
+
 # --- host side ---------------------------------------------------------------------------
 
 
-def default_distance(bvh: Bvh) -> float:
+def default_distance(bvh: Bvh | Scene) -> float:
     """distance=None: DISTANCE_FRACTION of the scene box's diagonal (1.0 for an empty scene)."""
     diag = float(np.linalg.norm(bvh.bounds[1].astype(np.float64) - bvh.bounds[0]))
     return DISTANCE_FRACTION * diag if math.isfinite(diag) and diag > 0.0 else 1.0
@@ -415,9 +510,30 @@ def scene_mesh(bvh: Bvh) -> DeviceMesh:
     return bvh.mesh
 
 
-def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
+def scene_shading(bvh: Bvh | Scene, normals, terminator_offset) -> Shading | SceneShading:
+    """The device shading inputs of a mesh (`DeviceMesh.shading`) or a scene
+    (`Scene.shading`: normals per mesh, offsets per instance), validated and kept."""
+    if isinstance(bvh, Scene):
+        return bvh.shading(normals, terminator_offset)
+    return scene_mesh(bvh).shading(normals, terminator_offset)
+
+
+def check_tracer(bvh, engine: str) -> None:
+    """What render_ao traces through: a Bvh with either engine, a Scene with engine="bvh"."""
+    if engine not in ENGINES:
+        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
+    if isinstance(bvh, Scene):
+        if engine == "dacrt":
+            raise ValueError('engine="dacrt" traces one world-space triangle list; a two-level '
+                             'Scene is traced with engine="bvh" (or flatten it into one mesh)')
+    elif not isinstance(bvh, Bvh):
+        raise ValueError(f"render_ao takes a Bvh (build_bvh) or a Scene (build_scene), got "
+                         f"{type(bvh).__name__}")
+
+
+def trace_primary(bvh: Bvh | Scene, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
                   tmax=np.inf, threads: int | None = None, engine: str = "bvh",
-                  normals: np.ndarray | None = None,
+                  normals=None,
                   terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
                   ) -> PrimaryHits:
     """Closest hits of the primary rays that enter the scene box, as `Surface`s for
@@ -426,28 +542,34 @@ def trace_primary(bvh: Bvh, origins: np.ndarray, directions: np.ndarray, tmin=0.
     device = bvh.device
     cand = box_candidates(bvh.bounds, origins, directions, tmin_a, tmax_a)
     m = len(cand)
-    mesh = scene_mesh(bvh)
-    verts, tris = mesh.v, mesh.f  # on the device since the build: no copy per render
-    shading = mesh.shading(normals, terminator_offset)
+    shading = scene_shading(bvh, normals, terminator_offset)
     if engine == "dacrt":
+        mesh = scene_mesh(bvh)
         h = dacrt_trace_mesh(mesh, origins[cand], directions[cand], tmin_a[cand], tmax_a[cand])
         keep = np.flatnonzero(h.triangle >= 0)
         n = len(keep)
         surfaces = wp.empty(n, dtype=Surface, device=device)
         if n:
             wp.launch(surface_kernel, dim=n, inputs=[
-                verts, tris, shading, wp.array(directions[cand][keep], dtype=wp.vec3,
-                                               device=device),
+                mesh.v, mesh.f, shading, wp.array(directions[cand][keep], dtype=wp.vec3,
+                                                  device=device),
                 *(wp.array(x[keep], device=device) for x in (h.triangle, h.u, h.v)),
             ], outputs=[surfaces], device=device)
         return PrimaryHits(pixels=cand[keep], surfaces=surfaces, traced=m)
+    if isinstance(bvh, Scene):
+        tracer = bvh.arrays
+    else:
+        mesh = scene_mesh(bvh)
+        tracer = MeshTracer()
+        tracer.bvh = bvh.arrays
+        tracer.vertices, tracer.indices = mesh.v, mesh.f  # on the device since the build
     surfaces = wp.empty(m, dtype=Surface, device=device)
     hit = wp.empty(m, dtype=int, device=device)
     if m:
         per_item = [wp.array(x[cand], dtype=dt, device=device)
                     for x, dt in ((origins, wp.vec3), (directions, wp.vec3),
                                   (tmin_a, float), (tmax_a, float))]
-        launch_split(primary_kernel, m, [bvh.arrays, verts, tris, shading], per_item, [],
+        launch_split(primary_kernel, m, [tracer, shading], per_item, [],
                      [surfaces, hit], device, host_threads(device, threads))
     keep = np.flatnonzero(hit.numpy())
     sel = wp.array(keep.astype(np.int32), dtype=int, device=device)
@@ -518,7 +640,7 @@ def _check_args(spp, distance, seed, targets, min_spp_max) -> None:
 
 
 def render_ao(
-    bvh: Bvh,
+    bvh: Bvh | Scene,
     origins: np.ndarray,
     directions: np.ndarray,
     spp: int = 16,
@@ -556,12 +678,16 @@ def render_ao(
     `terminator_offset`: Cycles' shadow terminator geometry offset, one number or (T,) per
     triangle in [0, 1] (Blender's per-object setting, default 0.1); only smooth triangles
     use it. Both arrays are read once per set of objects and taken as read-only.
+    With a two-level `Scene` (kernels.scene.build_scene) instead of a Bvh: `normals` is None
+    or one entry per mesh (None, or that mesh's (T_k, 3, 3) in object space; they are taken
+    to world space by each instance's inverse transpose), `terminator_offset` one number or
+    (I,) per instance, and engine="bvh" only; the rays and the AO are in world space.
     `progress(fraction, phase)` is called between rounds; an exception it raises cancels
     the render.
     """
-    if engine not in ENGINES:
-        raise ValueError(f"engine must be one of {list(ENGINES)}, got {engine!r}")
-    modules = WARP_MODULES + (dacrt_warp_modules("pool") if engine == "dacrt" else ())
+    check_tracer(bvh, engine)
+    modules = WARP_MODULES + SCENE_MODULES + (dacrt_warp_modules("pool") if engine == "dacrt"
+                                              else ())
     compile_ms = load_modules(bvh.device, *modules)  # compiling is not rendering
     t_start = time.perf_counter()
     adaptive = target_error is not None or max_pixel_error is not None
@@ -571,7 +697,7 @@ def render_ao(
                 (min_spp, int(max_spp)))
     sampler_id = _sampler(sampler)
     origins, directions = as_rays(origins, directions)
-    scene_mesh(bvh).shading(normals, terminator_offset)  # checked (and kept) before tracing
+    scene_shading(bvh, normals, terminator_offset)  # checked (and kept) before tracing
     r = len(origins)
     dist = default_distance(bvh) if distance is None else float(distance)
     device = bvh.device
@@ -892,7 +1018,7 @@ def _fraction(n_done, active, count) -> float:
 
 
 def ambient_occlusion(
-    bvh: Bvh,
+    bvh: Bvh | Scene,
     origins: np.ndarray,
     directions: np.ndarray,
     spp: int = 16,

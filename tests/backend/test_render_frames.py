@@ -111,8 +111,9 @@ def _flattened(frame: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def test_frames_match_the_flattened_scene(bundle, rendered) -> None:
-    """Each frame's depth and coverage are those of its flattened triangles traced with one
-    BVH (the same camera rays; an independent path through the engine)."""
+    """Each frame's coverage, depth and AO are those of its flattened triangles traced with
+    one BVH (the same camera rays and samples; a path through the engine without the
+    instance levels, bit for bit for the AO)."""
     import kernels
     from backend import jobs
 
@@ -124,7 +125,9 @@ def test_frames_match_the_flattened_scene(bundle, rendered) -> None:
         np.testing.assert_array_equal(result.coverage.ravel() > 0, hits.hit)
         z = hits.t.astype(np.float64) * (d.astype(np.float64) @ camera.forward)
         flat_depth = np.where(hits.hit, z, jobs.BACKGROUND_DEPTH).astype(np.float32)
-        np.testing.assert_allclose(result.depth.ravel(), flat_depth, rtol=1e-5)
+        np.testing.assert_allclose(result.depth.ravel(), flat_depth, rtol=1e-5)  # t in float32
+        flat = kernels.render_ao(bvh, o, d, spp=4, seed=1, distance=1.0, tmin=tmin, tmax=tmax)
+        np.testing.assert_array_equal(result.ao.ravel(), flat.ao)  # the same samples
 
 
 def test_cli_writes_the_service_jobs_images(bundle, api, tmp_path) -> None:  # noqa: ANN001

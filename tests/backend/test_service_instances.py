@@ -227,3 +227,45 @@ def test_a_deformed_scene_is_refit_and_renders_as_a_fresh_build(api) -> None:  #
     o, d, tmin, tmax = cam.rays()
     direct = kernels.render_ao(fresh, o, d, spp=4, seed=2, distance=0.5, tmin=tmin, tmax=tmax)
     np.testing.assert_array_equal(second["ao"], direct.ao)
+
+
+def test_varying_terminator_offsets_are_refused_in_an_instance_list(api) -> None:  # noqa: ANN001
+    """An instance has one terminator offset (Blender's is per object): a mesh whose
+    triangles carry different ones cannot be instanced, and the 422 says so."""
+    v, i = cube()
+    normals = np.tile(np.float32([0, 0, 1]), (len(i), 3, 1))
+    offsets = np.linspace(0.0, 0.5, len(i), dtype=np.float32)
+    body = scene_body(v, i) + normals.astype("<f4").tobytes() + offsets.astype("<f4").tobytes()
+    name = wire.scene_hash(len(v), len(i), body)
+    put = api.client.put(f"/v1/meshes/{name}", content=body, headers=OCTET, params={
+        "vertices": len(v), "triangles": len(i), "normals": "true",
+        "terminator_offsets": "true"})
+    assert put.status_code == 201, put.text
+    answer = post_instances(api, [name], [0], transforms((0, 0, 0)))
+    assert answer.status_code == 422 and answer.json()["parameter"] == "body (mesh ids)"
+    assert "terminator offsets" in answer.json()["detail"]
+
+
+def test_ao_on_an_instance_list_is_the_flattened_scenes(api, meshes) -> None:  # noqa: ANN001
+    """POST .../ao on an instance list gives the flattened triangles' AO, bit for bit (same
+    rays and samples), and its BVH route says that jobs build its levels."""
+    from conftest import rays_towards_floor
+
+    import kernels
+
+    placed = transforms((0.0, 0.0, 0.0), (0.4, 0.3, -0.2))
+    placed[1, :, :3] = np.diag([-0.5, 0.7, 0.5])  # mirrored, non-uniform
+    scene_id = post_instances(api, [meshes["floor"], meshes["cube"]], [0, 1], placed)
+    scene_id = scene_id.json()["scene_id"]
+    o, d = rays_towards_floor(300, seed=4)
+    answer = api.ao(scene_id, o, d, spp=8, seed=3, distance=0.5)
+    assert answer.status_code == 200, answer.text
+    (fv, fi), (cv, ci) = floor_and_box(), cube()
+    world = cv.astype(np.float64) @ placed[1, :, :3].T.astype(np.float64) + placed[1, :, 3]
+    vertices = np.concatenate([fv, world.astype(np.float32)])
+    indices = np.concatenate([fi, ci[:, ::-1] + len(fv)])  # the mirror flips the winding
+    direct = kernels.ambient_occlusion(kernels.build_bvh(vertices, indices), o, d, spp=8,
+                                       seed=3, distance=0.5)
+    np.testing.assert_array_equal(np.frombuffer(answer.content, "<f4"), direct)
+    refused = api.client.post(f"/v1/scenes/{scene_id}/bvh", json={})
+    assert refused.status_code == 422 and refused.json()["parameter"] == "scene_id"

@@ -13,13 +13,14 @@ pytestmark = pytest.mark.host_only  # the source files
 
 ROOT = Path(__file__).resolve().parents[2] / "kernels"
 # a package may import from the packages before it in this order
-ORDER = ("core", "pool", "bvh", "dacrt", "render")
+ORDER = ("core", "pool", "bvh", "dacrt", "scene", "render")
 ALLOWED = {
     "core": set(),
     "pool": {"core"},
     "bvh": {"core", "pool"},
     "dacrt": {"core", "pool"},
-    "render": {"core", "pool", "bvh", "dacrt"},
+    "scene": {"core", "pool", "bvh", "dacrt"},
+    "render": {"core", "pool", "bvh", "dacrt", "scene"},
 }
 MODULES = sorted(p for p in ROOT.rglob("*.py"))
 

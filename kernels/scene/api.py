@@ -1,0 +1,247 @@
+"""numpy in, numpy out: `build_scene` and `trace` of a two-level scene (contract in
+docs/kernels-api.md)."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from ..bvh.api import Bvh, build_over_boxes, empty_bounds
+from ..bvh.api import trace as trace_bvh
+from ..bvh.node import empty_root
+from ..bvh.traversal import STACK_SIZE
+from ..core.hits import Hits
+from ..core.launch import host_threads, launch_split, load_modules, sync_ms, to_device
+from ..core.validate import as_rays, as_shading, as_terminator_offsets, ray_range
+from . import instances as inst
+from .top import (
+    WARP_MODULES,
+    InstanceRecord,
+    MeshRecord,
+    SceneArrays,
+    SceneShading,
+    scene_trace_kernel,
+)
+
+TOP_LEAF_SIZE = 1  # instances per top-level leaf: each is box-tested before its ray turns
+
+
+@dataclass
+class Scene:
+    """Meshes' BVHs (object space) and instances of them, with the top level over the
+    instances. `bounds` (2, 3) is the world box of every instance (culled ones too: see
+    `build_scene`'s `visible`), the scene default AO distance's box."""
+
+    meshes: list[Bvh]
+    mesh_ids: np.ndarray  # (I,) int32
+    transforms: np.ndarray  # (I, 3, 4) float32 object-to-world
+    device: wp.context.Device
+    arrays: SceneArrays
+    bounds: np.ndarray  # (2, 3) float32
+    instance_boxes: np.ndarray  # (I, 2, 3) float32 world boxes, padded (instances.py)
+    frames: dict  # instances.instance_frames: float64 M, A, T, C per instance
+    stats: dict = field(default_factory=dict)
+    shading_cache: dict = field(default_factory=dict, repr=False)  # render.ao's, by inputs
+
+    def shading(self, normals, terminator_offset) -> SceneShading:
+        """The device form of per-mesh shading normals (`normals`: None, or one entry per
+        mesh, each None or (T_k, 3, 3) as `render_ao`'s for one mesh, in object space) and
+        per-instance terminator offsets (a number or (I,)): made for the first call with
+        these objects and kept (arrays are taken as read-only)."""
+        key = (id(normals), terminator_offset if np.isscalar(terminator_offset)
+               else id(terminator_offset))
+        if key in self.shading_cache:
+            return self.shading_cache[key][1]
+        per_mesh = [None] * len(self.meshes) if normals is None else list(normals)
+        if len(per_mesh) != len(self.meshes):
+            raise ValueError(f"normals must be None or hold one entry per mesh "
+                             f"({len(self.meshes)}), got {len(per_mesh)}")
+        offsets = as_terminator_offsets(terminator_offset, len(self.mesh_ids), "instance")
+        corners, base, start = [], np.full(len(self.meshes), -1, np.int32), 0
+        for k, (n, bvh) in enumerate(zip(per_mesh, self.meshes, strict=True)):
+            checked = as_shading(n, 0.0, len(bvh.indices))
+            if checked is not None:
+                base[k] = start
+                corners.append(checked[0].reshape(-1, 3))
+                start += len(corners[-1])
+        out = SceneShading()
+        out.smooth = int(bool(corners))
+        out.normals = wp.array(np.concatenate(corners) if corners else np.zeros((1, 3),
+                               np.float32), dtype=wp.vec3, device=self.device)
+        out.base = wp.array(base, dtype=int, device=self.device)
+        out.offsets = wp.array(offsets if len(offsets) else np.zeros(1, np.float32),
+                               dtype=float, device=self.device)
+        self.shading_cache.clear()  # one set kept, as DeviceMesh keeps one
+        self.shading_cache[key] = ((normals, terminator_offset), out)
+        return out
+
+    @property
+    def nbytes(self) -> int:
+        """Device bytes of the scene: each mesh's BVH and mesh arrays once (however many
+        instances use it), the instances and the top level."""
+        own = [self.arrays.top, self.arrays.top_ids, self.arrays.instances, self.arrays.meshes]
+        return sum(a.capacity for a in own) + sum(bvh_nbytes(b) for b in self.meshes)
+
+
+def bvh_nbytes(bvh: Bvh) -> int:
+    """Device bytes of one BVH: its arrays and its mesh's."""
+    a = bvh.arrays
+    arrays = (a.nodes, a.tri_verts, a.tri_ids, a.wide, a.blocks)
+    return sum(x.capacity for x in arrays) + (bvh.mesh.nbytes if bvh.mesh is not None else 0)
+
+
+def mesh_records(meshes: Sequence[Bvh]) -> np.ndarray:
+    """The meshes' MeshRecords (addresses of their arrays: the Bvhs must outlive the scene)."""
+    recs = np.zeros(len(meshes), dtype=MeshRecord.numpy_dtype())
+    for k, bvh in enumerate(meshes):
+        if bvh.mesh is None:
+            raise ValueError(f"meshes[{k}] has no device mesh (bvh.mesh): build it with "
+                             "build_bvh")
+        recs[k] = mesh_record(bvh, recs[k:k + 1])
+    return recs
+
+
+def mesh_record(bvh: Bvh, rec: np.ndarray) -> np.ndarray:
+    """`rec` (one MeshRecord row) filled from a Bvh."""
+    a = bvh.arrays
+    for name, arr in (("nodes", a.nodes), ("tri_verts", a.tri_verts), ("tri_ids", a.tri_ids),
+                      ("wide", a.wide), ("blocks", a.blocks), ("vertices", bvh.mesh.v),
+                      ("indices", bvh.mesh.f)):
+        rec[name] = arr.ptr
+    rec["node_count"] = a.nodes.shape[0]
+    rec["tri_verts_count"] = a.tri_verts.shape[0]
+    rec["tri_count"] = a.tri_ids.shape[0]
+    rec["wide_count"] = a.wide.shape[0]
+    rec["blocks_count"] = a.blocks.shape[0]
+    rec["vertex_count"] = bvh.mesh.v.shape[0]
+    rec["index_count"] = bvh.mesh.f.shape[0]
+    rec["width"] = a.width
+    return rec
+
+
+def build_scene(meshes: Sequence[Bvh], mesh_ids, transforms, *,
+                visible: np.ndarray | None = None, method: str = "sah",
+                workers: int | None = None) -> Scene:
+    """A two-level scene: instance i is `meshes[mesh_ids[i]]` (a Bvh from `build_bvh`, in
+    object space) under the 3x4 object-to-world `transforms[i]` (float32 rows [M | T];
+    mirrored and non-uniform scales allowed, singular ones rejected). The meshes' arrays are
+    shared, not copied: N instances of a mesh hold its data once; keep the Bvh objects
+    alive and unchanged but for `refit_bvh` (which updates them in place; rebuild the scene
+    afterwards, for the new boxes). The top level is built on the task pool over the
+    instances' padded world boxes. `visible` (I,) bool, e.g. from `cull.visible_instances`:
+    instances left out of the top level (their indices stay those of the full list)."""
+    if not meshes:
+        raise ValueError("meshes must hold at least one Bvh (build_bvh of each mesh)")
+    device = meshes[0].device
+    if any(b.device != device for b in meshes):
+        raise ValueError("every mesh's Bvh must be on the same device")
+    compile_ms = load_modules(device, *WARP_MODULES)
+    t_total = time.perf_counter()
+    phase_ms: dict[str, float] = {}
+    ids, transforms = inst.as_instances(mesh_ids, transforms, len(meshes))
+    n = len(ids)
+    if visible is not None:
+        visible = np.asarray(visible)
+        if visible.shape != (n,) or visible.dtype != bool:
+            raise ValueError(f"visible must be a ({n},) bool array (one per instance), got "
+                             f"shape {visible.shape} dtype {visible.dtype}")
+    frames = inst.instance_frames(transforms)
+    mesh_bounds = np.stack([np.asarray(b.bounds, np.float32) for b in meshes])
+    lo, hi, unpadded, valid = inst.world_boxes(frames, ids, mesh_bounds)
+    keep = valid if visible is None else valid & visible
+    records = np.zeros(n, dtype=InstanceRecord.numpy_dtype())
+    records["lin"] = frames["lin"]
+    records["inv"] = frames["inv"]
+    records["normal"] = np.transpose(frames["inv"], (0, 2, 1))
+    records["trans"] = frames["trans"]
+    records["mesh"] = ids
+    gram = np.einsum("nji,njk->nik", frames["lin"], frames["lin"])
+    records["rescale"] = ~np.all(gram == np.eye(3), axis=(1, 2))
+    phase_ms["instances"] = (time.perf_counter() - t_total) * 1e3
+
+    t0 = time.perf_counter()
+    mid = 0.5 * (lo.astype(np.float64) + hi)
+    inf = np.float32(np.inf)
+    if keep.any():
+        box = np.array([lo[keep].min(0), hi[keep].max(0), mid[keep].min(0), mid[keep].max(0)],
+                       np.float32)
+    else:
+        box = np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32)
+    bounds_wp = empty_bounds(device)
+    bounds_wp.assign(box)  # instance boxes come from the host, so their bounds do too
+    tree = build_over_boxes(
+        wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device),
+        wp.array(keep.astype(np.int32), dtype=int, device=device), bounds_wp, method,
+        TOP_LEAF_SIZE, STACK_SIZE, device, workers=workers, phase_ms=phase_ms, start=t0)
+    arrays = SceneArrays()
+    if tree.count:
+        arrays.top = tree.data.nodes[: tree.node_count]
+        top_ids = np.ascontiguousarray(tree.data.items.numpy()["tri"][: tree.count], np.int32)
+    else:
+        arrays.top = empty_root(device)
+        top_ids = np.zeros(1, np.int32)
+    arrays.top_ids = wp.array(top_ids, dtype=int, device=device)
+    arrays.instances = wp.array(records, dtype=InstanceRecord, device=device)
+    arrays.meshes = wp.array(mesh_records(meshes), dtype=MeshRecord, device=device)
+    arrays.slope = inst.slope(frames)
+    phase_ms["top"] = sync_ms(device, t0)
+    if valid.any():
+        bounds = np.stack([unpadded[valid, 0].min(0), unpadded[valid, 1].max(0)])
+    else:
+        bounds = np.full((2, 3), np.inf, np.float32)
+    scene = Scene(meshes=list(meshes), mesh_ids=ids, transforms=transforms, device=device,
+                  arrays=arrays, bounds=bounds.astype(np.float32),
+                  instance_boxes=np.stack([lo, hi], axis=1), frames=frames)
+    scene.stats = {
+        "build_ms": (time.perf_counter() - t_total) * 1e3,
+        "compile_ms": compile_ms,
+        "phase_ms": phase_ms,
+        "instances": n,
+        "instances_built": int(keep.sum()),
+        "meshes": len(meshes),
+        "top_nodes": tree.node_count if tree.count else 1,
+        "top_depth": tree.depth,
+        "nbytes": scene.nbytes,
+        "device": str(device),
+    }
+    return scene
+
+
+def trace(
+    scene: Bvh | Scene,
+    origins: np.ndarray,
+    directions: np.ndarray,
+    tmin: float | np.ndarray = 0.0,
+    tmax: float | np.ndarray = np.inf,
+    any_hit: bool = False,
+    *,
+    threads: int | None = None,
+) -> Hits:
+    """Closest hit (or, with any_hit, some hit) per ray in [tmin, tmax] through a `Bvh`
+    (kernels.bvh.trace) or a two-level `Scene`: then `triangle` is the index in the hit
+    instance's mesh, `instance` the instance (-1 on a miss), t the world ray's parameter
+    and (u, v) the barycentrics (the same in object and world space)."""
+    if isinstance(scene, Bvh):
+        return trace_bvh(scene, origins, directions, tmin, tmax, any_hit, threads=threads)
+    if not isinstance(scene, Scene):
+        raise ValueError(f"trace takes a Bvh (build_bvh) or a Scene (build_scene), got "
+                         f"{type(scene).__name__}")
+    origins, directions = as_rays(origins, directions)
+    r = len(origins)
+    tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)
+    device = scene.device
+    load_modules(device, *WARP_MODULES)
+    out = [np.empty(r, dt) for dt in (np.float32, np.int32, np.float32, np.float32, np.int32)]
+    outputs = [to_device(x, dt, device) for x, dt in zip(out, (float, int, float, float, int),
+                                                            strict=True)]
+    inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
+              to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
+    launch_split(scene_trace_kernel, r, [scene.arrays], inputs, [int(any_hit)], outputs, device,
+                 host_threads(device, threads))
+    if not device.is_cpu:
+        out = [a.numpy() for a in outputs]
+    return Hits(t=out[0], triangle=out[1], u=out[2], v=out[3], instance=out[4])

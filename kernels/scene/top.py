@@ -1,0 +1,268 @@
+"""The two-level scene on the device: bottom-level BVHs by address, instances, and the
+top-level traversal that carries each ray into the instances it may hit.
+
+A mesh's BVH stays in its own arrays (`Bvh.arrays`); the scene holds one `MeshRecord` per
+mesh with their addresses and sizes, and `mesh_view` turns a record back into the
+`BvhArrays` that `bvh.traversal.traverse` reads (Warp structs cannot hold arrays of structs
+with arrays, but a kernel can make an array from an address). So N instances of a mesh
+share one copy of its data, and a refit (kernels.bvh.refit, in place) is seen by every
+scene that holds the mesh.
+
+Top level: a binary tree (`bvh.api.build_over_boxes`, the pool build over the instances'
+padded world boxes) of one instance per leaf. Its boxes are tested in float64 with walls
+that move out with t (`enter_padded_box`, instances.py's bound); a leaf's instance gets the
+ray in object space (`object_ray`) and the bottom-level traversal of its mesh, with the
+closest hit so far as tmax, so t is the world ray's own parameter in every instance.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ..bvh.node import BvhArrays, BvhNode
+from ..bvh.traversal import STACK_SIZE, traverse
+from ..core.box import INF
+from ..core.ray import Hit, Ray, make_ray
+
+wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+
+TopStack = wp.types.vector(length=STACK_SIZE, dtype=wp.int32)
+TopDists = wp.types.vector(length=STACK_SIZE, dtype=wp.float32)
+
+
+@wp.struct
+class MeshRecord:
+    """One bottom-level BVH by address: 112 bytes (seven 8-byte addresses, each followed by
+    its int32 size padded to 8; `width` shares the last size's word pair). Sizes count
+    elements of each array's own dtype."""
+
+    nodes: wp.uint64  # BvhNode array
+    node_count: int
+    tri_verts: wp.uint64  # vec3, 3 per leaf position
+    tri_verts_count: int
+    tri_ids: wp.uint64  # int per leaf position: the mesh's triangle index
+    tri_count: int
+    wide: wp.uint64  # float words of the wide nodes (width > 2)
+    wide_count: int
+    blocks: wp.uint64  # float words of the leaf blocks
+    blocks_count: int
+    vertices: wp.uint64  # the mesh's vec3 vertices and vec3i triangles (surfaces)
+    vertex_count: int
+    indices: wp.uint64
+    index_count: int
+    width: int
+
+
+@wp.struct
+class InstanceRecord:
+    """One instance: its mesh and transform, float64 (240 bytes: 3 mat33d, 1 vec3d, 2 int)."""
+
+    lin: wp.mat33d  # M, object to world (the caller's float32 values)
+    inv: wp.mat33d  # A = M^-1
+    normal: wp.mat33d  # A^T: shading normals to world
+    trans: wp.vec3d  # T
+    mesh: int
+    rescale: int  # 1 unless M is exactly orthogonal: world normals are then renormalised
+
+
+@wp.struct
+class SceneArrays:
+    """What the scene's kernels read."""
+
+    top: wp.array(dtype=BvhNode)  # the top level's nodes; a leaf holds one instance
+    top_ids: wp.array(dtype=int)  # instance index per top-level leaf position
+    instances: wp.array(dtype=InstanceRecord)
+    meshes: wp.array(dtype=MeshRecord)
+    slope: float  # instances.slope: the top level's walls per unit t per unit |d|
+
+
+@wp.struct
+class SceneShading:
+    """Shading normals of a scene's meshes (object space) and its instances' terminator
+    offsets; smooth 0 when no mesh has normals (the arrays then hold a dummy entry)."""
+
+    normals: wp.array(dtype=wp.vec3)  # the meshes' corner normals one after the other
+    base: wp.array(dtype=int)  # per mesh: its first entry in `normals`, -1 for none (flat)
+    offsets: wp.array(dtype=float)  # per instance: Cycles' shadow terminator offset
+    smooth: int
+
+
+@wp.struct
+class InstanceHit:
+    hit: Hit  # t along the world ray; triangle: the instance's mesh's index
+    instance: int  # -1 on a miss
+
+
+@wp.func
+def mesh_view(rec: MeshRecord) -> BvhArrays:
+    """The BvhArrays of a mesh record: traverse reads them as it reads a single mesh's."""
+    b = BvhArrays()
+    b.nodes = wp.array(ptr=rec.nodes, shape=(rec.node_count,), dtype=BvhNode)
+    b.tri_verts = wp.array(ptr=rec.tri_verts, shape=(rec.tri_verts_count,), dtype=wp.vec3)
+    b.tri_ids = wp.array(ptr=rec.tri_ids, shape=(rec.tri_count,), dtype=int)
+    b.wide = wp.array(ptr=rec.wide, shape=(rec.wide_count,), dtype=float)
+    b.blocks = wp.array(ptr=rec.blocks, shape=(rec.blocks_count,), dtype=float)
+    b.width = rec.width
+    return b
+
+
+@wp.func
+def mesh_vertices(rec: MeshRecord) -> wp.array(dtype=wp.vec3):
+    return wp.array(ptr=rec.vertices, shape=(rec.vertex_count,), dtype=wp.vec3)
+
+
+@wp.func
+def mesh_indices(rec: MeshRecord) -> wp.array(dtype=wp.vec3i):
+    return wp.array(ptr=rec.indices, shape=(rec.index_count,), dtype=wp.vec3i)
+
+
+@wp.func
+def world_point(inst: InstanceRecord, p: wp.vec3) -> wp.vec3:
+    """M p + T in float64, rounded once (the identity gives p back exactly)."""
+    return wp.vec3(inst.lin * wp.vec3d(p) + inst.trans)
+
+
+@wp.func
+def world_normal(inst: InstanceRecord, n: wp.vec3) -> wp.vec3:
+    """A unit shading normal to world space: by the inverse transpose, renormalised in
+    float64 (as the mesh's own normals were) unless M keeps lengths exactly (then the
+    normal comes back bit for bit under the identity, a mirror or an axis permutation)."""
+    w = inst.normal * wp.vec3d(n)
+    if inst.rescale != 0 and wp.length_sq(w) > wp.float64(0.0):
+        w = wp.normalize(w)
+    return wp.vec3(w)
+
+
+@wp.func
+def object_ray(inst: InstanceRecord, origin: wp.vec3, direction: wp.vec3) -> Ray:
+    """The ray in the instance's object space, each coordinate computed in float64 and
+    rounded once; the direction is not normalised, so t is the world ray's parameter."""
+    o = inst.inv * (wp.vec3d(origin) - inst.trans)
+    d = inst.inv * wp.vec3d(direction)
+    return make_ray(wp.vec3(o), wp.vec3(d))
+
+
+@wp.func
+def clip_side(a: wp.float64, b: wp.float64, t: wp.vec2d) -> wp.vec2d:
+    """[t0, t1] intersected with {t : a t >= b} (empty: t0 > t1)."""
+    out = t
+    if a > wp.float64(0.0):
+        out[0] = wp.max(out[0], b / a)
+    elif a < wp.float64(0.0):
+        out[1] = wp.min(out[1], b / a)
+    elif b > wp.float64(0.0):
+        out[0] = wp.float64(INF)
+    return out
+
+
+@wp.func
+def enter_padded_box(o: wp.vec3d, d: wp.vec3d, s: wp.float64, lo: wp.vec3, hi: wp.vec3,
+                     tmin: float, tmax: float) -> float:
+    """Entry t of the ray into [lo, hi] widened by s t on every side (walls that move out
+    with t: instances.py), clipped to [tmin, tmax], or inf. float64, then widened by
+    2^-40 relative: no rounding here can drop a point the bound keeps."""
+    t = wp.vec2d(wp.float64(tmin), wp.float64(tmax))
+    for k in range(3):
+        # o + t d >= lo - s t  and  -(o + t d) >= -(hi + s t)
+        t = clip_side(d[k] + s, wp.float64(lo[k]) - o[k], t)
+        t = clip_side(s - d[k], o[k] - wp.float64(hi[k]), t)
+    eps = wp.float64(9.094947e-13)
+    t0 = t[0] - eps * wp.abs(t[0])
+    if t0 <= t[1] + eps * wp.abs(t[1]):
+        return wp.max(float(t0), tmin)
+    return INF
+
+
+@wp.func
+def trace_instance(s: SceneArrays, inst: int, origin: wp.vec3, direction: wp.vec3,
+                   tmin: float, tmax: float, any_hit: bool) -> Hit:
+    """The bottom-level traversal of one instance, in its object space."""
+    rec = s.instances[inst]
+    r = object_ray(rec, origin, direction)
+    return traverse(mesh_view(s.meshes[rec.mesh]), r, tmin, tmax, any_hit)
+
+
+@wp.func
+def traverse_scene(s: SceneArrays, origin: wp.vec3, direction: wp.vec3, tmin: float,
+                   tmax: float, any_hit: bool) -> InstanceHit:
+    """Closest hit over all instances in [tmin, tmax] (or with `any_hit` the first found):
+    the top level near child first with an explicit stack (its depth is at most the build's
+    max_depth = STACK_SIZE), each instance's own BVH at its leaves."""
+    out = InstanceHit()
+    out.hit.t = INF
+    out.hit.triangle = -1
+    out.instance = -1
+    o = wp.vec3d(origin)
+    d = wp.vec3d(direction)
+    ad = wp.max(wp.max(wp.abs(d[0]), wp.abs(d[1])), wp.abs(d[2]))
+    sl = wp.float64(s.slope) * ad
+    best = tmax
+    root = s.top[0]
+    if enter_padded_box(o, d, sl, root.lo, root.hi, tmin, best) == INF:
+        return out
+    nodes = TopStack()
+    dists = TopDists()
+    sp = int(0)
+    node = int(0)
+    while True:
+        n = s.top[node]
+        if n.count > 0:
+            for k in range(n.first, n.first + n.count):
+                inst = s.top_ids[k]
+                h = trace_instance(s, inst, origin, direction, tmin, best, any_hit)
+                if h.triangle >= 0 and h.t < out.hit.t:
+                    out.hit = h
+                    out.instance = inst
+                    best = wp.min(h.t, tmax)
+                    if any_hit:
+                        return out
+            node = -1
+        else:
+            left = s.top[n.first]
+            right = s.top[n.first + 1]
+            tl = enter_padded_box(o, d, sl, left.lo, left.hi, tmin, best)
+            tr = enter_padded_box(o, d, sl, right.lo, right.hi, tmin, best)
+            if tl == INF and tr == INF:
+                node = -1
+            else:
+                near = wp.where(tl <= tr, n.first, n.first + 1)
+                far = wp.where(tl <= tr, n.first + 1, n.first)
+                node = near
+                if wp.max(tl, tr) < INF:
+                    nodes[sp] = far
+                    dists[sp] = wp.max(tl, tr)
+                    sp += 1
+        while node < 0 and sp > 0:
+            sp -= 1
+            if dists[sp] <= best:
+                node = nodes[sp]
+        if node < 0:
+            break
+    return out
+
+
+@wp.kernel
+def scene_trace_kernel(
+    s: SceneArrays,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),  # per ray, or one value for all
+    tmax: wp.array(dtype=float),
+    find_any: int,
+    out_t: wp.array(dtype=float),
+    out_triangle: wp.array(dtype=int),
+    out_u: wp.array(dtype=float),
+    out_v: wp.array(dtype=float),
+    out_instance: wp.array(dtype=int),
+):
+    i = wp.tid()
+    h = traverse_scene(s, origins[i], directions[i], tmin[i % tmin.shape[0]],
+                       tmax[i % tmax.shape[0]], find_any != 0)
+    out_t[i] = h.hit.t
+    out_triangle[i] = h.hit.triangle
+    out_u[i] = h.hit.u
+    out_v[i] = h.hit.v
+    out_instance[i] = h.instance
+
+
+WARP_MODULES = (scene_trace_kernel.module,)  # this module's kernels (core.launch.load_modules)
