@@ -34,7 +34,8 @@ def test_unmoved_refit_is_the_build(width):
     nodes, wide, blocks = (a.numpy().copy() for a in (bvh.arrays.nodes, bvh.arrays.wide,
                                                         bvh.arrays.blocks))
     out = kernels.refit_bvh(bvh, v.copy())
-    assert out is bvh and out.stats["action"] == "refit" and out.stats["sah_ratio"] == 1.0
+    assert out is bvh and out.stats["action"] == "refit"
+    assert out.stats["sah_ratio"] == pytest.approx(1.0, abs=1e-9)
     assert np.array_equal(out.nodes(), nodes)
     assert np.array_equal(out.arrays.wide.numpy(), wide)
     assert np.array_equal(out.arrays.blocks.numpy(), blocks)
@@ -51,7 +52,7 @@ def test_refit_hits_equal_a_fresh_build(width, method):
     moved = wave(v, 0.15)
     out = kernels.refit_bvh(bvh, moved, rebuild_ratio=np.inf)
     assert out.stats["action"] == "refit" and out.stats["sah_ratio"] > 1.0
-    assert set(out.stats["phase_ms"]) >= {"triangles", "nodes", "wide", "sah"}
+    assert set(out.stats["phase_ms"]) == {"validate", "triangles", "nodes"}
     fresh = kernels.build_bvh(moved, f, method=method, width=width)
     o, d = rays(rng)
     a, b = kernels.trace(out, o, d), kernels.trace(fresh, o, d)
