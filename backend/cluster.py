@@ -112,6 +112,7 @@ class ClusterRun:
     render_s: float = 0.0
     sent_bytes: dict[int, int] = field(default_factory=dict)  # task arguments + new meshes
     returned_bytes: dict[int, int] = field(default_factory=dict)  # the frame's images
+    submit_s: float = 0.0  # the driver's time reading, putting and submitting frames
 
 
 def _first_line(exc: BaseException) -> str:
@@ -144,8 +145,9 @@ def render_frames_ray(bundle_path: str | Path, out_dir: str | Path, *,
         report(number)
     run.startup_s = connect(ray, address, workers)
     start = time.perf_counter()
-    task = ray.remote(render_task).options(
-        num_cpus=threads, num_gpus=gpus, max_retries=retries, retry_exceptions=True)
+    task = ray.remote(render_task)
+    options = {"num_cpus": threads, "num_gpus": gpus, "max_retries": retries,
+               "retry_exceptions": True}
     device = "cuda" if gpus > 0 else None
     slots = max(1, int(ray.cluster_resources().get("CPU", 1) // threads))
     refs: dict[str, Any] = {}  # mesh id -> ObjectRef, put once per mesh while frames need it
@@ -156,6 +158,7 @@ def render_frames_ray(bundle_path: str | Path, out_dir: str | Path, *,
     run_id = uuid.uuid4().hex
 
     def submit(number: int) -> None:
+        began = time.perf_counter()
         frame = views.pop(number)
         ids = list(frame.instances.mesh_ids)
         for stale in set(refs) - set(ids) - {m for v in using.values() for m in v}:
@@ -168,8 +171,9 @@ def render_frames_ray(bundle_path: str | Path, out_dir: str | Path, *,
         run.sent_bytes[number] = (len(pickle.dumps((run_id, frame, threads, device)))
                                   + sum(len(m) + len(refs[m].binary()) for m in ids)
                                   + sum(mesh.nbytes for mesh in new.values()))
-        pending[task.options(name=f"frame {number}").remote(*args)] = number
+        pending[task.options(name=f"frame {number}", **options).remote(*args)] = number
         using[number] = ids
+        run.submit_s += time.perf_counter() - began
 
     queue = list(todo)
     while queue or pending:

@@ -119,9 +119,8 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     single mesh's BVH, or an instance list's two levels (the top level over the meshes'
     BVHs, each from `mesh_bvh`). An instance list is kept in the store with its top level,
     which lives no longer than it (store.py drops a scene's BVHs with it)."""
-    from kernels.scene import bvh_nbytes as mesh_bytes
-
     import kernels
+    from kernels.scene import bvh_nbytes as mesh_bytes
 
     report = BuildReport()
     if isinstance(scene, wire.SceneArrays):

@@ -15,8 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 import ray
-from bundles import BundleWriter, look_at_camera
+from bundles import look_at_camera
 
+from backend.bundle import BundleWriter
 from backend.cli import main
 from backend.cluster import render_frames_ray
 from backend.frames import frame_paths, render_frames
