@@ -125,28 +125,30 @@ def main() -> None:
         return timed(lambda: render_frames(bundle, folder, frames=timed_frames,
                                            threads=threads, progress=False))
 
-    def cluster(folder: Path) -> tuple[float, dict[int, int]]:
+    def cluster(folder: Path):
         shutil.rmtree(folder, ignore_errors=True)
         render_frames_ray(bundle, folder, frames=warm, threads=1)
         run = render_frames_ray(bundle, folder, frames=timed_frames, threads=1)
         if run.failed:
             raise SystemExit(f"frames failed on the cluster: {run.failed}")
-        return run.render_s, run.sent_bytes
+        return run
 
     times: dict[str, list[float]] = {"one": [], "both": [], "ray": []}
-    sent: dict[int, int] = {}
+    run = None
     for r in range(args.rounds):  # interleaved: each round runs every way once
         times["one"].append(one_process(1, out["one"]))
         times["both"].append(one_process(None, out["both"]))
-        seconds, sent = cluster(out["ray"])
-        times["ray"].append(seconds)
+        run = cluster(out["ray"])
+        times["ray"].append(run.render_s)
         print(f"round {r + 1}: " + ", ".join(f"{k} {v[-1]:.1f} s" for k, v in times.items()))
     ray.shutdown()
     same = all((out["one"] / f"{n:06d}.npy").read_bytes() == (out["ray"] / f"{n:06d}.npy")
                .read_bytes() for n in timed_frames)
     med = {k: statistics.median(v) for k, v in times.items()}
-    after_first = [sent[n] for n in timed_frames[1:]]
-    deformed = (len(unit_mesh("bunny")[0]) * 12 + len(unit_mesh("bunny")[1]) * 12)
+    after_first = [run.sent_bytes[n] for n in timed_frames[1:]]
+    bunny_v, bunny_f = unit_mesh("bunny")
+    deformed = bunny_v.nbytes + bunny_f.nbytes
+    returned = statistics.median(run.returned_bytes.values())
     rows = [
         ("one process, 1 engine thread", med["one"], med["one"] / args.frames, 1.0),
         ("one process, both cores", med["both"], med["both"] / args.frames,
@@ -172,6 +174,10 @@ def main() -> None:
         f"- Bytes sent per frame after the first: median {statistics.median(after_first):,.0f}"
         f" (min {min(after_first):,}, max {max(after_first):,}); the deformed bunny is "
         f"{deformed:,} of them, the rest the frame's view, instance list and mesh ids.",
+        f"- Returned per frame (AO, coverage, depth float32 and the PNG): {returned:,.0f} "
+        "bytes.",
+        f"- The driver's work per frame (read and hash-check the bundle's meshes, put them, "
+        f"submit): {1e3 * run.submit_s / args.frames:.1f} ms.",
         f"- Cluster frames equal the one-process frames bit for bit: {same}.",
     ]
     text = "\n".join(lines)
