@@ -22,10 +22,11 @@ when a frame first needs them, and their ids are checked against their bytes.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 from pydantic import ValidationError
 
 from backend import wire
@@ -162,3 +163,69 @@ class Bundle:
 def read_bundle(path: str | Path) -> Bundle:
     """Open the bundle at `path` (a directory holding manifest.json)."""
     return Bundle(Path(path))
+
+
+# --- writing ---------------------------------------------------------------------------
+
+
+def mesh_body(vertices: np.ndarray, indices: np.ndarray) -> bytes:
+    """A mesh without normals in the PUT /v1/meshes layout."""
+    return vertices.astype("<f4").tobytes() + indices.astype("<i4").tobytes()
+
+
+def mesh_id(vertices: np.ndarray, indices: np.ndarray) -> str:
+    """That mesh's content hash: its id in a bundle and in the service."""
+    return wire.scene_hash(len(vertices), len(indices), mesh_body(vertices, indices))
+
+
+def instance_body(ids: list[str], mesh_index: list[int], transforms: np.ndarray) -> bytes:
+    """An instance list in the POST /v1/instance-scenes layout."""
+    return ("".join(ids).encode() + np.asarray(mesh_index, "<i4").tobytes()
+            + np.asarray(transforms, "<f4").tobytes())
+
+
+@dataclass
+class BundleWriter:
+    """A bundle from numpy, without Blender (pipelines, tests, benchmarks): frames added one
+    by one, then `write(root)`. Meshes without normals; the add-on writes its own."""
+
+    settings: dict[str, Any] = field(default_factory=lambda: {"spp": 4, "seed": 1,
+                                                              "distance": 1.0})
+    meshes: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    frames: dict[int, tuple[dict[str, Any], list[str], list[int], np.ndarray]] = field(
+        default_factory=dict)
+
+    def frame(self, number: int, camera: dict[str, Any],
+              instances: list[tuple[tuple[np.ndarray, np.ndarray], np.ndarray]]) -> None:
+        """Frame `number`: `instances` as ((vertices, indices), 3x4 transform) pairs."""
+        ids: list[str] = []
+        index: list[int] = []
+        for mesh, _ in instances:
+            name = mesh_id(*mesh)
+            self.meshes[name] = mesh
+            if name not in ids:
+                ids.append(name)
+            index.append(ids.index(name))
+        transforms = np.array([t for _, t in instances], np.float32)
+        self.frames[number] = (camera, ids, index, transforms)
+
+    def write(self, root: Path) -> Path:
+        (root / "meshes").mkdir(parents=True, exist_ok=True)
+        (root / "frames").mkdir(exist_ok=True)
+        for name, (v, i) in self.meshes.items():
+            mesh_path(root, name).write_bytes(mesh_body(v, i))
+        for number, (camera, ids, index, transforms) in self.frames.items():
+            stem = frame_stem(root, number)
+            stem.with_suffix(".bin").write_bytes(instance_body(ids, index, transforms))
+            record = {"frame": number, "camera": camera, "window": None,
+                      "pixel_aspect": [1.0, 1.0], "meshes": len(ids), "instances": len(index)}
+            stem.with_suffix(".json").write_text(json.dumps(record))
+        manifest = {
+            "format": FORMAT, "version": VERSION, "frames": list(self.frames),
+            "settings": self.settings,
+            "meshes": {name: {"vertices": len(v), "triangles": len(i), "normals": False,
+                              "terminator_offsets": False}
+                       for name, (v, i) in self.meshes.items()},
+        }
+        (root / MANIFEST).write_text(json.dumps(manifest))
+        return root

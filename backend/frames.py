@@ -20,7 +20,8 @@ deformed is refit and nothing else is touched. `BuildReport` says per frame what
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -192,7 +193,9 @@ class FrameRenderer:
 
     def __init__(self, bundle: Bundle | str | Path, *, device: str | None = None,
                  threads: int | None = None, cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
-        self.bundle = bundle if isinstance(bundle, Bundle) else read_bundle(bundle)
+        # Anything with the Bundle's frame() and mesh(): backend/cluster.py ships frames in
+        # tasks and meshes through Ray's object store.
+        self.bundle = read_bundle(bundle) if isinstance(bundle, str | Path) else bundle
         self.device = device or "cpu"
         self.threads = threads
         self.store = Store(cache_bytes)
@@ -228,6 +231,11 @@ def frame_paths(out_dir: Path, frame_number: int) -> tuple[Path, Path]:
     return stem.with_suffix(".png"), stem.with_suffix(".npy")
 
 
+def frame_done(out_dir: Path, frame_number: int) -> bool:
+    """Whether the frame's files are in `out_dir` (what `resume` skips)."""
+    return all(path.exists() for path in frame_paths(out_dir, frame_number))
+
+
 def write_frame(out_dir: str | Path, frame_number: int, result: FrameResult) -> Path:
     """Write the frame's PNG (the service's `format=png`) and its float32 AO as .npy
     (row 0 at the top); returns the PNG's path."""
@@ -238,30 +246,13 @@ def write_frame(out_dir: str | Path, frame_number: int, result: FrameResult) -> 
     return png
 
 
-def render_frames(bundle_path: str | Path, out_dir: str | Path, *,
-                  frames: Iterable[int] | None = None, resume: bool = False,
-                  threads: int | None = None, progress: bool = True,
-                  device: str | None = None) -> list[tuple[int, BuildReport | None]]:
-    """Render the bundle's frames (all, or `frames`) into `out_dir`, with a rich progress
-    bar; `resume` skips frames whose files exist. Returns (frame, report) per frame, the
-    report None for a frame skipped."""
-    renderer = FrameRenderer(bundle_path, device=device, threads=threads)
-    wanted = list(renderer.bundle.frames if frames is None else frames)
-    done: list[tuple[int, BuildReport | None]] = []
-
-    def one(number: int) -> None:
-        png, npy = frame_paths(Path(out_dir), number)
-        if resume and png.exists() and npy.exists():
-            done.append((number, None))
-            return
-        result = renderer.render(number)
-        write_frame(out_dir, number, result)
-        done.append((number, result.build))
-
-    if not progress:
-        for number in wanted:
-            one(number)
-        return done
+@contextmanager
+def frame_progress(total: int, enabled: bool = True) -> Iterator[Callable[[int], None]]:
+    """A rich progress bar over `total` frames; yields `advance(frame)`, called as each frame
+    is done (a no-op when not `enabled`)."""
+    if not enabled:
+        yield lambda number: None
+        return
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -274,9 +265,27 @@ def render_frames(bundle_path: str | Path, out_dir: str | Path, *,
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(),
                TimeElapsedColumn(), TimeRemainingColumn())
     with Progress(*columns, transient=True) as bar:
-        task = bar.add_task("frames", total=len(wanted))
+        task = bar.add_task("frames", total=total)
+        yield lambda number: bar.update(task, advance=1, description=f"frame {number}")
+
+
+def render_frames(bundle_path: str | Path, out_dir: str | Path, *,
+                  frames: Iterable[int] | None = None, resume: bool = False,
+                  threads: int | None = None, progress: bool = True,
+                  device: str | None = None) -> list[tuple[int, BuildReport | None]]:
+    """Render the bundle's frames (all, or `frames`) into `out_dir`, with a rich progress
+    bar; `resume` skips frames whose files exist. Returns (frame, report) per frame, the
+    report None for a frame skipped."""
+    renderer = FrameRenderer(bundle_path, device=device, threads=threads)
+    wanted = list(renderer.bundle.frames if frames is None else frames)
+    done: list[tuple[int, BuildReport | None]] = []
+    with frame_progress(len(wanted), progress) as advance:
         for number in wanted:
-            bar.update(task, description=f"frame {number}")
-            one(number)
-            bar.advance(task)
+            if resume and frame_done(Path(out_dir), number):
+                done.append((number, None))
+            else:
+                result = renderer.render(number)
+                write_frame(out_dir, number, result)
+                done.append((number, result.build))
+            advance(number)
     return done

@@ -9,11 +9,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from bundles import BundleWriter, instance_body, look_at_camera, mesh_body, mesh_id
+from bundles import look_at_camera
 from conftest import OCTET
 
 from backend import frames as frames_module
-from backend.bundle import BundleError, read_bundle
+from backend.bundle import (
+    BundleError,
+    BundleWriter,
+    instance_body,
+    mesh_body,
+    mesh_id,
+    read_bundle,
+)
 from backend.cli import main
 from backend.frames import FrameRenderer, render_frames
 

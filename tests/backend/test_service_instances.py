@@ -7,10 +7,10 @@ from __future__ import annotations
 import httpx
 import numpy as np
 import pytest
-from bundles import instance_body, mesh_id
 from conftest import OCTET, floor_and_box, rays_towards_floor, scene_body
 
 from backend import wire
+from backend.bundle import instance_body, mesh_id
 
 
 def cube() -> tuple[np.ndarray, np.ndarray]:
