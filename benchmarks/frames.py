@@ -1,6 +1,6 @@
 """A frame bundle rendered in one process and on a local Ray cluster, in the same run.
 
-    .venv/bin/python benchmarks/frames.py [--frames 48] [--width 320 --height 240] [--spp 32]
+    .venv/bin/python benchmarks/frames.py [--frames 48] [--width 320 --height 240] [--spp 64]
                                           [--rounds 1] [--no-docs]
 
 The bundle: the shared bunny, dragon and Happy Buddha as 12 instances on a floor, one more
@@ -107,7 +107,7 @@ def main() -> None:
     parser.add_argument("--frames", type=int, default=48)
     parser.add_argument("--width", type=int, default=320)
     parser.add_argument("--height", type=int, default=240)
-    parser.add_argument("--spp", type=int, default=32)
+    parser.add_argument("--spp", type=int, default=64)
     parser.add_argument("--rounds", type=int, default=1)
     parser.add_argument("--no-docs", action="store_true")
     args = parser.parse_args()
