@@ -789,10 +789,7 @@ def render_ao(
         mse0 = None
         while h and len(select):
             if aim is not None and mse0 is not None:
-                mse = counts.mse()
-                # progress: how far the error has come down, on a log scale
-                report(math.log(mse0 / mse) / math.log(mse0 / aim**2) if mse > aim**2 else 1.0,
-                       "occlusion")
+                report(_progress(mse0, counts.mse(), aim), "occlusion")
             else:
                 report(_fraction(counts.done, len(select), int(counts.done[select[0]])),
                        "occlusion")
@@ -1083,6 +1080,15 @@ def half_width(open_count: np.ndarray, n: np.ndarray, efficiency: float | np.nda
     `smoothed_variance` (never 0). `efficiency` (<= 1, one or per pixel) is the sampler's
     variance relative to independent samples (`sampler_efficiency`)."""
     return Z95 * np.sqrt(efficiency * smoothed_variance(open_count, n) / n)
+
+
+def _progress(mse0: float, mse: float, aim: float) -> float:
+    """How far the error has come from mse0 towards aim^2, on a log scale, in [0, 1]. In
+    logs apart: for a tiny target aim^2 underflows to 0."""
+    if not (mse > aim * aim and mse0 > mse > 0.0):
+        return 1.0 if mse <= aim * aim else 0.0
+    span = math.log(mse0) - 2.0 * math.log(aim)
+    return min(1.0, (math.log(mse0) - math.log(mse)) / span)
 
 
 def _fraction(n_done, active, count) -> float:

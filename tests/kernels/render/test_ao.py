@@ -362,3 +362,14 @@ def test_compile_time_is_reported_apart(monkeypatch, device):
     result = kernels.render_ao(bvh, np.array([[0.2, 0.2, 1.0]], np.float32),
                                np.array([[0.0, 0.0, -1.0]], np.float32), spp=2)
     assert result.timings_ms["compile"] == 1.0e6 and result.timings_ms["total"] < 1.0e5
+
+
+def test_progress_of_a_tiny_target_is_a_fraction():
+    """The round loop's progress for any target in (0, 1): its aim squared underflows to 0
+    for 1e-200 (the service answered 500 with a ZeroDivisionError there)."""
+    from kernels.render.ao import _progress
+
+    assert 0.0 < _progress(1e-3, 5e-4, 1e-200) < 1.0
+    assert _progress(1e-3, 2e-3, 1e-200) == 0.0  # the error has not come down yet
+    assert _progress(1e-3, 1e-6, 0.01) == 1.0  # below the aim: done
+    assert 0.0 < _progress(1e-3, 5e-4, 0.01) < 1.0
