@@ -25,8 +25,9 @@ from backend.frames import BuildReport, FrameRenderer, FrameResult, frame_done, 
 
 EXTRA_HINT = 'pip install "scenesort[cluster]"'
 DEFAULT_RETRIES = 3
-# Frames in flight per engine slot of the cluster: enough to keep every worker busy while the
-# driver writes, few enough that deformed meshes do not all sit in the object store at once.
+# Frames in flight (or done, waiting for an earlier one to be written) per engine slot of the
+# cluster: enough to keep every worker busy while the driver writes, few enough that deformed
+# meshes and images do not pile up in the object store or the driver.
 IN_FLIGHT_PER_SLOT = 2
 
 
@@ -115,7 +116,8 @@ class ClusterRun:
     submit_s: float = 0.0  # the driver's time reading, putting and submitting frames
 
 
-def _first_line(exc: BaseException) -> str:
+def _failure(exc: BaseException) -> str:
+    """A failed task's message: what it raised, else the last line of Ray's error."""
     text = str(exc).strip().splitlines()
     cause = getattr(exc, "cause", None)  # RayTaskError: the exception the task raised
     return str(cause) if cause is not None else (text[-1] if text else type(exc).__name__)
@@ -177,7 +179,8 @@ def render_frames_ray(bundle_path: str | Path, out_dir: str | Path, *,
 
     queue = list(todo)
     while queue or pending:
-        while queue and len(pending) < slots * IN_FLIGHT_PER_SLOT:
+        # results waiting for an earlier frame count too: what the driver holds stays bounded
+        while queue and len(pending) + len(finished) < slots * IN_FLIGHT_PER_SLOT:
             submit(queue.pop(0))
         ready, _ = ray.wait(list(pending), num_returns=1)
         number = pending.pop(ready[0])
@@ -192,7 +195,7 @@ def render_frames_ray(bundle_path: str | Path, out_dir: str | Path, *,
             done = todo[next_write]
             outcome = finished.pop(done)
             if isinstance(outcome, BaseException):
-                run.failed[done] = _first_line(outcome)
+                run.failed[done] = _failure(outcome)
             else:
                 write_frame(out, done, outcome)
                 run.written.append(done)
