@@ -93,11 +93,13 @@ class Killer(threading.Thread):
         super().__init__(daemon=True)
         self.title, self.times, self.killed = f"ray::frame {frame}".encode(), times, 0
         self.stop = threading.Event()
+        # A killed worker keeps its title until it has exited: kill each process once.
+        self.seen: set[int] = set()
 
     def run(self) -> None:
         while not self.stop.wait(0.002) and self.killed < self.times:
             for entry in os.scandir("/proc"):
-                if not entry.name.isdigit():
+                if not entry.name.isdigit() or int(entry.name) in self.seen:
                     continue
                 try:
                     with open(f"/proc/{entry.name}/cmdline", "rb") as f:
@@ -106,6 +108,7 @@ class Killer(threading.Thread):
                     continue
                 if title == self.title:
                     os.kill(int(entry.name), signal.SIGKILL)
+                    self.seen.add(int(entry.name))
                     self.killed += 1
                     break
 
