@@ -18,13 +18,14 @@ deformed is refit and nothing else is touched. `BuildReport` says per frame what
 
 Culling (a camera render, `View`): before any BVH, the instances that may change a pixel
 are decided from the meshes' object boxes (`cull.mesh_box`, kept per mesh under
-`box_key`) under the transforms and the AO distance (the request's, else the scene
-default over all instances, culled ones too, as `render_ao` computes it from the culled
-scene's bounds): only the meshes of those instances are built or refit (a mesh out of view
-waits until it enters it), and the top level is over those instances, kept under
-`culled_key` with which they are. A camera-only change that leaves the same instances in
-view builds nothing; one that changes them builds the top level (and the meshes coming
-into view). Nothing culled: the scene's own top level (`bvh_key`), as without a camera.
+`box_key`) under the transforms (the placement, kept per list under `placement_key`) and
+the AO distance (the request's, else the scene default over all instances, culled ones
+too, as `render_ao` computes it from the culled scene's bounds): only the meshes of those
+instances are built or refit (a mesh out of view waits until it enters it), and the top
+level is over those instances, kept under `culled_key` with which they are. A camera-only
+change that leaves the same instances in view builds nothing; one that changes them
+builds the top level (and the meshes coming into view). Nothing culled: the scene's own
+top level (`bvh_key`), as without a camera.
 """
 
 from __future__ import annotations
@@ -56,6 +57,12 @@ def culled_key(scene_id: str, method: str, leaf_size: int) -> str:
     (kept with the mask of which they are; not a `bvh_key`: AO on explicit rays, which
     takes a scene's latest BVH, must not find it)."""
     return f"{scene_id}/culled/bvh/{method}/{leaf_size}"
+
+
+def placement_key(scene_id: str) -> str:
+    """The cache key of an instance list's placement (`place_instances`) and its meshes'
+    largest triangle sides: what culling needs of it, whatever the camera."""
+    return f"{scene_id}/placed"
 
 
 def box_key(mesh_id: str) -> str:
@@ -173,9 +180,9 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
         bvh = mesh_bvh(store, scene, method, leaf_size, device, report)
         report.bvh_bytes = mesh_bytes(bvh)
         return bvh, report
-    keep, boxes = None, None
+    keep, placed = None, None
     if view is not None:
-        keep, boxes = report.measure("cull", lambda: visible(store, scene, view))
+        keep, placed = report.measure("cull", lambda: visible(store, scene, view))
         report.culled = int(np.count_nonzero(~keep))
         if not report.culled:
             keep = None  # the scene's own top level, shared with renders without a view
@@ -197,7 +204,7 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     bottoms = [mesh_bvh(store, m, method, leaf_size, device, report, in_use)
                if k in needed else None for k, m in enumerate(scene.meshes)]
     levels = report.measure("top_level", lambda: kernels.build_scene(
-        bottoms, scene.mesh_index, scene.transforms, visible=keep, mesh_bounds=boxes,
+        bottoms, scene.mesh_index, scene.transforms, visible=keep, placed=placed,
         device=device))
     report.top_level = "built"
     report.bvh_bytes = levels.nbytes
@@ -207,29 +214,35 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     return levels, report
 
 
-def visible(store: Store, scene: wire.InstanceScene, view: View,
-            ) -> tuple[np.ndarray, np.ndarray]:
+def visible(store: Store, scene: wire.InstanceScene, view: View) -> tuple[np.ndarray, Any]:
     """The instances that may change a pixel of the view's AO image (`cull.
-    visible_instances`), decided from the meshes' boxes before any BVH is made, and those
-    boxes (K, 2, 3)."""
+    visible_instances`), decided from the meshes' boxes before any BVH is made, and their
+    placement (`place_instances`, which `build_scene` then reuses). The placement and the
+    meshes' triangle sizes depend on the instance list alone: kept under `placement_key`,
+    so a camera-only change pays the planes' test only."""
     from kernels.render import default_distance
     from kernels.render.cull import mesh_box, visible_instances
     from kernels.scene.api import place_instances
 
-    found = []
-    for mesh in scene.meshes:
-        box = store.get(box_key(mesh.scene_id))
-        if box is None:
-            box = mesh_box(mesh.vertices, mesh.indices)
-            store.put(box_key(mesh.scene_id), box, 64)
-        found.append(box)
-    boxes = np.stack([b for b, _ in found])
-    placed = place_instances(boxes, scene.mesh_index, scene.transforms)
+    kept = store.get(placement_key(scene.scene_id))
+    if kept is None:
+        found = []
+        for mesh in scene.meshes:
+            box = store.get(box_key(mesh.scene_id))
+            if box is None:
+                box = mesh_box(mesh.vertices, mesh.indices)
+                store.put(box_key(mesh.scene_id), box, 64)
+            found.append(box)
+        placed = place_instances(np.stack([b for b, _ in found]), scene.mesh_index,
+                                 scene.transforms)
+        kept = placed, np.array([e for _, e in found])
+        held = [placed.lo, placed.hi, placed.mesh_ids, placed.transforms, *placed.frames.values()]
+        store.put(placement_key(scene.scene_id), kept, sum(a.nbytes for a in held))
+    placed, extents = kept
     # The scene default over every instance: render_ao's from the culled scene's bounds,
     # which are the placement's (build_scene counts the culled instances' boxes).
     distance = default_distance(placed) if view.distance is None else view.distance
-    return visible_instances(placed, np.array([e for _, e in found]), view.camera,
-                             distance), boxes
+    return visible_instances(placed, extents, view.camera, distance), placed
 
 
 def resolve(listing: wire.InstanceList,

@@ -100,11 +100,13 @@ class Scene:
 
 @dataclass
 class Placement:
-    """Instances placed in the world, before any BVH: validated mesh ids and transforms,
-    their float64 frames (`instances.instance_frames`), the padded world boxes (I, 3) lo
-    and hi the top level is built over, which instances have triangles (`valid`), and
-    `bounds` (2, 3): the unpadded world box of the valid ones (the scene's `bounds`)."""
+    """Instances placed in the world, before any BVH: the meshes' object boxes (K, 2, 3),
+    validated mesh ids and transforms, their float64 frames (`instances.instance_frames`),
+    the padded world boxes (I, 3) lo and hi the top level is built over, which instances
+    have triangles (`valid`), and `bounds` (2, 3): the unpadded world box of the valid ones
+    (the scene's `bounds`)."""
 
+    mesh_bounds: np.ndarray
     mesh_ids: np.ndarray
     transforms: np.ndarray
     frames: dict
@@ -125,8 +127,8 @@ def place_instances(mesh_bounds: np.ndarray, mesh_ids, transforms) -> Placement:
         bounds = np.stack([unpadded[valid, 0].min(0), unpadded[valid, 1].max(0)])
     else:
         bounds = np.full((2, 3), np.inf, np.float32)
-    return Placement(mesh_ids=ids, transforms=transforms, frames=frames, lo=lo, hi=hi,
-                     valid=valid, bounds=bounds.astype(np.float32))
+    return Placement(mesh_bounds=mesh_bounds, mesh_ids=ids, transforms=transforms,
+                     frames=frames, lo=lo, hi=hi, valid=valid, bounds=bounds.astype(np.float32))
 
 
 def bvh_nbytes(bvh: Bvh) -> int:
@@ -169,7 +171,7 @@ def mesh_record(bvh: Bvh, rec: np.ndarray) -> np.ndarray:
 
 
 def build_scene(meshes: Sequence[Bvh | None], mesh_ids, transforms, *,
-                visible: np.ndarray | None = None, mesh_bounds: np.ndarray | None = None,
+                visible: np.ndarray | None = None, placed: Placement | None = None,
                 device=None, method: str = "sah", workers: int | None = None) -> Scene:
     """A two-level scene: instance i is `meshes[mesh_ids[i]]` (a Bvh from `build_bvh`, in
     object space) under the 3x4 object-to-world `transforms[i]` (float32 rows [M | T];
@@ -178,10 +180,11 @@ def build_scene(meshes: Sequence[Bvh | None], mesh_ids, transforms, *,
     alive and unchanged but for `refit_bvh` (which updates them in place; rebuild the scene
     afterwards, for the new boxes). The top level is built on the task pool over the
     instances' padded world boxes. `visible` (I,) bool, e.g. from `cull.visible_instances`:
-    instances left out of the top level (their indices stay those of the full list). A mesh
-    with no visible instance may be None (left unbuilt), its object box then given in
-    `mesh_bounds` (K, 2, 3) (`cull.mesh_box`: the box its Bvh would have), which the
-    scene's `bounds` count; `device` says where the scene lives when every mesh is None."""
+    instances left out of the top level (their indices stay those of the full list).
+    `placed`: these instances' `place_instances` (what `visible` was decided on), used
+    instead of placing them again where its boxes are the built meshes'. A mesh with no
+    visible instance may be None (left unbuilt), its box then `placed`'s, which the scene's
+    `bounds` count; `device` says where the scene lives when every mesh is None."""
     if not meshes:
         raise ValueError("meshes must hold at least one Bvh (build_bvh of each mesh)")
     if method not in METHODS:
@@ -194,12 +197,18 @@ def build_scene(meshes: Sequence[Bvh | None], mesh_ids, transforms, *,
     t_total = time.perf_counter()
     phase_ms: dict[str, float] = {}
     unbuilt = np.array([b is None for b in meshes])
-    if unbuilt.any() and (mesh_bounds is None or np.shape(mesh_bounds) != (len(meshes), 2, 3)):
-        raise ValueError(f"mesh_bounds must be a ({len(meshes)}, 2, 3) array (each mesh's "
-                         "object box, cull.mesh_box) when a mesh is None (unbuilt)")
-    boxes = np.stack([np.asarray(mesh_bounds[k] if b is None else b.bounds, np.float32)
+    if placed is not None and (placed.mesh_bounds.shape != (len(meshes), 2, 3)
+                               or not np.array_equal(placed.mesh_ids, mesh_ids)
+                               or not np.array_equal(placed.transforms, transforms)):
+        raise ValueError("placed must be place_instances of these meshes' boxes, mesh_ids "
+                         "and transforms")
+    if unbuilt.any() and placed is None:
+        raise ValueError("a mesh is None (unbuilt): pass placed (place_instances of the "
+                         "meshes' boxes, cull.mesh_box) for its box")
+    boxes = np.stack([placed.mesh_bounds[k] if b is None else np.asarray(b.bounds, np.float32)
                       for k, b in enumerate(meshes)])
-    placed = place_instances(boxes, mesh_ids, transforms)
+    if placed is None or not np.array_equal(boxes, placed.mesh_bounds):
+        placed = place_instances(boxes, mesh_ids, transforms)
     ids, n = placed.mesh_ids, len(placed.mesh_ids)
     if visible is not None:
         visible = np.asarray(visible)

@@ -85,9 +85,12 @@ def rendered(bundle: Path) -> dict[int, frames_module.FrameResult]:
 def test_only_what_changed_is_built(rendered) -> None:
     """Frame 1 builds its three meshes and the top level; 2 (camera only) builds nothing;
     3 (a transform) only the top level; 4 (the blob deformed) refits the blob alone; 5
-    (frame 1's list again) refits the blob back: its earlier BVH now held frame 4's."""
+    (frame 1's list again) refits the blob back: its earlier BVH now held frame 4's. Every
+    instance is within the cameras' reach here, so culling changes none of this (it has
+    its own tests: test_frames_cull.py)."""
     floor, cube, blob0, blob1 = (mesh_id(*m) for m in (FLOOR, CUBE, BLOB0, BLOB1))
     reports = {n: r.build for n, r in rendered.items()}
+    assert all(r.culled == 0 and not r.skipped for r in reports.values())
     assert sorted(reports[1].built) == sorted([floor, cube, blob0])
     assert reports[1].top_level == "built" and not reports[1].refit
     assert reports[2].top_level == "reused" and reports[2].cached

@@ -105,7 +105,8 @@ def test_unbuilt_meshes_change_no_pixel():
     bvhs = [kernels.build_bvh(*m) for m in meshes]
     full = kernels.build_scene(bvhs, ids, ts)
     assert default_distance(full) == dist
-    culled = kernels.build_scene([bvhs[0], None], ids, ts, visible=keep, mesh_bounds=boxes)
+    placed = place_instances(boxes, ids, ts)
+    culled = kernels.build_scene([bvhs[0], None], ids, ts, visible=keep, placed=placed)
     assert np.array_equal(culled.bounds, full.bounds)
     assert culled.stats["meshes_built"] == 1 and culled.nbytes < full.nbytes
     o, d, tmin, tmax = camera.rays()
@@ -113,11 +114,13 @@ def test_unbuilt_meshes_change_no_pixel():
     b = kernels.render_ao(culled, o, d, 8, tmin=tmin, tmax=tmax)
     assert np.array_equal(a.ao, b.ao) and (a.spp_used > 0).mean() > 0.3
     with pytest.raises(ValueError, match="visible but its mesh 1 is None"):
-        kernels.build_scene([bvhs[0], None], ids, ts, mesh_bounds=boxes)
-    with pytest.raises(ValueError, match="mesh_bounds must be"):
+        kernels.build_scene([bvhs[0], None], ids, ts, placed=placed)
+    with pytest.raises(ValueError, match="pass placed"):
         kernels.build_scene([bvhs[0], None], ids, ts, visible=keep)
+    with pytest.raises(ValueError, match="placed must be place_instances of these"):
+        kernels.build_scene([bvhs[0], None], ids, ts[::-1], visible=keep, placed=placed)
     nothing = kernels.build_scene([None, None], ids, ts, visible=np.zeros(len(ts), bool),
-                                  mesh_bounds=boxes)
+                                  placed=placed)
     assert np.array_equal(nothing.bounds, full.bounds)
     assert not kernels.trace(nothing, o, d, tmin, tmax).hit.any()
 
