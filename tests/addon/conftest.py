@@ -1,29 +1,23 @@
 """Headless Blender (the `bpy` module) with the add-on imported as the package `addon`.
 
 `registered` gives each test a fresh empty scene with the add-on registered, and
-unregisters it afterwards (which also stops any service it started).
+unregisters it afterwards (which also stops any service it started). Helpers:
+tests/addon/blender_scenes.py.
 """
 
 from __future__ import annotations
 
-import math
-import socket
 import sys
 from collections.abc import Iterator
-from pathlib import Path
 
 import bpy
-import numpy as np
 import pytest
+from blender_scenes import REPO
 
-REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import addon  # noqa: E402 - needs the repo root on sys.path
-
-# Blender's own extension validator, shipped inside the bpy wheel.
-BLENDER_EXT = Path(bpy.utils.system_resource("SCRIPTS")) / "addons_core/bl_pkg/cli/blender_ext.py"
 
 
 @pytest.fixture
@@ -35,144 +29,3 @@ def registered() -> Iterator[bpy.types.Scene]:
         yield bpy.context.scene
     finally:
         addon.unregister()
-
-
-def free_port() -> int:
-    """A TCP port nothing listens on right now (the OS picks it)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def box_mesh(name: str, size: float = 2.0) -> bpy.types.Mesh:
-    """A closed cube mesh (6 quads, 12 triangles) centred on the origin."""
-    import bmesh  # only importable once bpy is
-
-    mesh = bpy.data.meshes.new(name)
-    bm = bmesh.new()
-    bmesh.ops.create_cube(bm, size=size)
-    bm.to_mesh(mesh)
-    bm.free()
-    return mesh
-
-
-def grid_mesh(name: str, n: int, size: float) -> bpy.types.Mesh:
-    """An n x n grid of quads in the z=0 plane: a floor with 2*n*n triangles."""
-    xs = np.linspace(-size / 2, size / 2, n + 1)
-    verts = [(x, y, 0.0) for y in xs for x in xs]
-    faces = [
-        (j * (n + 1) + i, j * (n + 1) + i + 1, (j + 1) * (n + 1) + i + 1, (j + 1) * (n + 1) + i)
-        for j in range(n)
-        for i in range(n)
-    ]
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata(verts, [], faces)
-    return mesh
-
-
-def plane_mesh(name: str, size: float) -> bpy.types.Mesh:
-    """A square in the z=0 plane (2 triangles)."""
-    h = size / 2
-    mesh = bpy.data.meshes.new(name)
-    mesh.from_pydata([(-h, -h, 0), (h, -h, 0), (h, h, 0), (-h, h, 0)], [], [(0, 1, 2, 3)])
-    return mesh
-
-
-def add_object(
-    scene: bpy.types.Scene, name: str, data: bpy.types.ID | None, location=(0.0, 0.0, 0.0)
-) -> bpy.types.Object:
-    obj = bpy.data.objects.new(name, data)
-    obj.location = location
-    scene.collection.objects.link(obj)
-    return obj
-
-
-def add_camera(
-    scene: bpy.types.Scene, location, rotation, width: int = 64, height: int = 48
-) -> bpy.types.Object:
-    cam = add_object(scene, "Camera", bpy.data.cameras.new("Camera"), location)
-    cam.rotation_euler = rotation
-    scene.camera = cam
-    scene.render.resolution_x, scene.render.resolution_y = width, height
-    scene.render.resolution_percentage = 100
-    return cam
-
-
-def read_image(path: Path) -> np.ndarray:
-    """An image file's RGBA, (height, width, 4), row 0 at the top."""
-    img = bpy.data.images.load(str(path))
-    try:
-        pixels = np.empty(len(img.pixels), np.float32)
-        img.pixels.foreach_get(pixels)
-        return pixels.reshape(img.size[1], img.size[0], 4)[::-1]
-    finally:
-        bpy.data.images.remove(img)
-
-
-def f12(scene: bpy.types.Scene, path: Path) -> np.ndarray:
-    """F12 and save: the EXR Blender wrote, its RGBA (row 0 at the top)."""
-    scene.render.filepath = str(path)
-    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
-    return read_image(path.with_suffix(".exr"))
-
-
-def shading(mesh) -> dict:  # noqa: ANN001 - an export.SceneMesh
-    """`kernels.render_ao`'s normal arguments for an exported scene (none when it is flat)."""
-    pairs = (("normals", mesh.normals), ("terminator_offset", mesh.terminator_offsets))
-    return {name: value for name, value in pairs if value is not None}
-
-
-def ctrl_f12(scene: bpy.types.Scene, folder: Path, first: int = 1, last: int = 3) -> list:
-    """Ctrl-F12 of frames first..last into `folder` as PNGs (the scene's 32-bit EXR output
-    is set again afterwards): the files Blender numbered, as PIL images in frame order."""
-    from PIL import Image
-
-    settings = scene.render.image_settings
-    scene.frame_start, scene.frame_end = first, last
-    scene.render.filepath = str(folder / "frame_")
-    settings.file_format = "PNG"
-    try:
-        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
-    finally:
-        settings.file_format, settings.color_depth = "OPEN_EXR", "32"
-    names = sorted(p.name for p in folder.iterdir())
-    assert names == [f"frame_{f:04d}.png" for f in range(first, last + 1)]
-    return [Image.open(folder / name) for name in names]
-
-
-FRAMES = (1, 2, 3, 4)  # animated_scene's: the blob deforms from 1 to 3 and holds on 4
-
-
-def animated_scene(scene: bpy.types.Scene) -> bpy.types.Scene:
-    """A floor; one cube mesh under three objects, one of them moving and one mirrored,
-    and in a collection instance; a grid deformed by an animated shape key; a moving camera."""
-    add_object(scene, "Floor", grid_mesh("Floor", 4, 8.0))
-    cube = box_mesh("Cube", 1.0)
-    for i in range(3):
-        add_object(scene, f"Cube{i}", cube, (2.0 * i - 2.0, 0.0, 0.5))
-    bpy.data.objects["Cube2"].scale = (-1.0, 1.0, 2.0)  # mirrored, non-uniform
-    mover = bpy.data.objects["Cube1"]
-    mover.keyframe_insert("location", frame=1)
-    mover.location.z = 2.0
-    mover.keyframe_insert("location", frame=3)
-    blob = add_object(scene, "Blob", grid_mesh("Blob", 3, 1.0), (0.0, 2.0, 1.0))
-    blob.shape_key_add(name="Basis")
-    key = blob.shape_key_add(name="Up")
-    for point in key.data:
-        point.co.z += 0.3 * point.co.x
-    key.value = 0.0
-    key.keyframe_insert("value", frame=1)
-    key.value = 1.0
-    key.keyframe_insert("value", frame=3)
-    parts = bpy.data.collections.new("Parts")
-    parts.objects.link(bpy.data.objects.new("Part", cube))
-    empty = add_object(scene, "Instancer", None, (0.0, -2.0, 0.0))
-    empty.instance_type, empty.instance_collection = "COLLECTION", parts
-    cam = add_camera(scene, (0.0, -8.0, 4.0), (math.radians(60), 0.0, 0.0), 32, 24)
-    cam.keyframe_insert("location", frame=1)
-    cam.location.x = 1.0
-    cam.keyframe_insert("location", frame=4)
-    scene.frame_start, scene.frame_end = FRAMES[0], FRAMES[-1]
-    scene.scenesort.spp, scene.scenesort.seed, scene.scenesort.ao_distance = 4, 3, 1.5
-    scene.frame_set(2)
-    return scene

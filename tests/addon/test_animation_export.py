@@ -9,7 +9,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 import pytest
-from conftest import FRAMES, add_object, animated_scene, box_mesh
+from blender_scenes import FRAMES, add_object, animated_scene, box_mesh
 
 from addon import animation, camera, export
 from backend.bundle import BundleError, read_bundle

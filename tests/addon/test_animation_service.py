@@ -10,7 +10,7 @@ from pathlib import Path
 import bpy
 import numpy as np
 import pytest
-from conftest import FRAMES, animated_scene, read_image
+from blender_scenes import FRAMES, animated_scene, read_image
 
 import addon
 from addon import connection, export, pipeline, prefs, service
@@ -20,7 +20,7 @@ from backend.cli import main
 
 @pytest.fixture(scope="module")
 def live() -> Iterator[bpy.types.Scene]:
-    """conftest's animated scene and a service started by the add-on."""
+    """blender_scenes' animated scene and a service started by the add-on."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon.register()
     scene = animated_scene(bpy.context.scene)

@@ -8,7 +8,7 @@ import math
 import bpy
 import numpy as np
 import pytest
-from conftest import add_camera, add_object
+from blender_scenes import add_camera, add_object
 
 from addon import camera
 

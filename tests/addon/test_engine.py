@@ -20,7 +20,7 @@ import bpy
 import httpx
 import numpy as np
 import pytest
-from conftest import (
+from blender_scenes import (
     add_camera,
     add_object,
     box_mesh,

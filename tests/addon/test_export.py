@@ -5,7 +5,7 @@ from __future__ import annotations
 import bpy
 import numpy as np
 import pytest
-from conftest import add_object, box_mesh
+from blender_scenes import add_object, box_mesh
 
 from addon import client, export
 

@@ -8,7 +8,7 @@ import sys
 
 import bpy
 import pytest
-from conftest import add_camera, add_object, box_mesh, free_port
+from blender_scenes import add_camera, add_object, box_mesh, free_port
 
 from addon import image, prefs, service
 from addon.connection import check_remote

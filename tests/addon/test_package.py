@@ -12,7 +12,7 @@ from pathlib import Path
 
 import bpy
 import pytest
-from conftest import BLENDER_EXT, REPO
+from blender_scenes import BLENDER_EXT, REPO
 
 from backend import addon_zip
 

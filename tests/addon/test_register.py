@@ -9,7 +9,7 @@ import sys
 
 import bpy
 import pytest
-from conftest import REPO
+from blender_scenes import REPO
 
 import addon
 

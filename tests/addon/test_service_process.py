@@ -12,7 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REPO
+from blender_scenes import REPO
 
 from addon import client, service
 

@@ -14,7 +14,7 @@ import bmesh
 import bpy
 import numpy as np
 import pytest
-from conftest import (
+from blender_scenes import (
     add_camera,
     add_object,
     box_mesh,

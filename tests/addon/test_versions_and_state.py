@@ -18,7 +18,7 @@ from pathlib import Path
 
 import bpy
 import pytest
-from conftest import add_camera, add_object, box_mesh
+from blender_scenes import add_camera, add_object, box_mesh
 
 from addon import operators, prefs, service
 from addon.connection import ADDON_VERSION

@@ -19,7 +19,7 @@ import bpy
 import httpx
 import numpy as np
 import pytest
-from conftest import add_camera, add_object, box_mesh, grid_mesh
+from blender_scenes import add_camera, add_object, box_mesh, grid_mesh
 
 import addon
 from addon import camera, connection, export, image, pipeline, prefs, service

@@ -21,7 +21,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
-from conftest import OCTET, Service, floor_and_box, ray_body, rays_towards_floor, scene_body
+from service_client import OCTET, Service, floor_and_box, ray_body, rays_towards_floor, scene_body
 
 MAX_WORK = 2**26  # ray casts per request: a 1024x1024 job at 32 spp is 2^25
 CACHE_MB, UPLOADS_MB, RESULTS_MB, MAX_BODY_MB = 64, 8, 16, 6

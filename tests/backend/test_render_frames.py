@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bundles import look_at_camera
-from conftest import OCTET
+from service_client import OCTET
 
 from backend import frames as frames_module
 from backend.bundle import (

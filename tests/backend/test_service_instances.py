@@ -7,7 +7,7 @@ from __future__ import annotations
 import httpx
 import numpy as np
 import pytest
-from conftest import OCTET, floor_and_box, rays_towards_floor, scene_body
+from service_client import OCTET, floor_and_box, rays_towards_floor, scene_body
 
 from backend import wire
 from backend.bundle import instance_body, mesh_id
@@ -247,7 +247,7 @@ def test_varying_terminator_offsets_are_refused_in_an_instance_list(api) -> None
 def test_ao_on_an_instance_list_is_the_flattened_scenes(api, meshes) -> None:  # noqa: ANN001
     """POST .../ao on an instance list gives the flattened triangles' AO, bit for bit (same
     rays and samples), and its BVH route says that jobs build its levels."""
-    from conftest import rays_towards_floor
+    from service_client import rays_towards_floor
 
     import kernels
 

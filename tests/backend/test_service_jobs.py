@@ -9,8 +9,8 @@ import time
 import httpx
 import numpy as np
 import pytest
-from conftest import Api, floor_and_box
 from PIL import Image
+from service_client import Api, floor_and_box
 
 import kernels
 from kernels import Camera

@@ -4,8 +4,8 @@
 from __future__ import annotations
 
 import httpx
-from conftest import floor_and_box, scene_body
 from load import OCTET, Load, rss_mb
+from service_client import floor_and_box, scene_body
 
 CACHE_MB, RESULTS_MB, UPLOADS_MB = 64, 32, 64
 WORKING_MB = 256  # the renders' and requests' arrays in flight

@@ -7,9 +7,9 @@ import os
 
 from hypothesis import HealthCheck, settings
 
-# The service fixtures live in tests/backend/conftest.py; importing them here makes them
+# The service fixtures live in tests/backend/service_client.py; importing them here makes them
 # available to this folder's tests without a second copy of the launcher.
-from tests.backend.conftest import api, service, start_service  # noqa: F401
+from tests.backend.service_client import api, service, start_service  # noqa: F401
 from tests.devices import device, pytest_configure, pytest_generate_tests  # noqa: F401
 
 # CI runs a fixed, derandomized set of examples so a failure reproduces on every run;

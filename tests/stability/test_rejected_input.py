@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 import kernels
-from tests.backend.conftest import Api, ray_body, scene_body
+from tests.backend.service_client import Api, ray_body, scene_body
 
 from .cases import plane_grid
 
