@@ -15,6 +15,17 @@ The cache is a `Store` (backend/store.py) keyed by content hash:
 Hence the skip rules: a frame whose instance list is unchanged (only the camera moved)
 builds nothing; one whose transforms changed builds only the top level; a mesh that
 deformed is refit and nothing else is touched. `BuildReport` says per frame what was done.
+
+Culling (a camera render, `View`): before any BVH, the instances that may change a pixel
+are decided from the meshes' object boxes (`cull.mesh_box`, kept per mesh under
+`box_key`) under the transforms (the placement, kept per list under `placement_key`) and
+the AO distance (the request's, else the scene default over all instances, culled ones
+too, as `render_ao` computes it from the culled scene's bounds): only the meshes of those
+instances are built or refit (a mesh out of view waits until it enters it), and the top
+level is over those instances, kept under `culled_key` with which they are. A camera-only
+change that leaves the same instances in view builds nothing; one that changes them
+builds the top level (and the meshes coming into view). Nothing culled: the scene's own
+top level (`bvh_key`), as without a camera.
 """
 
 from __future__ import annotations
@@ -41,16 +52,49 @@ def topology_key(topology: str, method: str, leaf_size: int) -> str:
     return f"{topology}/topology/{method}/{leaf_size}"
 
 
+def culled_key(scene_id: str, method: str, leaf_size: int) -> str:
+    """The cache key of an instance list's top level over the instances a camera sees
+    (kept with the mask of which they are; not a `bvh_key`: AO on explicit rays, which
+    takes a scene's latest BVH, must not find it)."""
+    return f"{scene_id}/culled/bvh/{method}/{leaf_size}"
+
+
+def placement_key(scene_id: str) -> str:
+    """The cache key of an instance list's placement (`place_instances`) and its meshes'
+    largest triangle sides: what culling needs of it, whatever the camera."""
+    return f"{scene_id}/placed"
+
+
+def box_key(mesh_id: str) -> str:
+    """The cache key of a mesh's object box and largest triangle side (`cull.mesh_box`)."""
+    return f"{mesh_id}/box"
+
+
+@dataclass(frozen=True)
+class View:
+    """What a camera render sees: the framed camera and the AO distance (None: the scene
+    default)."""
+
+    camera: Any
+    distance: float | None
+
+
 @dataclass
 class BuildReport:
     """What a frame (or a job) did to have its BVHs: mesh ids built from scratch, refit
     from an earlier mesh of the same topology, or reused; the top level built, reused, or
-    none (a single-mesh scene has no top level); and the time of each part in ms."""
+    none (a single-mesh scene has no top level); the instances culled (out of the camera's
+    view widened by the AO distance: not in the top level) and the meshes skipped (no
+    instance in view: no BVH made or used); the device bytes of what is traced; and the
+    time of each part in ms."""
 
     built: list[str] = field(default_factory=list)
     refit: list[str] = field(default_factory=list)
     reused: list[str] = field(default_factory=list)
     top_level: TopLevel = "none"
+    culled: int = 0
+    skipped: list[str] = field(default_factory=list)
+    bvh_bytes: int = 0
     timings_ms: dict[str, float] = field(default_factory=dict)
 
     @property
@@ -61,7 +105,8 @@ class BuildReport:
     def to_dict(self) -> dict[str, Any]:
         return {"built": list(self.built), "refit": list(self.refit),
                 "reused": list(self.reused), "top_level": self.top_level,
-                "timings_ms": dict(self.timings_ms)}
+                "culled": self.culled, "skipped": list(self.skipped),
+                "bvh_bytes": self.bvh_bytes, "timings_ms": dict(self.timings_ms)}
 
     def measure(self, name: str, fn: Callable[[], Any]) -> Any:
         start = time.perf_counter()
@@ -116,37 +161,88 @@ def _forget(store: Store, mesh_id: str, method: str, leaf_size: int) -> None:
     for scene in store.values_of(wire.InstanceScene):
         if any(m.scene_id == mesh_id for m in scene.meshes):
             store.discard(bvh_key(scene.scene_id, method, leaf_size))
+            store.discard(culled_key(scene.scene_id, method, leaf_size))
 
 
 def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method: str,
-              leaf_size: int, device: str) -> tuple[Any, BuildReport]:
+              leaf_size: int, device: str, view: View | None = None,
+              ) -> tuple[Any, BuildReport]:
     """What a render traces for `scene`, with the report of what it took to have it: a
     single mesh's BVH, or an instance list's two levels (the top level over the meshes'
-    BVHs, each from `mesh_bvh`). An instance list is kept in the store with its top level,
-    which lives no longer than it (store.py drops a scene's BVHs with it)."""
+    BVHs, each from `mesh_bvh`); with a `view`, only what may change its pixels (module
+    doc). An instance list is kept in the store with its top level, which lives no longer
+    than it (store.py drops a scene's BVHs with it)."""
     import kernels
     from kernels.scene import bvh_nbytes as mesh_bytes
 
     report = BuildReport()
     if isinstance(scene, wire.SceneArrays):
-        return mesh_bvh(store, scene, method, leaf_size, device, report), report
-    key = bvh_key(scene.scene_id, method, leaf_size)
+        bvh = mesh_bvh(store, scene, method, leaf_size, device, report)
+        report.bvh_bytes = mesh_bytes(bvh)
+        return bvh, report
+    keep, placed = None, None
+    if view is not None:
+        keep, placed = report.measure("cull", lambda: visible(store, scene, view))
+        report.culled = int(np.count_nonzero(~keep))
+        if not report.culled:
+            keep = None  # the scene's own top level, shared with renders without a view
+    needed = (set(range(len(scene.meshes))) if keep is None
+              else set(np.unique(scene.mesh_index[keep]).tolist()))
+    report.skipped = [m.scene_id for k, m in enumerate(scene.meshes) if k not in needed]
+    key = (bvh_key if keep is None else culled_key)(scene.scene_id, method, leaf_size)
     levels = store.get(key)
+    if keep is not None and levels is not None:
+        levels = levels[1] if np.array_equal(levels[0], keep) else None
     if levels is not None:
-        report.reused.extend(m.scene_id for m in scene.meshes)
+        report.reused.extend(m.scene_id for k, m in enumerate(scene.meshes) if k in needed)
         report.top_level = "reused"
+        report.bvh_bytes = levels.nbytes
         return levels, report
     if scene.scene_id not in store:
         store.put(scene.scene_id, scene, scene.nbytes)
     in_use = frozenset(m.scene_id for m in scene.meshes)
     bottoms = [mesh_bvh(store, m, method, leaf_size, device, report, in_use)
-               for m in scene.meshes]
+               if k in needed else None for k, m in enumerate(scene.meshes)]
     levels = report.measure("top_level", lambda: kernels.build_scene(
-        bottoms, scene.mesh_index, scene.transforms))
+        bottoms, scene.mesh_index, scene.transforms, visible=keep, placed=placed,
+        device=device))
     report.top_level = "built"
+    report.bvh_bytes = levels.nbytes
     # Its own bytes: the meshes' BVHs are entries of their own.
-    store.put(key, levels, max(levels.nbytes - sum(map(mesh_bytes, bottoms)), 1))
+    own = max(levels.nbytes - sum(mesh_bytes(b) for b in bottoms if b is not None), 1)
+    store.put(key, levels if keep is None else (keep, levels), own)
     return levels, report
+
+
+def visible(store: Store, scene: wire.InstanceScene, view: View) -> tuple[np.ndarray, Any]:
+    """The instances that may change a pixel of the view's AO image (`cull.
+    visible_instances`), decided from the meshes' boxes before any BVH is made, and their
+    placement (`place_instances`, which `build_scene` then reuses). The placement and the
+    meshes' triangle sizes depend on the instance list alone: kept under `placement_key`,
+    so a camera-only change pays the planes' test only."""
+    from kernels.render import default_distance
+    from kernels.render.cull import mesh_box, visible_instances
+    from kernels.scene.api import place_instances
+
+    kept = store.get(placement_key(scene.scene_id))
+    if kept is None:
+        found = []
+        for mesh in scene.meshes:
+            box = store.get(box_key(mesh.scene_id))
+            if box is None:
+                box = mesh_box(mesh.vertices, mesh.indices)
+                store.put(box_key(mesh.scene_id), box, 64)
+            found.append(box)
+        placed = place_instances(np.stack([b for b, _ in found]), scene.mesh_index,
+                                 scene.transforms)
+        kept = placed, np.array([e for _, e in found])
+        held = [placed.lo, placed.hi, placed.mesh_ids, placed.transforms, *placed.frames.values()]
+        store.put(placement_key(scene.scene_id), kept, sum(a.nbytes for a in held))
+    placed, extents = kept
+    # The scene default over every instance: render_ao's from the culled scene's bounds,
+    # which are the placement's (build_scene counts the culled instances' boxes).
+    distance = default_distance(placed) if view.distance is None else view.distance
+    return visible_instances(placed, extents, view.camera, distance), placed
 
 
 def resolve(listing: wire.InstanceList,
@@ -189,16 +285,19 @@ class FrameResult:
 class FrameRenderer:
     """Renders a bundle's frames in any order, keeping the BVHs between them (`cache_bytes`
     bounds what it keeps). Each frame is the service's camera job on the frame's instance
-    list, so the images are the service's."""
+    list, so the images are the service's; `cull` False builds what is out of view too
+    (the same images: the tests' and benchmarks' reference)."""
 
     def __init__(self, bundle: Bundle | str | Path, *, device: str | None = None,
-                 threads: int | None = None, cache_bytes: int = DEFAULT_CACHE_BYTES) -> None:
+                 threads: int | None = None, cache_bytes: int = DEFAULT_CACHE_BYTES,
+                 cull: bool = True) -> None:
         # Anything with the Bundle's frame() and mesh(): backend/cluster.py ships frames in
         # tasks and meshes through Ray's object store.
         self.bundle = read_bundle(bundle) if isinstance(bundle, str | Path) else bundle
         self.device = device or "cpu"
         self.threads = threads
         self.store = Store(cache_bytes)
+        self.cull = cull  # False: every mesh built, the top level over every instance
 
     def _mesh(self, mesh_id: str) -> wire.SceneArrays:
         found = self.store.get(mesh_id)
@@ -219,7 +318,7 @@ class FrameRenderer:
                        width=camera.width, height=camera.height)
         params = jobs.ao_params(request, threads=self.threads)
         jobs.render_camera(job, self.store, scene, camera, params, request.method,
-                           request.leaf_size, self.device)
+                           request.leaf_size, self.device, cull=self.cull)
         assert job.ao is not None and job.coverage is not None and job.depth is not None
         return FrameResult(frame_number, job.ao, job.coverage, job.depth, job.png or b"",
                            job.build or BuildReport(), dict(job.timings_ms))

@@ -22,7 +22,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from backend.frames import scene_bvh
+from backend.frames import View, scene_bvh
 
 log = logging.getLogger("scenesort.jobs")
 
@@ -493,9 +493,11 @@ def render_camera(
     method: str,
     leaf_size: int,
     device: str,
+    cull: bool = True,
 ) -> None:
-    """A camera job: BVH (cached or built), primary rays, AO with progress, the primary
-    hits' depth and coverage, PNG."""
+    """A camera job: BVH (cached or built; with `cull`, of an instance list only what the
+    camera may see: backend/frames.py), primary rays, AO with progress, the primary hits'
+    depth and coverage, PNG."""
     from backend.wire import encode_png
 
     def timed(phase: str, fn: Callable[[], Any]) -> Any:
@@ -505,7 +507,9 @@ def render_camera(
         job.add_timing(phase, 1000.0 * (time.perf_counter() - start))
         return out
 
-    bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device))
+    view = View(camera, params.distance) if cull else None
+    bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device,
+                                                    view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(getattr(bvh, "stats", {}).get("compile_ms", 0.0)))
     origins, directions, tmin, tmax = timed("camera", camera.rays)

@@ -76,7 +76,13 @@ class BuildReport(Strict):
     reused: list[str] = Field(description="mesh ids whose cached BVH was used as it was")
     top_level: Literal["built", "reused", "none"] = Field(
         description="the instance list's top level (none: a single-mesh scene)")
-    timings_ms: dict[str, float] = Field(description="build, refit, top_level: ms spent")
+    culled: int = Field(description="instances out of the camera's view widened by the AO "
+                        "distance: left out of the top level (they change no pixel)")
+    skipped: list[str] = Field(description="mesh ids with no instance in view: no BVH made "
+                               "or used for this render")
+    bvh_bytes: int = Field(description="device bytes of what the render traces (the BVHs "
+                           "of the meshes it needs and the top level)")
+    timings_ms: dict[str, float] = Field(description="cull, build, refit, top_level: ms spent")
 
 
 class BvhRequest(Strict):

@@ -1,10 +1,10 @@
 """Scenes that change (issue 18): refit against rebuild, and instances against the flattened
 scene, with the issue's floors.
 
-    python benchmarks/animation.py [--part refit|instances|frames|all] [--repeat 3] [--no-docs]
-        [--subdivide 2] [--instances 1000] [--flat-instances 256] [--size 384]
+    python benchmarks/animation.py [--part refit|instances|frames|cull|all] [--repeat 3]
+        [--no-docs] [--subdivide 2] [--instances 1000] [--flat-instances 256] [--size 384]
         [--frames 100] [--frame-instances 200] [--frame-triangles 6000] [--frame-size 64]
-        [--flat-every 5]
+        [--flat-every 5] [--cull-frames 40] [--cull-side 30] [--cull-triangles 50000]
 
 refit: the bunny subdivided `--subdivide` times (4x triangles each: 2 -> 1.1 M) and deformed
   by a smooth wave, frame after frame: `refit_bvh` of the deformed mesh against `build_bvh`
@@ -23,6 +23,14 @@ frames: `--frames` frames of one deforming bunny (full resolution) among
   against the meshes and instance list with only what changed sent (HEAD first) and built
   (a refit and a top level); interleaved frame by frame after two warm-up frames, the
   flattened path (the same work every frame) on every `--flat-every`-th frame.
+cull: a field larger than the view (`--cull-side` squared instances of 12 meshes: bunny, dragon
+  and buddha vertex-clustered to `--cull-triangles`, four waves each; a mesh per region
+  of the grid) and a low camera
+  moving across it for `--cull-frames` frames, rendered in this process by two
+  `FrameRenderer`s, culling on and off, interleaved frame by frame: time per frame, BVH
+  bytes traced, meshes built, images compared. Then the camera-only frame's cost with
+  `--instances` bunnies: the cull decision (`frames.visible`, the placement cached) and
+  the top level over the instances in view, against the top level over all of them.
 Warp's compile time is paid in the warm-up and not counted. Writes its sections of
 docs/benchmarks.md ("Dynamic scenes"), marked as measured on a loaded machine.
 """
@@ -518,7 +526,179 @@ def _frames(args, anim: Animation, session: Session) -> tuple[list[str], dict]:
     return lines, {"frames_ratio": ratio}
 
 
-PARTS = {"refit": part_refit, "instances": part_instances, "frames": part_frames}
+WAVE_PHASES = 4  # cull: distinct meshes per low-poly shape (a wave each)
+
+
+def cull_field(anim: Animation, side: int) -> list:
+    """`side` x `side` instances 1.3 apart, the grid cut into 4 x 3 regions with a mesh
+    each (of 12: three low-poly shapes under four waves), as ((vertices, indices),
+    transform) pairs."""
+    meshes = [(deform(v, 0.02 * k, float(k)), f) for v, f in anim.static
+              for k in range(WAVE_PHASES)]
+    rng = np.random.default_rng(3)
+    out = []
+    for i in range(side):
+        for j in range(side):
+            angle, scale = rng.uniform(0, 2 * np.pi), rng.uniform(0.6, 1.0)
+            c, s_ = np.cos(angle), np.sin(angle)
+            m = np.zeros((3, 4), np.float32)
+            m[:, :3] = np.array([[c, 0, s_], [0, 1, 0], [-s_, 0, c]]) * scale
+            m[:, 3] = (1.3 * (i - side / 2), 0.0, 1.3 * (j - side / 2))
+            out.append((meshes[(i * 4 // side) * 3 + j * 3 // side], m))
+    return out
+
+
+def cull_camera(frame: int, frames: int, side: int, size: tuple[int, int]) -> dict:
+    """A low camera looking ahead and down, moving along the field's diagonal."""
+    reach = 1.3 * side / 2 * 0.8
+    t = -reach + 2 * reach * frame / max(frames - 1, 1)
+    cam = Camera.look_at((t, 2.5, t - 2.0), (t + 0.5, 0.0, t + 1.0), (0, 1, 0), 50.0, *size,
+                         clip_start=0.01, clip_end=1e4)
+    return cam.to_dict()
+
+
+def part_cull(args) -> tuple[list[str], dict]:
+    import tempfile
+    from pathlib import Path
+
+    from backend.bundle import BundleWriter
+    from backend.frames import FrameRenderer
+
+    width = args.frame_size
+    anim = Animation(1, args.cull_triangles, width, width * 3 // 4)
+    placed = cull_field(anim, args.cull_side)
+    writer = BundleWriter()
+    writer.settings = {"spp": args.frame_spp, "seed": 1, "distance": 0.5}
+    for frame in range(args.cull_frames):
+        writer.frame(frame, cull_camera(frame, args.cull_frames, args.cull_side, anim.size),
+                     placed)
+    keys = ("wall", "cpu", "bvh", "bytes", "built", "culled")
+    stats: dict[bool, dict[str, list[float]]] = {c: {k: [] for k in keys} for c in (True, False)}
+    same = True
+    with tempfile.TemporaryDirectory() as tmp:
+        bundle = writer.write(Path(tmp))
+        renderers = {cull: FrameRenderer(bundle, cull=cull) for cull in (True, False)}
+        warm = FrameRenderer(bundle)  # Warp's compile, paid apart
+        warm.render(0)
+        for frame in range(args.cull_frames):
+            images = []
+            for cull in ((True, False) if frame % 2 == 0 else (False, True)):
+                t0, c0 = time.perf_counter(), time.process_time()
+                result = renderers[cull].render(frame)
+                row = stats[cull]
+                row["wall"].append((time.perf_counter() - t0) * 1e3)
+                row["cpu"].append((time.process_time() - c0) * 1e3)
+                row["bvh"].append(result.timings_ms.get("bvh", 0.0))
+                row["bytes"].append(result.build.bvh_bytes)
+                row["built"].append(len(result.build.built) + len(result.build.refit))
+                row["culled"].append(result.build.culled)
+                images.append(result.ao)
+            same &= bool(np.array_equal(*images))
+    instances = len(placed)
+    meshes = len({id(mesh) for mesh, _ in placed})
+    print(f"cull: {instances} instances of {meshes} meshes, {args.cull_frames} frames; images "
+          f"the same: {same}")
+
+    def summary(cull: bool) -> dict[str, float]:
+        row = stats[cull]
+        return {"total_s": sum(row["wall"]) / 1e3, "first_ms": row["wall"][0],
+                "median_ms": float(np.median(row["wall"][1:])),
+                "cpu_s": sum(row["cpu"]) / 1e3, "bvh_s": sum(row["bvh"]) / 1e3,
+                "bytes": float(np.median(row["bytes"])), "peak": max(row["bytes"]),
+                "built": sum(row["built"]), "culled": float(np.mean(row["culled"]))}
+
+    on, off = summary(True), summary(False)
+    camera_only = cull_decision_costs(args)
+    lines = [
+        f"Run: `{args.command}`, load average {load()} on {cpu_cores()} cores (shared with "
+        "other work: indicative figures; the two paths ran interleaved in one process).",
+        "",
+        f"A field larger than the view: {instances} instances ({args.cull_side} x "
+        f"{args.cull_side}, 1.3 apart) of {meshes} meshes (bunny, dragon, buddha "
+        f"vertex-clustered to about {args.cull_triangles:,} triangles, {WAVE_PHASES} waves "
+        f"each; a mesh per region of 4 x 3), a low camera moving across it, {args.cull_frames} "
+        f"frames {width}x{width * 3 // 4}, spp {args.frame_spp}, AO distance 0.5; "
+        "`FrameRenderer` with culling on and off, frame by frame in turn. Images bit for "
+        f"bit the same: **{same}**.",
+        "",
+        "| culling | total s (wall) | CPU s | BVH s | first frame ms | median ms/frame after "
+        "| BVH bytes traced (median / peak) | meshes built | instances culled (mean) |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        *(f"| {name} | {r['total_s']:.2f} | {r['cpu_s']:.2f} | {r['bvh_s']:.2f} | "
+          f"{r['first_ms']:.0f} | {r['median_ms']:.1f} | {r['bytes'] / 2**20:.2f} / "
+          f"{r['peak'] / 2**20:.2f} MiB | {r['built']} | {r['culled']:.0f} |"
+          for name, r in (("on", on), ("off", off))),
+        "",
+        f"The camera-only frame with {args.instances:,} bunny instances (the field of "
+        "`--part instances`, a camera moving over it; wall ms, CPU ms of all threads in "
+        f"brackets, medians of {camera_only['runs']} interleaved runs; mean "
+        f"{camera_only['visible']:.0f} instances in view):",
+        "",
+        "| step | ms |",
+        "|---|---:|",
+        *(f"| {name} | {camera_only[key][0]:.2f} ({camera_only[key][1]:.2f}) |"
+          for name, key in (("cull decision (`frames.visible`)", "decide"),
+                            ("top level over the instances in view", "top_visible"),
+                            ("**camera-only frame with culling** (both)", "both"),
+                            ("top level over all instances (no culling)", "top_all"))),
+    ]
+    return lines, {"same": same, "total_ratio": on["total_s"] / off["total_s"],
+                   "bytes_ratio": on["bytes"] / off["bytes"]}
+
+
+def cull_decision_costs(args) -> dict:
+    """Per camera over the bunny field: the cull decision, the top level over what is in
+    view, and the top level over everything; medians of (wall, CPU) ms."""
+    from backend.frames import View, visible
+    from backend.store import Store
+
+    bunny = shared_scene("bunny")
+    v, f = bunny.vertices, bunny.indices
+    bvh = kernels.build_bvh(v, f)
+    ts = bunny_field(args.instances, v)
+    ids = np.zeros(args.instances, np.int32)
+    mesh = wire.SceneArrays(vertices=v, indices=f, scene_id="bunny", degenerate=0)
+    scene = wire.InstanceScene("field", (mesh,), ids, ts)
+    store = Store(2**30)
+    lo, hi = ts[:, :, 3].min(0), ts[:, :, 3].max(0)
+    cameras = []
+    for k in range(8):
+        x = lo[0] + (hi[0] - lo[0]) * (k + 0.5) / 8
+        cam = Camera.look_at((x, 0.3, lo[2] - 0.1), (x + 0.05, 0.0, lo[2] + 0.3), (0, 1, 0),
+                             50.0, 64, 48, clip_start=0.01, clip_end=1e4)
+        cameras.append(View(cam, 0.02))
+    visible(store, scene, cameras[0])  # the box, cached as in the frames
+    kernels.build_scene([bvh], ids, ts)  # warm-up
+    out: dict[str, list[tuple[float, float]]] = {k: [] for k in ("decide", "top_visible",
+                                                                 "both", "top_all")}
+    seen = []
+
+    def timed(fn):
+        t0, c0 = time.perf_counter(), time.process_time()
+        value = fn()
+        return value, ((time.perf_counter() - t0) * 1e3, (time.process_time() - c0) * 1e3)
+
+    for _ in range(args.repeat):
+        for view in cameras:
+            (keep, placed), decide = timed(lambda view=view: visible(store, scene, view))
+            _, top = timed(lambda keep=keep, placed=placed: kernels.build_scene(
+                [bvh], ids, ts, visible=keep, placed=placed))
+            _, full = timed(lambda: kernels.build_scene([bvh], ids, ts))
+            out["decide"].append(decide)
+            out["top_visible"].append(top)
+            out["both"].append((decide[0] + top[0], decide[1] + top[1]))
+            out["top_all"].append(full)
+            seen.append(int(keep.sum()))
+    result: dict = {k: tuple(np.median(np.array(x), axis=0)) for k, x in out.items()}
+    result["runs"] = len(seen)
+    result["visible"] = float(np.mean(seen))
+    print(f"  camera-only, {args.instances} instances: " + ", ".join(
+        f"{k} {x[0]:.2f} ms" for k, x in result.items() if isinstance(x, tuple)))
+    return result
+
+
+PARTS = {"refit": part_refit, "instances": part_instances, "frames": part_frames,
+         "cull": part_cull}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -538,6 +718,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frame-spp", type=int, default=4, help="frames: AO samples")
     parser.add_argument("--flat-every", type=int, default=5,
                         help="frames: the flattened path on every n-th frame (its total scaled)")
+    parser.add_argument("--cull-frames", type=int, default=40, help="cull: frames")
+    parser.add_argument("--cull-triangles", type=int, default=50000,
+                        help="cull: the meshes vertex-clustered to at least this")
+    parser.add_argument("--cull-side", type=int, default=30,
+                        help="cull: the field's side in instances (side^2 of them)")
     parser.add_argument("--no-docs", action="store_true", help="print only")
     args = parser.parse_args(argv)
     args.command = "python benchmarks/animation.py " + " ".join(argv or sys.argv[1:])

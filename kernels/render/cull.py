@@ -13,7 +13,9 @@ test_cull.py). Valid for the camera's own rays (`Camera.rays()`).
 
 Whole instances, not triangles, are culled in two-level scenes: a mesh's BVH would become
 camera-dependent and a camera-only change would have to rebuild it, while the top level is
-rebuilt every frame anyway (cheap: one box per instance). Triangle culling
+rebuilt every frame anyway (cheap: one box per instance). The decision needs no BVH
+(`mesh_box` of the mesh data, `scene.place_instances`), so backend/frames.py makes it
+first and builds only the meshes of the instances in view. Triangle culling
 (`visible_triangles`) is for a single mesh far larger than the view, rendered from one
 camera (a still): its BVH is built once for that camera.
 """
@@ -22,7 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..scene.api import Scene
+from ..core.mesh import degenerate_mask
+from ..core.validate import as_triangle_mesh
+from ..scene.api import Placement
 from .camera import Camera
 
 ROUNDING = 1e-5  # of the scene's and camera's largest coordinate: spawn offsets, float32
@@ -64,17 +68,37 @@ def _margin(distance: float, lift: np.ndarray, *coords: np.ndarray) -> np.ndarra
     return float(distance) * (1.0 + DISTANCE_MARGIN) + lift + ROUNDING * scale
 
 
-def visible_instances(scene: Scene, camera: Camera, distance: float) -> np.ndarray:
-    """(I,) bool: the instances whose geometry may change a pixel of the camera's AO image
-    with this AO distance (the others may be left out: `build_scene(visible=...)`)."""
+def mesh_box(vertices: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, float]:
+    """A mesh's object box, (2, 3) float32 over its triangles with an area (the `bounds`
+    `build_bvh` gives it; empty: +inf, -inf), and the largest side of their boxes (the lift
+    bound's triangle size): what `place_instances` and `visible_instances` need of a mesh,
+    from its data alone (no BVH built)."""
+    vertices, indices = as_triangle_mesh(vertices, indices)
+    keep = indices[~degenerate_mask(vertices, indices, "cpu")]
+    if not len(keep):
+        return np.array([[np.inf] * 3, [-np.inf] * 3], np.float32), 0.0
+    # Per coordinate, corner arrays apart: numpy's reductions over short axes are 10x slower.
+    box, extent = np.empty((2, 3), np.float32), 0.0
+    for axis in range(3):
+        a, b, c = (vertices[keep[:, k], axis] for k in range(3))
+        low, high = np.minimum(np.minimum(a, b), c), np.maximum(np.maximum(a, b), c)
+        box[0, axis], box[1, axis] = low.min(), high.max()
+        extent = max(extent, float((high - low).max()))
+    return box, extent
+
+
+def visible_instances(placed: Placement, extents: np.ndarray, camera: Camera,
+                      distance: float) -> np.ndarray:
+    """(I,) bool: the placed instances (`place_instances`, from the meshes' boxes) whose
+    geometry may change a pixel of the camera's AO image with this AO distance; `extents`
+    (K,): each mesh's largest triangle box side (`mesh_box`). The others may be left out
+    (`build_scene(visible=...)`), and a mesh none of the visible ones uses left unbuilt."""
     planes = view_planes(camera)
-    extent = np.array([float(np.ptp(b.arrays.tri_verts.numpy().reshape(-1, 3, 3), axis=1).max(
-        initial=0.0)) for b in scene.meshes])  # largest triangle box side per mesh
-    norm = np.abs(scene.frames["lin"]).sum(axis=2).max(axis=1)  # ||M||_inf per instance
-    lift = 2.0 * np.sqrt(3.0) * norm * extent[scene.mesh_ids]
-    lo, hi = scene.instance_boxes[:, 0], scene.instance_boxes[:, 1]
+    norm = np.abs(placed.frames["lin"]).sum(axis=2).max(axis=1)  # ||M||_inf per instance
+    lift = 2.0 * np.sqrt(3.0) * norm * np.asarray(extents, np.float64)[placed.mesh_ids]
+    lo, hi = placed.lo, placed.hi
     margin = _margin(distance, lift, lo, hi, camera.position)
-    return ~boxes_outside(lo, hi, planes, margin)
+    return placed.valid & ~boxes_outside(lo, hi, planes, margin)
 
 
 def visible_triangles(vertices: np.ndarray, indices: np.ndarray, camera: Camera,

@@ -15,7 +15,14 @@ from ..bvh.api import trace as trace_bvh
 from ..bvh.node import empty_root
 from ..bvh.traversal import STACK_SIZE
 from ..core.hits import Hits
-from ..core.launch import host_threads, launch_split, load_modules, sync_ms, to_device
+from ..core.launch import (
+    get_device,
+    host_threads,
+    launch_split,
+    load_modules,
+    sync_ms,
+    to_device,
+)
 from ..core.validate import as_rays, as_shading, as_terminator_offsets, ray_range
 from . import instances as inst
 from .top import (
@@ -34,9 +41,10 @@ TOP_LEAF_SIZE = 1  # instances per top-level leaf: each is box-tested before its
 class Scene:
     """Meshes' BVHs (object space) and instances of them, with the top level over the
     instances. `bounds` (2, 3) is the world box of every instance (culled ones too: see
-    `build_scene`'s `visible`), the scene default AO distance's box."""
+    `build_scene`'s `visible`), the scene default AO distance's box. A mesh left unbuilt
+    (None: no instance of it in view) is in `meshes` as None."""
 
-    meshes: list[Bvh]
+    meshes: list[Bvh | None]
     mesh_ids: np.ndarray  # (I,) int32
     transforms: np.ndarray  # (I, 3, 4) float32 object-to-world
     device: wp.context.Device
@@ -63,6 +71,8 @@ class Scene:
         offsets = as_terminator_offsets(terminator_offset, len(self.mesh_ids), "instance")
         corners, base, start = [], np.full(len(self.meshes), -1, np.int32), 0
         for k, (n, bvh) in enumerate(zip(per_mesh, self.meshes, strict=True)):
+            if bvh is None:  # no instance of it in the top level: never shaded
+                continue
             checked = as_shading(n, 0.0, len(bvh.indices))
             if checked is not None:
                 base[k] = start
@@ -84,7 +94,41 @@ class Scene:
         """Device bytes of the scene: each mesh's BVH and mesh arrays once (however many
         instances use it), the instances and the top level."""
         own = [self.arrays.top, self.arrays.top_ids, self.arrays.instances, self.arrays.meshes]
-        return sum(a.capacity for a in own) + sum(bvh_nbytes(b) for b in self.meshes)
+        return sum(a.capacity for a in own) + sum(bvh_nbytes(b) for b in self.meshes
+                                                  if b is not None)
+
+
+@dataclass
+class Placement:
+    """Instances placed in the world, before any BVH: the meshes' object boxes (K, 2, 3),
+    validated mesh ids and transforms, their float64 frames (`instances.instance_frames`),
+    the padded world boxes (I, 3) lo and hi the top level is built over, which instances
+    have triangles (`valid`), and `bounds` (2, 3): the unpadded world box of the valid ones
+    (the scene's `bounds`)."""
+
+    mesh_bounds: np.ndarray
+    mesh_ids: np.ndarray
+    transforms: np.ndarray
+    frames: dict
+    lo: np.ndarray
+    hi: np.ndarray
+    valid: np.ndarray
+    bounds: np.ndarray
+
+
+def place_instances(mesh_bounds: np.ndarray, mesh_ids, transforms) -> Placement:
+    """The instances of meshes with object boxes `mesh_bounds` (K, 2, 3) float32 (a Bvh's
+    `bounds`, or `cull.mesh_box` of its mesh data: the same box) placed in the world."""
+    mesh_bounds = np.asarray(mesh_bounds, np.float32).reshape(-1, 2, 3)
+    ids, transforms = inst.as_instances(mesh_ids, transforms, len(mesh_bounds))
+    frames = inst.instance_frames(transforms)
+    lo, hi, unpadded, valid = inst.world_boxes(frames, ids, mesh_bounds)
+    if valid.any():
+        bounds = np.stack([unpadded[valid, 0].min(0), unpadded[valid, 1].max(0)])
+    else:
+        bounds = np.full((2, 3), np.inf, np.float32)
+    return Placement(mesh_bounds=mesh_bounds, mesh_ids=ids, transforms=transforms,
+                     frames=frames, lo=lo, hi=hi, valid=valid, bounds=bounds.astype(np.float32))
 
 
 def bvh_nbytes(bvh: Bvh) -> int:
@@ -94,10 +138,13 @@ def bvh_nbytes(bvh: Bvh) -> int:
     return sum(x.capacity for x in arrays) + (bvh.mesh.nbytes if bvh.mesh is not None else 0)
 
 
-def mesh_records(meshes: Sequence[Bvh]) -> np.ndarray:
-    """The meshes' MeshRecords (addresses of their arrays: the Bvhs must outlive the scene)."""
+def mesh_records(meshes: Sequence[Bvh | None]) -> np.ndarray:
+    """The meshes' MeshRecords (addresses of their arrays: the Bvhs must outlive the scene;
+    zeros for a mesh left unbuilt, which no instance in the top level refers to)."""
     recs = np.zeros(len(meshes), dtype=MeshRecord.numpy_dtype())
     for k, bvh in enumerate(meshes):
+        if bvh is None:
+            continue
         if bvh.mesh is None:
             raise ValueError(f"meshes[{k}] has no device mesh (bvh.mesh): build it with "
                              "build_bvh")
@@ -123,9 +170,9 @@ def mesh_record(bvh: Bvh, rec: np.ndarray) -> np.ndarray:
     return rec
 
 
-def build_scene(meshes: Sequence[Bvh], mesh_ids, transforms, *,
-                visible: np.ndarray | None = None, method: str = "sah",
-                workers: int | None = None) -> Scene:
+def build_scene(meshes: Sequence[Bvh | None], mesh_ids, transforms, *,
+                visible: np.ndarray | None = None, placed: Placement | None = None,
+                device=None, method: str = "sah", workers: int | None = None) -> Scene:
     """A two-level scene: instance i is `meshes[mesh_ids[i]]` (a Bvh from `build_bvh`, in
     object space) under the 3x4 object-to-world `transforms[i]` (float32 rows [M | T];
     mirrored and non-uniform scales allowed, singular ones rejected). The meshes' arrays are
@@ -133,27 +180,47 @@ def build_scene(meshes: Sequence[Bvh], mesh_ids, transforms, *,
     alive and unchanged but for `refit_bvh` (which updates them in place; rebuild the scene
     afterwards, for the new boxes). The top level is built on the task pool over the
     instances' padded world boxes. `visible` (I,) bool, e.g. from `cull.visible_instances`:
-    instances left out of the top level (their indices stay those of the full list)."""
+    instances left out of the top level (their indices stay those of the full list).
+    `placed`: these instances' `place_instances` (what `visible` was decided on), used
+    instead of placing them again where its boxes are the built meshes'. A mesh with no
+    visible instance may be None (left unbuilt), its box then `placed`'s, which the scene's
+    `bounds` count; `device` says where the scene lives when every mesh is None."""
     if not meshes:
         raise ValueError("meshes must hold at least one Bvh (build_bvh of each mesh)")
     if method not in METHODS:
         raise ValueError(f"method must be one of {sorted(METHODS)}, got {method!r}")
-    device = meshes[0].device
-    if any(b.device != device for b in meshes):
+    built = [b for b in meshes if b is not None]
+    device = built[0].device if built else get_device(device)
+    if any(b.device != device for b in built):
         raise ValueError("every mesh's Bvh must be on the same device")
     compile_ms = load_modules(device, *WARP_MODULES)
     t_total = time.perf_counter()
     phase_ms: dict[str, float] = {}
-    ids, transforms = inst.as_instances(mesh_ids, transforms, len(meshes))
-    n = len(ids)
+    unbuilt = np.array([b is None for b in meshes])
+    if placed is not None and (placed.mesh_bounds.shape != (len(meshes), 2, 3)
+                               or not np.array_equal(placed.mesh_ids, mesh_ids)
+                               or not np.array_equal(placed.transforms, transforms)):
+        raise ValueError("placed must be place_instances of these meshes' boxes, mesh_ids "
+                         "and transforms")
+    if unbuilt.any() and placed is None:
+        raise ValueError("a mesh is None (unbuilt): pass placed (place_instances of the "
+                         "meshes' boxes, cull.mesh_box) for its box")
+    boxes = np.stack([placed.mesh_bounds[k] if b is None else np.asarray(b.bounds, np.float32)
+                      for k, b in enumerate(meshes)])
+    if placed is None or not np.array_equal(boxes, placed.mesh_bounds):
+        placed = place_instances(boxes, mesh_ids, transforms)
+    ids, n = placed.mesh_ids, len(placed.mesh_ids)
     if visible is not None:
         visible = np.asarray(visible)
         if visible.shape != (n,) or visible.dtype != bool:
             raise ValueError(f"visible must be a ({n},) bool array (one per instance), got "
                              f"shape {visible.shape} dtype {visible.dtype}")
-    frames = inst.instance_frames(transforms)
-    mesh_bounds = np.stack([np.asarray(b.bounds, np.float32) for b in meshes])
-    lo, hi, unpadded, valid = inst.world_boxes(frames, ids, mesh_bounds)
+    needed = unbuilt[ids] if visible is None else unbuilt[ids] & visible
+    if needed.any():
+        i = int(np.flatnonzero(needed)[0])
+        raise ValueError(f"instance {i} is visible but its mesh {ids[i]} is None: build it, "
+                         "or leave the instance out (visible)")
+    frames, lo, hi, valid = placed.frames, placed.lo, placed.hi, placed.valid
     keep = valid if visible is None else valid & visible
     records = np.zeros(n, dtype=InstanceRecord.numpy_dtype())
     records["lin"] = frames["lin"]
@@ -191,12 +258,8 @@ def build_scene(meshes: Sequence[Bvh], mesh_ids, transforms, *,
     arrays.meshes = wp.array(mesh_records(meshes), dtype=MeshRecord, device=device)
     arrays.slope = inst.slope(frames)
     phase_ms["top"] = sync_ms(device, t0)
-    if valid.any():
-        bounds = np.stack([unpadded[valid, 0].min(0), unpadded[valid, 1].max(0)])
-    else:
-        bounds = np.full((2, 3), np.inf, np.float32)
-    scene = Scene(meshes=list(meshes), mesh_ids=ids, transforms=transforms, device=device,
-                  arrays=arrays, bounds=bounds.astype(np.float32),
+    scene = Scene(meshes=list(meshes), mesh_ids=ids, transforms=placed.transforms,
+                  device=device, arrays=arrays, bounds=placed.bounds,
                   instance_boxes=np.stack([lo, hi], axis=1), frames=frames)
     scene.stats = {
         "build_ms": (time.perf_counter() - t_total) * 1e3,
@@ -205,6 +268,7 @@ def build_scene(meshes: Sequence[Bvh], mesh_ids, transforms, *,
         "instances": n,
         "instances_built": int(keep.sum()),
         "meshes": len(meshes),
+        "meshes_built": len(built),
         "top_nodes": tree.node_count if tree.count else 1,
         "top_depth": tree.depth,
         "nbytes": scene.nbytes,

@@ -85,9 +85,12 @@ def rendered(bundle: Path) -> dict[int, frames_module.FrameResult]:
 def test_only_what_changed_is_built(rendered) -> None:
     """Frame 1 builds its three meshes and the top level; 2 (camera only) builds nothing;
     3 (a transform) only the top level; 4 (the blob deformed) refits the blob alone; 5
-    (frame 1's list again) refits the blob back: its earlier BVH now held frame 4's."""
+    (frame 1's list again) refits the blob back: its earlier BVH now held frame 4's. Every
+    instance is within the cameras' reach here, so culling changes none of this (it has
+    its own tests: test_frames_cull.py)."""
     floor, cube, blob0, blob1 = (mesh_id(*m) for m in (FLOOR, CUBE, BLOB0, BLOB1))
     reports = {n: r.build for n, r in rendered.items()}
+    assert all(r.culled == 0 and not r.skipped for r in reports.values())
     assert sorted(reports[1].built) == sorted([floor, cube, blob0])
     assert reports[1].top_level == "built" and not reports[1].refit
     assert reports[2].top_level == "reused" and reports[2].cached
@@ -142,29 +145,43 @@ def test_cli_writes_the_service_jobs_images(bundle, api, tmp_path) -> None:  # n
     (meshes PUT by hash, the frame's instance list, the frame's camera and settings); the
     jobs' build reports follow the same rules."""
     assert main(["render-frames", str(bundle), "--out", str(tmp_path), "--no-progress"]) == 0
+    upload_meshes(api, bundle)
+    for number in FRAME_CAMERAS:
+        status, job_id = service_frame(api, bundle, number)
+        if number == 2:
+            assert status["build"]["top_level"] == "reused" and not status["build"]["built"]
+        result = api.client.get(f"/v1/jobs/{job_id}/result", params={"format": "f32"})
+        service_ao = np.frombuffer(result.content, "<f4").reshape(18, 24)
+        np.testing.assert_array_equal(np.load(tmp_path / f"{number:06d}.npy"), service_ao)
+        png = api.client.get(f"/v1/jobs/{job_id}/result", params={"format": "png"})
+        assert (tmp_path / f"{number:06d}.png").read_bytes() == png.content
+
+
+def upload_meshes(api, bundle: Path) -> None:  # noqa: ANN001
+    """PUT the bundle's meshes to the service by their hashes."""
     meta = json.loads((bundle / "manifest.json").read_text())
     for name, info in meta["meshes"].items():
         body = (bundle / "meshes" / f"{name}.bin").read_bytes()
         answer = api.client.put(f"/v1/meshes/{name}", content=body, headers=OCTET, params={
             "vertices": info["vertices"], "triangles": info["triangles"]})
         assert answer.status_code in (200, 201), answer.text
-    for number in FRAME_CAMERAS:
-        record = json.loads((bundle / "frames" / f"{number:06d}.json").read_text())
-        body = (bundle / "frames" / f"{number:06d}.bin").read_bytes()
-        listing = api.client.post("/v1/instance-scenes", content=body, headers=OCTET, params={
-            "meshes": record["meshes"], "instances": record["instances"]})
-        job = api.client.post("/v1/jobs", json={
-            "scene_id": listing.json()["scene_id"], "camera": record["camera"],
-            **meta["settings"]}).json()
-        status = _wait(api, job["job_id"])
-        assert status["state"] == "done", status
-        if number == 2:
-            assert status["build"]["top_level"] == "reused" and not status["build"]["built"]
-        result = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": "f32"})
-        service_ao = np.frombuffer(result.content, "<f4").reshape(18, 24)
-        np.testing.assert_array_equal(np.load(tmp_path / f"{number:06d}.npy"), service_ao)
-        png = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": "png"})
-        assert (tmp_path / f"{number:06d}.png").read_bytes() == png.content
+
+
+def service_frame(api, bundle: Path, number: int) -> tuple[dict, str]:  # noqa: ANN001
+    """The frame rendered as a service job (its instance list, camera and the bundle's
+    settings; meshes uploaded first): the finished job's status and id."""
+    meta = json.loads((bundle / "manifest.json").read_text())
+    record = json.loads((bundle / "frames" / f"{number:06d}.json").read_text())
+    body = (bundle / "frames" / f"{number:06d}.bin").read_bytes()
+    listing = api.client.post("/v1/instance-scenes", content=body, headers=OCTET, params={
+        "meshes": record["meshes"], "instances": record["instances"]})
+    assert listing.status_code in (200, 201), listing.text
+    job = api.client.post("/v1/jobs", json={
+        "scene_id": listing.json()["scene_id"], "camera": record["camera"],
+        **meta["settings"]}).json()
+    status = _wait(api, job["job_id"])
+    assert status["state"] == "done", status
+    return status, job["job_id"]
 
 
 def _wait(api, job_id: str) -> dict:  # noqa: ANN001

@@ -9,6 +9,9 @@ import trimesh
 
 import kernels
 from kernels import Camera
+from kernels.render import default_distance
+from kernels.render.cull import mesh_box, visible_instances
+from kernels.scene.api import place_instances
 
 
 def sphere():
@@ -39,17 +42,25 @@ CAMERAS = {
 }
 
 
+def visible(meshes, ids, ts, camera, dist):
+    """`visible_instances` from the meshes' data (no BVH), as backend/frames.py decides."""
+    boxes, extents = zip(*(mesh_box(v, f) for v, f in meshes), strict=True)
+    return visible_instances(place_instances(np.stack(boxes), ids, ts), np.array(extents),
+                             camera, dist)
+
+
 @pytest.mark.parametrize("cam", sorted(CAMERAS))
 def test_culled_instances_change_no_pixel(cam):
     camera = CAMERAS[cam]
     v, f = sphere()
     ts = field(14)
+    ids = np.zeros(len(ts), np.int32)
     bvh = kernels.build_bvh(v, f)
-    full = kernels.build_scene([bvh], np.zeros(len(ts), np.int32), ts)
+    full = kernels.build_scene([bvh], ids, ts)
     dist = 0.6
-    keep = kernels.visible_instances(full, camera, dist)
+    keep = visible([(v, f)], ids, ts, camera, dist)
     assert 0 < keep.sum() < 0.5 * len(ts)
-    culled = kernels.build_scene([bvh], np.zeros(len(ts), np.int32), ts, visible=keep)
+    culled = kernels.build_scene([bvh], ids, ts, visible=keep)
     assert culled.stats["instances_built"] == keep.sum()
     o, d, tmin, tmax = camera.rays()
     normals = v[f] / np.linalg.norm(v[f], axis=2, keepdims=True)
@@ -58,8 +69,60 @@ def test_culled_instances_change_no_pixel(cam):
     assert (a.spp_used > 0).mean() > 0.3
     assert np.array_equal(a.ao, b.ao)
     # a shorter distance culls more, and still changes nothing
-    near = kernels.visible_instances(full, camera, 0.05)
+    near = visible([(v, f)], ids, ts, camera, 0.05)
     assert near.sum() < keep.sum() and not (near & ~keep).any()
+
+
+def test_mesh_box_is_the_bvhs_box():
+    """From the mesh data alone, the box `build_bvh` gives (degenerate triangles left out:
+    the scene's bounds, hence its default AO distance, do not depend on what was built)."""
+    v, f = sphere()
+    far = np.vstack([v, [[9.0, 9.0, 9.0]]]).astype(np.float32)  # a zero-area triangle there
+    faces = np.vstack([f, [[len(v), len(v), 0]]]).astype(np.int32)
+    box, extent = mesh_box(far, faces)
+    assert np.array_equal(box, kernels.build_bvh(far, faces).bounds)
+    assert extent == pytest.approx(float(np.ptp(v[f], axis=1).max()))
+    empty, none = mesh_box(far, faces[-1:])
+    assert np.isposinf(empty[0]).all() and np.isneginf(empty[1]).all() and none == 0.0
+
+
+def test_unbuilt_meshes_change_no_pixel():
+    """Two meshes, one only out of view: the scene without its BVH (None, its box given)
+    has the full scene's bounds (so its default AO distance) and renders the same image."""
+    v, f = sphere()
+    cube = trimesh.creation.box(extents=(0.6, 0.6, 0.6))
+    meshes = [(v, f), (np.asarray(cube.vertices, np.float32), np.asarray(cube.faces, np.int32))]
+    ts = field(14)
+    camera = CAMERAS["persp"]
+    boxes = np.stack([mesh_box(*m)[0] for m in meshes])
+    ids = (np.arange(len(ts)) % 2).astype(np.int32)
+    ids[visible(meshes, np.zeros(len(ts), np.int32), ts, camera, 2.5)
+        | visible(meshes, np.ones(len(ts), np.int32), ts, camera, 2.5)] = 0  # in view: spheres
+    dist = default_distance(place_instances(boxes, ids, ts))  # render_ao's, of the full scene
+    assert dist < 2.5
+    keep = visible(meshes, ids, ts, camera, dist)
+    assert keep.any() and (ids[~keep] == 1).any() and not (ids[keep] == 1).any()
+    bvhs = [kernels.build_bvh(*m) for m in meshes]
+    full = kernels.build_scene(bvhs, ids, ts)
+    assert default_distance(full) == dist
+    placed = place_instances(boxes, ids, ts)
+    culled = kernels.build_scene([bvhs[0], None], ids, ts, visible=keep, placed=placed)
+    assert np.array_equal(culled.bounds, full.bounds)
+    assert culled.stats["meshes_built"] == 1 and culled.nbytes < full.nbytes
+    o, d, tmin, tmax = camera.rays()
+    a = kernels.render_ao(full, o, d, 8, tmin=tmin, tmax=tmax)  # the default distance
+    b = kernels.render_ao(culled, o, d, 8, tmin=tmin, tmax=tmax)
+    assert np.array_equal(a.ao, b.ao) and (a.spp_used > 0).mean() > 0.3
+    with pytest.raises(ValueError, match="visible but its mesh 1 is None"):
+        kernels.build_scene([bvhs[0], None], ids, ts, placed=placed)
+    with pytest.raises(ValueError, match="pass placed"):
+        kernels.build_scene([bvhs[0], None], ids, ts, visible=keep)
+    with pytest.raises(ValueError, match="placed must be place_instances of these"):
+        kernels.build_scene([bvhs[0], None], ids, ts[::-1], visible=keep, placed=placed)
+    nothing = kernels.build_scene([None, None], ids, ts, visible=np.zeros(len(ts), bool),
+                                  placed=placed)
+    assert np.array_equal(nothing.bounds, full.bounds)
+    assert not kernels.trace(nothing, o, d, tmin, tmax).hit.any()
 
 
 def test_culled_triangles_change_no_pixel():
