@@ -5,7 +5,8 @@
 
 Writes `DIR/<frame>.png` (8-bit AO, the service's PNG) and `DIR/<frame>.npy` (float32 AO,
 row 0 at the top) per frame with a progress bar, then a table of what the frames built:
-meshes built, refit or reused, and top levels built (backend/frames.py's skip rules).
+meshes built, refit or reused, top levels built (backend/frames.py's skip rules), and what
+culling left out (instances out of view, meshes none of the instances in view uses).
 With `--ray` the frames are Ray tasks on a cluster (backend/cluster.py, docs/cluster.md).
 """
 
@@ -125,12 +126,16 @@ def _table(done: list[tuple[int, Any]], seconds: float) -> Any:
     reports = [r for _, r in done if r is not None]
     table = Table(title=f"{len(reports)} frames rendered ({len(done) - len(reports)} "
                   f"skipped) in {seconds:.1f} s")
-    for column in ("meshes built", "refit", "reused", "top levels built", "build ms"):
+    for column in ("meshes built", "refit", "reused", "top levels built",
+                   "culled instances / frame", "unused meshes / frame", "build ms"):
         table.add_column(column, justify="right")
+    per_frame = max(len(reports), 1)
     table.add_row(
         str(sum(len(r.built) for r in reports)), str(sum(len(r.refit) for r in reports)),
         str(sum(len(r.reused) for r in reports)),
         str(sum(r.top_level == "built" for r in reports)),
+        f"{sum(r.culled for r in reports) / per_frame:.1f}",
+        f"{sum(len(r.skipped) for r in reports) / per_frame:.1f}",
         f"{sum(sum(r.timings_ms.values()) for r in reports):.1f}",
     )
     return table
