@@ -15,14 +15,16 @@ from .render import (
     AoResult,
     Camera,
     ambient_occlusion,
+    mesh_box,
     render_ao,
     visible_instances,
     visible_triangles,
 )
-from .scene import Scene, build_scene, trace
+from .scene import Scene, build_scene, place_instances, trace
 
 __all__ = [
     "REBUILD_RATIO", "AoResult", "Bvh", "Camera", "Hits", "PoolError", "Scene",
-    "ambient_occlusion", "build_bvh", "build_scene", "dacrt_trace", "refit_bvh", "render_ao",
-    "trace", "visible_instances", "visible_triangles",
+    "ambient_occlusion", "build_bvh", "build_scene", "dacrt_trace", "mesh_box",
+    "place_instances", "refit_bvh", "render_ao", "trace", "visible_instances",
+    "visible_triangles",
 ]

@@ -4,9 +4,9 @@ culling of what a camera's image cannot depend on."""
 
 from .ao import DEFAULT_MAX_SPP, AoResult, ambient_occlusion, default_distance, render_ao
 from .camera import Camera
-from .cull import view_planes, visible_instances, visible_triangles
+from .cull import mesh_box, view_planes, visible_instances, visible_triangles
 
 __all__ = [
     "DEFAULT_MAX_SPP", "AoResult", "Camera", "ambient_occlusion", "default_distance", "render_ao",
-    "view_planes", "visible_instances", "visible_triangles",
+    "mesh_box", "view_planes", "visible_instances", "visible_triangles",
 ]

@@ -88,7 +88,7 @@ from ..core.mesh import DeviceMesh, Shading, triangle_corners
 from ..core.ray import make_ray
 from ..core.validate import as_rays, ray_range
 from ..dacrt.api import dacrt_trace_mesh, dacrt_warp_modules
-from ..scene.api import Scene
+from ..scene.api import Placement, Scene
 from ..scene.top import WARP_MODULES as SCENE_MODULES
 from ..scene.top import (
     InstanceHit,
@@ -493,8 +493,9 @@ wp.overload(occlusion_kernel, {"bvh": SceneArrays})
 # --- host side ---------------------------------------------------------------------------
 
 
-def default_distance(bvh: Bvh | Scene) -> float:
-    """distance=None: DISTANCE_FRACTION of the scene box's diagonal (1.0 for an empty scene)."""
+def default_distance(bvh: Bvh | Scene | Placement) -> float:
+    """distance=None: DISTANCE_FRACTION of the scene box's diagonal (1.0 for an empty scene);
+    of a Placement too, the same box before any BVH (backend/frames.py's culling)."""
     diag = float(np.linalg.norm(bvh.bounds[1].astype(np.float64) - bvh.bounds[0]))
     return DISTANCE_FRACTION * diag if math.isfinite(diag) and diag > 0.0 else 1.0
 

@@ -1,10 +1,10 @@
 """Two-level scenes: per-mesh BVHs (object space) under instance transforms, with a top
 level built on the task pool over the instances, and tracing through both levels."""
 
-from .api import Scene, build_scene, bvh_nbytes, trace
+from .api import Placement, Scene, build_scene, bvh_nbytes, place_instances, trace
 from .top import InstanceHit, SceneArrays, traverse_scene
 
 __all__ = [
-    "InstanceHit", "Scene", "SceneArrays", "build_scene", "bvh_nbytes", "trace",
-    "traverse_scene",
+    "InstanceHit", "Placement", "Scene", "SceneArrays", "build_scene", "bvh_nbytes",
+    "place_instances", "trace", "traverse_scene",
 ]
