@@ -55,8 +55,9 @@ def simd_lanes() -> int:
     ...
 
 
-TRAVERSE_SIMD = """
-#if defined(__AVX2__) && !defined(__CUDA_ARCH__)
+# The AVX2 code, in pieces shared by the traversal and the node test that tests compare
+# with wide_node_portable (C++ text: a func_native cannot call another).
+SIMD_HEADER = """
 {
 #pragma clang fp contract(off)
     typedef float f8 __attribute__((vector_size(32)));
@@ -68,6 +69,8 @@ TRAVERSE_SIMD = """
     const float inf = __builtin_inff();
     const int* words = (const int*)wide.data;
 
+"""
+NODE_SETUP = """
     // Node test, per ray. Slab test of intersect_box, lane-parallel. The near plane of each
     // axis is chosen by the sign of 1/d (+inf where d == 0) instead of min/max of both: the
     // same values. The maxps/minps operand order makes a NaN (0 * inf: an origin on the face
@@ -83,6 +86,7 @@ TRAVERSE_SIMD = """
         inv[a] = splat8(r.inv_dir.c[a]);
     }
     const f8 tmin8 = splat8(tmin), inf8 = splat8(inf), widen8 = splat8(widen);
+    const bool careful = r.any_zero != 0;  // some 1/d is inf: 0 * inf can be NaN
     const i8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
     // Row k of node n (W = 4 fills lanes 4-7 with the unused lane's point at infinity,
     // which no ray enters); constant sizes, so that no copy is a call.
@@ -102,38 +106,37 @@ TRAVERSE_SIMD = """
             __builtin_memcpy(&v, w, 16);
         return v;
     };
-
-    // Leaf test, per ray: intersect_triangle (Woop, Benthin, Wald 2013) on the 4 triangles
-    // of a block with the same float32 operations in the same order (no FMA contraction),
-    // edge functions that round to zero recomputed in float64 lane by lane as
-    // edge_function does.
-    auto row4 = [](const float* p, int k) { f4 v; __builtin_memcpy(&v, p + 4 * k, 16); return v; };
-    auto edge64 = [](float ax, float ay, float bx, float by) {  // edge_function in float64
-        const double p = (double)bx * (double)ay;
-        const double q = (double)by * (double)ax;
-        return (float)(p - q);
-    };
-    const int kx = r.kx, ky = r.ky, kz = r.kz;
-    const f4 ox = splat4(r.origin.c[kx]), oy = splat4(r.origin.c[ky]), oz = splat4(r.origin.c[kz]);
-    const f4 sx = splat4(r.shear.c[0]), sy = splat4(r.shear.c[1]), sz = splat4(r.shear.c[2]);
-    const f4 zero = splat4(0.0f), one = splat4(1.0f), tmin4 = splat4(tmin);
-
-    // The stack: uninitialised (a Warp vector would be zero-filled, 1 KB per ray).
-    int stack[WIDE_STACK];
-    float dists[WIDE_STACK];
-    int sp = 0;
-
+"""
+NODE_VISIT = """
     // Visit inner node reference `node`: the hit children other than the returned one (0:
     // none hit) go on the stack, nearer ones on top when closest-hit.
     auto visit_node = [&](int node, float t_far) -> int {
         const float* n = wide.data + (long long)(node - 1) * (8 * width);
-        f8 t0 = tmin8;
-        f8 t1 = inf8;
+        f8 enter[3], leave[3];
         for (int a = 0; a < 3; ++a) {
-            t0 = __builtin_ia32_maxps256((row8(n, near_row[a]) - org[a]) * inv[a], t0);
-            t1 = __builtin_ia32_minps256((row8(n, far_row[a]) - org[a]) * inv[a], t1);
+            enter[a] = (row8(n, near_row[a]) - org[a]) * inv[a];
+            leave[a] = (row8(n, far_row[a]) - org[a]) * inv[a];
         }
-        t1 = __builtin_ia32_minps256(t1 * widen8, splat8(t_far));
+        f8 t0, t1;
+        if (careful) {  // a NaN keeps the running bound: a chain in intersect_box's order
+            t0 = tmin8;
+            t1 = inf8;
+            for (int a = 0; a < 3; ++a) {
+                t0 = __builtin_ia32_maxps256(enter[a], t0);
+                t1 = __builtin_ia32_minps256(leave[a], t1);
+            }
+            t1 = __builtin_ia32_minps256(t1 * widen8, splat8(t_far));
+        } else {
+            // No NaN: min and max are exact, so a tree of depth 2 gives the same values
+            // sooner (the next node's address waits on them); widen * min(f) is
+            // min(widen * f), rounding being monotone.
+            const f8 t_far8 = splat8(t_far);
+            t0 = __builtin_ia32_maxps256(__builtin_ia32_maxps256(enter[0], enter[1]),
+                                         __builtin_ia32_maxps256(enter[2], tmin8));
+            t1 = __builtin_ia32_minps256(
+                __builtin_ia32_minps256(leave[0] * widen8, leave[1] * widen8),
+                __builtin_ia32_minps256(leave[2] * widen8, t_far8));
+        }
         const i8 in_box = (t0 <= t1) & (t0 < inf8);
         const int mask = __builtin_ia32_movmskps256((f8)in_box);
         if (mask == 0)
@@ -151,8 +154,13 @@ TRAVERSE_SIMD = """
             return refs[first];
         if (!ordered) {  // any hit: lane order (Embree's traverseAnyHit)
 #if defined(__AVX512VL__)
-            __builtin_ia32_compressstoresi256_mask((i8*)(stack + sp), refs, (unsigned char)mask);
-            __builtin_ia32_compressstoresf256_mask((f8*)(dists + sp), t0, (unsigned char)mask);
+            // Packed in registers, then stored whole (WIDE_STACK + 8 entries leave room): a
+            // masked store cannot be forwarded to the loads that pop it soon after.
+            const unsigned char m8 = (unsigned char)mask;
+            const i8 packed_refs = __builtin_ia32_compresssi256_mask(refs, refs, m8);
+            const f8 packed_t = __builtin_ia32_compresssf256_mask(t0, t0, m8);
+            __builtin_memcpy(stack + sp, &packed_refs, 32);
+            __builtin_memcpy(dists + sp, &packed_t, 32);
             sp += __builtin_popcount(mask) - 1;
 #else
             for (int m = mask; m; m &= m - 1) {
@@ -162,7 +170,7 @@ TRAVERSE_SIMD = """
             }
             --sp;
 #endif
-            return stack[sp];
+            return refs[31 - __builtin_clz(mask)];  // the top, without a load
         }
         // Closest hit: the hit children in the stack farthest deepest, the nearest taken
         // back (Embree's traverseClosestHit sorts them likewise); at equal distances the
@@ -193,7 +201,31 @@ TRAVERSE_SIMD = """
         --sp;
         return stack[sp];
     };
-
+"""
+LEAF_SETUP = """
+    // Leaf test, per ray: intersect_triangle (Woop, Benthin, Wald 2013) on the 4 triangles
+    // of a block with the same float32 operations in the same order (no FMA contraction),
+    // edge functions that round to zero recomputed in float64 lane by lane as
+    // edge_function does.
+    auto row4 = [](const float* p, int k) { f4 v; __builtin_memcpy(&v, p + 4 * k, 16); return v; };
+    auto edge64 = [](float ax, float ay, float bx, float by) {  // edge_function in float64
+        const double p = (double)bx * (double)ay;
+        const double q = (double)by * (double)ax;
+        return (float)(p - q);
+    };
+    const int kx = r.kx, ky = r.ky, kz = r.kz;
+    const f4 ox = splat4(r.origin.c[kx]), oy = splat4(r.origin.c[ky]), oz = splat4(r.origin.c[kz]);
+    const f4 sx = splat4(r.shear.c[0]), sy = splat4(r.shear.c[1]), sz = splat4(r.shear.c[2]);
+    const f4 zero = splat4(0.0f), one = splat4(1.0f), tmin4 = splat4(tmin);
+"""
+TRAVERSE_SIMD = ("#if defined(__AVX2__) && !defined(__CUDA_ARCH__)" + SIMD_HEADER + NODE_SETUP
+                 + LEAF_SETUP + """
+    // The stack: uninitialised (a Warp vector would be zero-filled, 1 KB per ray).
+    int stack[WIDE_STACK + 8];
+    float dists[WIDE_STACK + 8];
+    int sp = 0;
+"""
+                 + NODE_VISIT + """
     // Visit the leaf in lane slot % 8 of wide node slot / 8: a closer hit goes into `hit`
     // with its leaf position; true when an any-hit ray is done.
     auto visit_leaf = [&](int slot) -> bool {
@@ -285,7 +317,18 @@ TRAVERSE_SIMD = """
 #else
     return 0;
 #endif
-""".replace("WIDE_STACK", str(WIDE_STACK))
+""").replace("WIDE_STACK", str(WIDE_STACK))
+WIDE_NODE_SIMD = ("#if defined(__AVX2__) && !defined(__CUDA_ARCH__)" + SIMD_HEADER + NODE_SETUP
+                  + """
+    int* stack = stack_vec.c;
+    float* dists = dists_vec.c;
+""" + NODE_VISIT + """
+    return visit_node(node, tmax);
+}
+#else
+    return 0;
+#endif
+""")
 
 
 @wp.func_native(TRAVERSE_SIMD)
@@ -295,6 +338,16 @@ def traverse_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=float), wi
     """traverse_wide_portable on an AVX2 CPU, in one native function: the closest hit (or
     with `ordered` 0 the first hit found) goes into `hit` (t = inf, triangle -1 on entry)
     with its leaf position; returns 1 when an any-hit ray found one."""
+    ...
+
+
+@wp.func_native(WIDE_NODE_SIMD)
+def wide_node_simd(wide: wp.array(dtype=float), width: int, node: int, r: Ray, tmin: float,
+                   tmax: float, ordered: int, widen: float, stack_vec: wp.ref[WideStack],
+                   dists_vec: wp.ref[WideDists], sp: wp.ref[int]) -> int:
+    """traverse_simd's visit of inner node reference `node` (for tests, against
+    wide_node_portable): the hit children other than the returned one (0: none hit) go on
+    the stack, which needs 8 entries free above `sp`."""
     ...
 
 

@@ -1,6 +1,6 @@
 """The wide BVH (issue 17): its structure, and its traversal against the float64 brute force
 and against the binary tree, for every width, on deep trees, flat boxes and rays along
-axes and in planes; the SIMD traversal against the portable one lane by lane."""
+axes and in planes; the SIMD node test and traversal against the portable ones."""
 
 from __future__ import annotations
 
@@ -11,8 +11,14 @@ import warp as wp
 import kernels
 from kernels.bvh import BvhArrays
 from kernels.bvh import api as bvh_api
-from kernels.bvh.wide import WIDE_STACK
-from kernels.bvh.wide_traversal import simd_lanes, traverse_simd, traverse_wide_portable
+from kernels.bvh.wide import WIDE_STACK, WideDists, WideStack
+from kernels.bvh.wide_traversal import (
+    simd_lanes,
+    traverse_simd,
+    traverse_wide_portable,
+    wide_node_portable,
+    wide_node_simd,
+)
 from kernels.core.box import INF
 from kernels.core.ray import FAR_WIDEN, Hit, make_ray
 
@@ -231,6 +237,83 @@ def test_width_option():
         kernels.build_bvh(v, f, width=3)
 
 
+def tricky_tree(width: int):
+    """A tree with flat boxes (a third flat in each axis), its decoded nodes, and rays from
+    box corners and faces, many aimed at a child box, with zero components (the NaN path)."""
+    rng = np.random.default_rng(11)
+    cells = rng.integers(0, 3, (200, 3)).astype(np.float32)
+    tri = np.repeat(cells, 3, axis=0).reshape(200, 3, 3) + rng.random((200, 3, 3))
+    for axis in range(3):  # a third of the triangles flat in each axis
+        tri[axis::3, :, axis] = cells[axis::3, None, axis]
+    tri = tri.astype(np.float32)
+    f = np.arange(600, dtype=np.int32).reshape(-1, 3)
+    bvh = kernels.build_bvh(tri.reshape(-1, 3), f, leaf_size=1, width=width)
+    nodes = decode(bvh)
+    corners = np.vstack([np.vstack([n["lo"], n["hi"]]) for n in nodes])
+    corners = corners[np.isfinite(corners[:, 0])]
+    count = 20000
+    o = np.round(rng.random((count, 3)) * 3, 1).astype(np.float32)  # often on a face
+    on_corner = rng.random(count) < 0.3
+    o[on_corner] = corners[rng.integers(0, len(corners), on_corner.sum())]
+    d = rng.normal(size=(count, 3)).astype(np.float32)
+    aim = rng.random(count) < 0.6  # at the middle of one of its node's boxes
+    for i in np.flatnonzero(aim):
+        n = nodes[i % len(nodes)]
+        lanes = np.flatnonzero(np.isfinite(n["lo"][:, 0]))
+        j = lanes[rng.integers(0, len(lanes))]
+        d[i] = 0.5 * (n["lo"][j] + n["hi"][j]) - o[i]
+    d[rng.random((count, 3)) < 0.2] = 0.0
+    d[np.all(d == 0, axis=1)] = [0.0, -0.0, 1.0]
+    return bvh, nodes, o, d
+
+
+@wp.kernel(enable_backward=False)
+def node_tests(wide: wp.array(dtype=float), width: int, count: int, ordered: int,
+               origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
+               bvh: BvhArrays, out: wp.array(dtype=int, ndim=2)):
+    """Visit wide node i % count with both node tests: the reference each returns, then
+    what it left on the stack, from the top."""
+    i = wp.tid()
+    r = make_ray(origins[i], directions[i])
+    node = 1 + i % count
+    for k in range(2):
+        stack = WideStack()
+        dists = WideDists()
+        sp = int(0)
+        ref = int(0)
+        if k == 0:
+            ref = wide_node_simd(wide, width, node, r, 0.0, 1.0e30, ordered, FAR_WIDEN, stack,
+                                 dists, sp)
+        else:
+            ref = wide_node_portable(bvh, node, r, 0.0, 1.0e30, ordered != 0, stack, dists,
+                                     sp)
+        out[i, 9 * k] = ref
+        for j in range(8):
+            out[i, 9 * k + 1 + j] = wp.where(j < sp, stack[wp.max(sp - 1 - j, 0)], 0)
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize("width", [4, 8])
+def test_simd_node_test_equals_the_portable_one(width):
+    """The AVX2 node test and the lane-by-lane one with intersect_box leave the same
+    children in the same order (closest hit: near to far; any hit: lane order), on every
+    node of a tree with flat boxes, for origins on box corners and faces and rays with zero
+    components (the NaN path)."""
+    if simd_lanes() == 0:
+        pytest.skip("no AVX2 on this CPU")
+    bvh, nodes, o, d = tricky_tree(width)
+    count = len(o)
+    for ordered in (1, 0):  # closest hit, any hit
+        out = wp.zeros((count, 18), dtype=int)
+        wp.launch(node_tests, dim=count,
+                  inputs=[bvh.arrays.wide, width, len(nodes), ordered, wp.array(o, dtype=wp.vec3),
+                          wp.array(d, dtype=wp.vec3), bvh.arrays, out])
+        got = out.numpy()
+        assert np.count_nonzero(got[:, 0]) > count / 4
+        assert np.count_nonzero(got[:, 2]) > count / 50  # two or more hit children
+        assert np.array_equal(got[:, :9], got[:, 9:])
+
+
 @wp.kernel(enable_backward=False)
 def both_traversals(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                     directions: wp.array(dtype=wp.vec3), tmax: wp.array(dtype=float),
@@ -267,29 +350,9 @@ def test_simd_traversal_equals_the_portable_one(width):
     (the NaN path)."""
     if simd_lanes() == 0:
         pytest.skip("no AVX2 on this CPU")
-    rng = np.random.default_rng(11)
-    cells = rng.integers(0, 3, (200, 3)).astype(np.float32)
-    tri = np.repeat(cells, 3, axis=0).reshape(200, 3, 3) + rng.random((200, 3, 3))
-    tri[::3, :, 2] = cells[::3, None, 2]  # flat in z
-    tri = tri.astype(np.float32)
-    f = np.arange(600, dtype=np.int32).reshape(-1, 3)
-    bvh = kernels.build_bvh(tri.reshape(-1, 3), f, leaf_size=1, width=width)
-    nodes = decode(bvh)
-    corners = np.vstack([np.vstack([n["lo"], n["hi"]]) for n in nodes])
-    corners = corners[np.isfinite(corners[:, 0])]
-    count = 20000
-    o = np.round(rng.random((count, 3)) * 3, 1).astype(np.float32)  # often on a face
-    on_corner = rng.random(count) < 0.3
-    o[on_corner] = corners[rng.integers(0, len(corners), on_corner.sum())]
-    d = rng.normal(size=(count, 3)).astype(np.float32)
-    aim = rng.random(count) < 0.6  # at the middle of one of its node's boxes
-    for i in np.flatnonzero(aim):
-        n = nodes[i % len(nodes)]
-        lanes = np.flatnonzero(np.isfinite(n["lo"][:, 0]))
-        j = lanes[rng.integers(0, len(lanes))]
-        d[i] = 0.5 * (n["lo"][j] + n["hi"][j]) - o[i]
-    d[rng.random((count, 3)) < 0.2] = 0.0
-    d[np.all(d == 0, axis=1)] = [0.0, -0.0, 1.0]
+    bvh, _, o, d = tricky_tree(width)
+    count = len(o)
+    rng = np.random.default_rng(12)
     tmax = np.where(rng.random(count) < 0.5, 1.0e30, rng.random(count) * 2).astype(np.float32)
     for any_hit in (0, 1):
         out_t = wp.zeros((count, 6), dtype=float)
