@@ -218,8 +218,7 @@ LEAF_SETUP = """
     const f4 sx = splat4(r.shear.c[0]), sy = splat4(r.shear.c[1]), sz = splat4(r.shear.c[2]);
     const f4 zero = splat4(0.0f), one = splat4(1.0f), tmin4 = splat4(tmin);
 """
-TRAVERSE_SIMD = ("#if defined(__AVX2__) && !defined(__CUDA_ARCH__)" + SIMD_HEADER + NODE_SETUP
-                 + LEAF_SETUP + """
+TRAVERSE_BODY = (SIMD_HEADER + NODE_SETUP + LEAF_SETUP + """
     // The stack: uninitialised (a Warp vector would be zero-filled, 1 KB per ray).
     int stack[WIDE_STACK + 8];
     float dists[WIDE_STACK + 8];
@@ -314,6 +313,12 @@ TRAVERSE_SIMD = ("#if defined(__AVX2__) && !defined(__CUDA_ARCH__)" + SIMD_HEADE
             return 0;
     }
 }
+""")
+# Compiled once per width, so that row offsets are constants and the loads need no
+# branch (a block may redeclare the parameter `width`).
+TRAVERSE_SIMD = ("#if defined(__AVX2__) && !defined(__CUDA_ARCH__)\n"
+                 + "if (width == 8) {\n    constexpr int width = 8;" + TRAVERSE_BODY
+                 + "} else {\n    constexpr int width = 4;" + TRAVERSE_BODY + """}
 #else
     return 0;
 #endif
