@@ -8,14 +8,20 @@ A stack entry (and the node being visited) is a reference: 0 none, k + 1 the wid
 from that lane when the leaf is visited; 8 = MAX_WIDTH for every width, so decoding is a
 shift).
 
-On a CPU with AVX2 a node's W child boxes are tested by one SIMD pass (`wide_node_simd`,
-clang vector extensions: Warp compiles CPU kernels for the host's ISA, WARP_FACTS.md);
-elsewhere (CUDA, other CPUs) lane by lane with `core.ray.intersect_box`
-(`wide_node_portable`). Both compute every lane's entry distance with the same float32
-operations in the same order as `intersect_box`, so they make the same decisions: the
-conservative test's guarantee (never miss a box the exact ray touches) holds lane by lane.
-Likewise `leaf_simd` (SSE, 4 lanes) and `leaf_portable` against `intersect_triangle`:
-Woop, Benthin and Wald's watertight test, bit for bit.
+On a CPU with AVX2 the whole traversal is one native function (`traverse_simd`, clang
+vector extensions: Warp compiles CPU kernels for the host's ISA, WARP_FACTS.md), compiled
+once per width: a node's W child boxes in one SIMD pass, a leaf block's 4 triangles in
+another, the stack a plain uninitialised C array (a Warp vector would be zero-filled, 1 KB
+per ray), the nearest hit child kept in a register rather than pushed and popped.
+Elsewhere (CUDA, other CPUs) `traverse_wide_portable` makes the same visits lane by lane
+with `core.ray.intersect_box` (`wide_node_portable`) and `intersect_triangle`
+(`leaf_portable`). Every lane's entry and exit distance is computed with the same float32
+operations as `intersect_box` (products and differences in its order, FMA contraction off;
+min and max, which are exact, as trees where no NaN can arise), so both make the same
+decisions as the binary traversal: the conservative test's guarantee (never miss a box the
+exact ray touches) holds lane by lane, and the leaf test is Woop, Benthin and Wald's
+watertight test bit for bit, float64 edge fallback included. `wide_node_simd` is
+traverse_simd's node visit on its own, for tests.
 """
 
 from __future__ import annotations
