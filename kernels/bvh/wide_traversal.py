@@ -123,27 +123,29 @@ NODE_VISIT = """
             enter[a] = (row8(n, near_row[a]) - org[a]) * inv[a];
             leave[a] = (row8(n, far_row[a]) - org[a]) * inv[a];
         }
-        f8 t0, t1;
+        f8 t0;
+        i8 in_box;
         if (careful) {  // a NaN keeps the running bound: a chain in intersect_box's order
             t0 = tmin8;
-            t1 = inf8;
+            f8 t1 = inf8;
             for (int a = 0; a < 3; ++a) {
                 t0 = __builtin_ia32_maxps256(enter[a], t0);
                 t1 = __builtin_ia32_minps256(leave[a], t1);
             }
             t1 = __builtin_ia32_minps256(t1 * widen8, splat8(t_far));
+            in_box = (t0 <= t1) & (t0 < inf8);
         } else {
-            // No NaN: min and max are exact, so a tree of depth 2 gives the same values
+            // No NaN: min and max are exact, so trees of depth 2 give the same values
             // sooner (the next node's address waits on them); widen * min(f) is
-            // min(widen * f), rounding being monotone.
-            const f8 t_far8 = splat8(t_far);
+            // min(widen * f), rounding being monotone; t0 <= min(a, b) is t0 <= a and
+            // t0 <= b, one level less; and with the far bound made finite, t0 <= it says
+            // t0 < inf.
+            const f8 t_far8 = splat8(t_far < __FLT_MAX__ ? t_far : __FLT_MAX__);
             t0 = __builtin_ia32_maxps256(__builtin_ia32_maxps256(enter[0], enter[1]),
                                          __builtin_ia32_maxps256(enter[2], tmin8));
-            t1 = __builtin_ia32_minps256(
-                __builtin_ia32_minps256(leave[0] * widen8, leave[1] * widen8),
-                __builtin_ia32_minps256(leave[2] * widen8, t_far8));
+            in_box = (t0 <= __builtin_ia32_minps256(leave[0] * widen8, leave[1] * widen8))
+                     & (t0 <= __builtin_ia32_minps256(leave[2] * widen8, t_far8));
         }
-        const i8 in_box = (t0 <= t1) & (t0 < inf8);
         const int mask = __builtin_ia32_movmskps256((f8)in_box);
         if (mask == 0)
             return 0;
