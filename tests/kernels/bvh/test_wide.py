@@ -1,6 +1,6 @@
 """The wide BVH (issue 17): its structure, and its traversal against the float64 brute force
 and against the binary tree, for every width, on deep trees, flat boxes and rays along
-axes and in planes; the SIMD node test against the portable one lane by lane."""
+axes and in planes; the SIMD node test and traversal against the portable ones."""
 
 from __future__ import annotations
 
@@ -12,8 +12,15 @@ import kernels
 from kernels.bvh import BvhArrays
 from kernels.bvh import api as bvh_api
 from kernels.bvh.wide import WIDE_STACK, WideDists, WideStack
-from kernels.bvh.wide_traversal import simd_lanes, wide_node_portable, wide_node_simd
-from kernels.core.ray import FAR_WIDEN, make_ray
+from kernels.bvh.wide_traversal import (
+    simd_lanes,
+    traverse_simd,
+    traverse_wide_portable,
+    wide_node_portable,
+    wide_node_simd,
+)
+from kernels.core.box import INF
+from kernels.core.ray import FAR_WIDEN, Hit, make_ray
 
 from ..reference import (
     assert_same_hits,
@@ -230,44 +237,14 @@ def test_width_option():
         kernels.build_bvh(v, f, width=3)
 
 
-@wp.kernel(enable_backward=False)
-def node_tests(wide: wp.array(dtype=float), width: int, count: int, ordered: int,
-               origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
-               bvh: BvhArrays, out: wp.array(dtype=int, ndim=2)):
-    """Visit wide node i % count with both node tests: the reference each returns, then
-    what it left on the stack, from the top."""
-    i = wp.tid()
-    r = make_ray(origins[i], directions[i])
-    node = 1 + i % count
-    for k in range(2):
-        stack = WideStack()
-        dists = WideDists()
-        sp = int(0)
-        ref = int(0)
-        if k == 0:
-            ref = wide_node_simd(wide, node, width, r.origin, r.inv_dir, 0.0, 1.0e30, ordered,
-                                 FAR_WIDEN, stack, dists, sp)
-        else:
-            ref = wide_node_portable(bvh, node, r, 0.0, 1.0e30, ordered != 0, stack, dists,
-                                     sp)
-        out[i, 9 * k] = ref
-        for j in range(8):
-            out[i, 9 * k + 1 + j] = wp.where(j < sp, stack[wp.max(sp - 1 - j, 0)], 0)
-
-
-@pytest.mark.host_only
-@pytest.mark.parametrize("width", [4, 8])
-def test_simd_node_test_equals_the_portable_one(width):
-    """The AVX2 node test and the lane-by-lane one with intersect_box leave the same
-    children in the same order (closest hit: near to far; any hit: lane order), on every
-    node of a tree with flat boxes, for origins on box corners and faces and rays with zero
-    components (the NaN path)."""
-    if simd_lanes() == 0:
-        pytest.skip("no AVX2 on this CPU")
+def tricky_tree(width: int):
+    """A tree with flat boxes (a third flat in each axis), its decoded nodes, and rays from
+    box corners and faces, many aimed at a child box, with zero components (the NaN path)."""
     rng = np.random.default_rng(11)
     cells = rng.integers(0, 3, (200, 3)).astype(np.float32)
     tri = np.repeat(cells, 3, axis=0).reshape(200, 3, 3) + rng.random((200, 3, 3))
-    tri[::3, :, 2] = cells[::3, None, 2]  # flat in z
+    for axis in range(3):  # a third of the triangles flat in each axis
+        tri[axis::3, :, axis] = cells[axis::3, None, axis]
     tri = tri.astype(np.float32)
     f = np.arange(600, dtype=np.int32).reshape(-1, 3)
     bvh = kernels.build_bvh(tri.reshape(-1, 3), f, leaf_size=1, width=width)
@@ -287,6 +264,45 @@ def test_simd_node_test_equals_the_portable_one(width):
         d[i] = 0.5 * (n["lo"][j] + n["hi"][j]) - o[i]
     d[rng.random((count, 3)) < 0.2] = 0.0
     d[np.all(d == 0, axis=1)] = [0.0, -0.0, 1.0]
+    return bvh, nodes, o, d
+
+
+@wp.kernel(enable_backward=False)
+def node_tests(wide: wp.array(dtype=float), width: int, count: int, ordered: int,
+               origins: wp.array(dtype=wp.vec3), directions: wp.array(dtype=wp.vec3),
+               bvh: BvhArrays, out: wp.array(dtype=int, ndim=2)):
+    """Visit wide node i % count with both node tests: the reference each returns, then
+    what it left on the stack, from the top."""
+    i = wp.tid()
+    r = make_ray(origins[i], directions[i])
+    node = 1 + i % count
+    for k in range(2):
+        stack = WideStack()
+        dists = WideDists()
+        sp = int(0)
+        ref = int(0)
+        if k == 0:
+            ref = wide_node_simd(wide, width, node, r, 0.0, 1.0e30, ordered, FAR_WIDEN, stack,
+                                 dists, sp)
+        else:
+            ref = wide_node_portable(bvh, node, r, 0.0, 1.0e30, ordered != 0, stack, dists,
+                                     sp)
+        out[i, 9 * k] = ref
+        for j in range(8):
+            out[i, 9 * k + 1 + j] = wp.where(j < sp, stack[wp.max(sp - 1 - j, 0)], 0)
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize("width", [4, 8])
+def test_simd_node_test_equals_the_portable_one(width):
+    """The AVX2 node test and the lane-by-lane one with intersect_box leave the same
+    children in the same order (closest hit: near to far; any hit: lane order), on every
+    node of a tree with flat boxes, for origins on box corners and faces and rays with zero
+    components (the NaN path)."""
+    if simd_lanes() == 0:
+        pytest.skip("no AVX2 on this CPU")
+    bvh, nodes, o, d = tricky_tree(width)
+    count = len(o)
     for ordered in (1, 0):  # closest hit, any hit
         out = wp.zeros((count, 18), dtype=int)
         wp.launch(node_tests, dim=count,
@@ -294,5 +310,60 @@ def test_simd_node_test_equals_the_portable_one(width):
                           wp.array(d, dtype=wp.vec3), bvh.arrays, out])
         got = out.numpy()
         assert np.count_nonzero(got[:, 0]) > count / 4
-        assert np.count_nonzero(got[:, 2]) > count / 20  # two or more hit children
+        assert np.count_nonzero(got[:, 2]) > count / 50  # two or more hit children
         assert np.array_equal(got[:, :9], got[:, 9:])
+
+
+@wp.kernel(enable_backward=False)
+def both_traversals(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
+                    directions: wp.array(dtype=wp.vec3), tmax: wp.array(dtype=float),
+                    any_hit: int, out_t: wp.array(dtype=float, ndim=2),
+                    out_tri: wp.array(dtype=int, ndim=2)):
+    """Ray i through traverse_simd (k = 0) and traverse_wide_portable (k = 1): t, u, v and
+    leaf position before the refinement, and whether an any-hit ray stopped early."""
+    i = wp.tid()
+    r = make_ray(origins[i], directions[i])
+    for k in range(2):
+        hit = Hit()
+        hit.t = INF
+        hit.triangle = -1
+        done = bool(False)
+        if k == 0:
+            done = traverse_simd(bvh.wide, bvh.blocks, bvh.width, r, 0.0, tmax[i],
+                                 wp.where(any_hit != 0, 0, 1), FAR_WIDEN, hit) != 0
+        else:
+            done = traverse_wide_portable(bvh, r, 0.0, tmax[i], any_hit != 0, hit)
+        out_t[i, 3 * k] = hit.t
+        out_t[i, 3 * k + 1] = hit.u
+        out_t[i, 3 * k + 2] = hit.v
+        out_tri[i, 2 * k] = hit.triangle
+        out_tri[i, 2 * k + 1] = wp.where(done, 1, 0)
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize("width", [4, 8])
+def test_simd_traversal_equals_the_portable_one(width):
+    """The AVX2 traversal (node test, stack, leaf blocks) and the lane-by-lane one with
+    intersect_box and intersect_triangle find the same hit, bit for bit, with the same leaf
+    position (closest hit: the same visit order; any hit: the same first hit), on a tree
+    with flat boxes, for origins on box corners and faces and rays with zero components
+    (the NaN path)."""
+    if simd_lanes() == 0:
+        pytest.skip("no AVX2 on this CPU")
+    bvh, _, o, d = tricky_tree(width)
+    count = len(o)
+    rng = np.random.default_rng(12)
+    tmax = np.where(rng.random(count) < 0.5, 1.0e30, rng.random(count) * 2).astype(np.float32)
+    for any_hit in (0, 1):
+        out_t = wp.zeros((count, 6), dtype=float)
+        out_tri = wp.zeros((count, 4), dtype=int)
+        wp.launch(both_traversals, dim=count,
+                  inputs=[bvh.arrays, wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3),
+                          wp.array(tmax, dtype=float), any_hit, out_t, out_tri])
+        t, tri = out_t.numpy(), out_tri.numpy()
+        assert np.count_nonzero(tri[:, 0] >= 0) > count / 4
+        assert np.count_nonzero(tri[:, 0] < 0) > count / 20
+        assert np.count_nonzero(tri[:, 1]) == (np.count_nonzero(tri[:, 0] >= 0) if any_hit
+                                               else 0)
+        assert np.array_equal(t[:, :3], t[:, 3:], equal_nan=True)
+        assert np.array_equal(tri[:, :2], tri[:, 2:])
