@@ -11,7 +11,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..core.box import INF
-from ..core.ray import Hit, Ray, intersect_box, make_ray
+from ..core.ray import Hit, Ray, intersect_box, make_ray, per_ray
 from .leaf import finish_hit, intersect_leaf
 from .node import BvhArrays
 from .wide_traversal import traverse_wide
@@ -110,7 +110,7 @@ def trace_kernel(
 ):
     i = wp.tid()
     r = make_ray(origins[i], directions[i])
-    h = traverse(bvh, r, tmin[i % tmin.shape[0]], tmax[i % tmax.shape[0]], find_any != 0)
+    h = traverse(bvh, r, per_ray(tmin, i), per_ray(tmax, i), find_any != 0)
     out_t[i] = h.t
     out_triangle[i] = h.triangle
     out_u[i] = h.u

@@ -72,6 +72,13 @@ def make_ray(origin: wp.vec3, d: wp.vec3) -> Ray:
 
 
 @wp.func
+def per_ray(values: wp.array(dtype=float), i: int) -> float:
+    """Ray i's value of an array with one value per ray or one for all: a min, not the
+    modulo it replaces (an integer division per ray, 1-4% of an any-hit ray's time)."""
+    return values[wp.min(i, values.shape[0] - 1)]
+
+
+@wp.func
 def intersect_box(r: Ray, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: float) -> float:
     """Entry distance of the ray into [lo, hi] clipped to [tmin, tmax], or inf if it misses."""
     if r.any_zero == 0:  # no zero direction component: no NaN can arise below

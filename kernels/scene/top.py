@@ -22,7 +22,7 @@ import warp as wp
 from ..bvh.node import BvhArrays, BvhNode
 from ..bvh.traversal import STACK_SIZE, traverse
 from ..core.box import INF
-from ..core.ray import Hit, Ray, make_ray
+from ..core.ray import Hit, Ray, make_ray, per_ray
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
 
@@ -256,8 +256,8 @@ def scene_trace_kernel(
     out_instance: wp.array(dtype=int),
 ):
     i = wp.tid()
-    h = traverse_scene(s, origins[i], directions[i], tmin[i % tmin.shape[0]],
-                       tmax[i % tmax.shape[0]], find_any != 0)
+    h = traverse_scene(s, origins[i], directions[i], per_ray(tmin, i), per_ray(tmax, i),
+                       find_any != 0)
     out_t[i] = h.hit.t
     out_triangle[i] = h.hit.triangle
     out_u[i] = h.hit.u
