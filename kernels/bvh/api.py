@@ -136,7 +136,7 @@ def build_bvh(
     arrays.blocks = wp.zeros(1, dtype=float, device=device)
     if width > 2 and n > 0:
         arrays.wide, arrays.blocks, wide_stats = collapse(b.nodes, node_count, tri_verts, n,
-                                                          width, device)
+                                                          width, device, tree.workers)
         if wide_stats["wide_stack"] > WIDE_STACK:  # not seen on real scenes: see WIDE_STACK
             width = 2
     elif width > 2:
