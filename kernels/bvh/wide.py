@@ -44,10 +44,13 @@ of largest area removes the largest term (Wald, Benthin, Boulos 2008, sec. 3).
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import warp as wp
 
 from ..core.box import INF, half_area
+from ..core.launch import host_pool
 from ..pool.atomics import shared_add, shared_max
 from ..pool.worker import launch_workers
 from .node import BvhNode
@@ -439,12 +442,15 @@ def empty_wide(width: int, device) -> wp.array:
 
 
 def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: int, width: int,
-             device, workers: int) -> tuple[wp.array, wp.array, dict]:
+             device, workers: int, alongside: Callable[[], None] = lambda: None
+             ) -> tuple[wp.array, wp.array, dict]:
     """The wide tree of width 4 or 8 of a binary tree of `node_count` nodes over
     `triangles` triangles (leaf order), its leaf blocks, and its statistics (wide nodes,
     most traversal stack entries, leaf blocks). The serial start plans the top, then
     `workers` collapse the subtrees below it; the subtrees' places in the wide tree are in
-    the order the workers finish them (the tree, and so every traversal, is the same)."""
+    the order the workers finish them (the tree, and so every traversal, is the same).
+    `alongside` (what fills `tri_verts`, which only the workers read) runs on the calling
+    thread while the serial start runs on a host thread (on CPU; before it elsewhere)."""
     workers = min(workers, MAX_WORKERS)
     inner = max(node_count // 2, 1)  # a wide node is made from an inner binary node
     sizes, starts = (wp.empty(max(node_count, 1), dtype=int, device=device) for _ in range(2))
@@ -453,9 +459,21 @@ def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: i
     limit = max(triangles // SUBTREE_SHARE, SUBTREE_MIN)
     plans = wp.empty(workers * limit, dtype=WidePlan, device=device)
     counters = wp.zeros(COUNTERS, dtype=int, device=device)
-    wp.launch(collapse_kernel, dim=1, inputs=[nodes, node_count, width, limit, sizes, starts,
-                                              top, subtrees, counters], device=device)
-    bound, used = (int(x) for x in counters.numpy()[[BOUND, BLOCKS]])
+
+    def start() -> np.ndarray:
+        wp.launch(collapse_kernel, dim=1, inputs=[nodes, node_count, width, limit, sizes,
+                                                  starts, top, subtrees, counters],
+                  device=device)
+        return counters.numpy()
+
+    if device.is_cpu:
+        started = host_pool(1).submit(start)
+        alongside()
+        c = started.result()
+    else:
+        alongside()
+        c = start()
+    bound, used = int(c[BOUND]), int(c[BLOCKS])
     wide = wp.empty(bound * int(WORDS_PER_LANE) * width, dtype=float, device=device)
     blocks = wp.empty(max(used, 1) * int(BLOCK_WORDS), dtype=float, device=device)
     launch_workers(collapse_subtrees, workers, [nodes, width, limit, sizes, starts, tri_verts,
