@@ -34,12 +34,19 @@ smaller t), so no lane mask is needed. The per-triangle data is the float32 vert
 themselves: Woop's test permutes and shears them per ray, so nothing per triangle can be
 precomputed without giving up its watertightness.
 
-Collapse (`collapse_kernel`): node by node from the root, a wide node's children start as
-its binary node's two children, and the inner child with the largest surface area is
-replaced by its own two children until there are W (Embree, bvh_builder_sah.h: "find best
-child with largest bounding box area"). That is the SAH's greedy choice: in the SAH cost
-of a wide tree each wide node costs its area times one SIMD box test, so opening the child
-of largest area removes the largest term (Wald, Benthin, Boulos 2008, sec. 3).
+Collapse (`collapse`): node by node from the root, a wide node's children start as its
+binary node's two children, and the inner child with the largest surface area is replaced
+by its own two children until there are W (Embree, bvh_builder_sah.h: "find best child with
+largest bounding box area"). That is the SAH's greedy choice: in the SAH cost of a wide
+tree each wide node costs its area times one SIMD box test, so opening the child of largest
+area removes the largest term (Wald, Benthin, Boulos 2008, sec. 3). A wide node's choice
+depends only on its binary subtree, so subtrees are collapsed in parallel: a serial start
+(`collapse_kernel`) computes the subtree sizes and plans the top breadth first down to
+subtrees of at most triangles / SUBTREE_SHARE, then workers on host threads
+(`collapse_subtrees`) each take a subtree, plan it breadth first, take its node and block
+numbers from shared counters and write it while its binary nodes are in the cache, leaf
+blocks included. Numbering: a node's children are consecutive and after it (refit relies
+on the latter); the top comes first, then the subtrees in the order they were finished.
 """
 
 from __future__ import annotations
@@ -125,6 +132,20 @@ def is_wide_leaf(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), c: 
 )
 def prefetch_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), i: int):
     """Start loading binary node i and its size (CPU; a no-op on CUDA)."""
+    ...
+
+
+@wp.func_native(
+    """
+#if !defined(__CUDA_ARCH__)
+    const char* p = (const char*)&tri_verts.data[3 * first];
+    const char* end = (const char*)&tri_verts.data[3 * (first + count)];
+    for (; p < end; p += 64) __builtin_prefetch(p);
+#endif
+"""
+)
+def prefetch_triangles(tri_verts: wp.array(dtype=wp.vec3), first: int, count: int):
+    """Start loading leaf-order triangles [first, first + count) (CPU; a no-op on CUDA)."""
     ...
 
 
@@ -421,6 +442,10 @@ def collapse_subtrees(
             continue
         root = subtrees[t]
         plans[slab] = top[root]
+        # its leaves' blocks are filled from this range, in no order the hardware prefetcher
+        # follows: loaded in order while the subtree is planned
+        b = plans[slab].binary
+        prefetch_triangles(tri_verts, starts[b], sizes[b])
         r = plan_breadth_first(nodes, sizes, plans, slab, width, 0, subtrees)  # defers none
         count = r[0]
         shared_max(counters, MOST, r[2])
