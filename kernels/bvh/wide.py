@@ -238,7 +238,7 @@ SUBTREES = wp.constant(1)  # subtrees below it, left to the workers
 WIDE_NODES = wp.constant(2)  # wide nodes numbered so far (the tree's, once done) ...
 LEAF_BLOCKS = wp.constant(3)  # ... and leaf blocks
 MOST = wp.constant(4)  # most stack entries, over the whole tree once done
-BOUND = wp.constant(5)  # inner binary nodes that are not wide leaves: the most wide nodes
+BOUND = wp.constant(5)  # 1 + the inner binary nodes that are not wide leaves: >= wide nodes
 BLOCKS = wp.constant(6)  # leaf blocks of the whole tree (known before the greedy choices)
 CLAIM = wp.constant(7)  # next task of the workers (subtrees, then top nodes)
 COUNTERS = 8
