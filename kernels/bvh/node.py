@@ -46,4 +46,8 @@ def sah_cost(nodes: np.ndarray) -> float:
     area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]  # float32: a statistic
     if area[0] <= 0:
         return float(count[0]) if len(nodes) == 1 else float(len(nodes))
-    return float(np.dot(area.astype(np.float64), np.maximum(count, 1)) / float(area[0]))
+    # a sum, not np.dot: after a BLAS call over this many nodes OpenBLAS's threads spin for
+    # 0.1 s or more, taking a core from whatever the caller runs next (the next build's
+    # workers, a trace's threads)
+    terms = area.astype(np.float64) * np.maximum(count, 1)
+    return float(terms.sum() / float(area[0]))

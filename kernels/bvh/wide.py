@@ -34,21 +34,32 @@ smaller t), so no lane mask is needed. The per-triangle data is the float32 vert
 themselves: Woop's test permutes and shears them per ray, so nothing per triangle can be
 precomputed without giving up its watertightness.
 
-Collapse (`collapse_kernel`): node by node from the root, a wide node's children start as
-its binary node's two children, and the inner child with the largest surface area is
-replaced by its own two children until there are W (Embree, bvh_builder_sah.h: "find best
-child with largest bounding box area"). That is the SAH's greedy choice: in the SAH cost
-of a wide tree each wide node costs its area times one SIMD box test, so opening the child
-of largest area removes the largest term (Wald, Benthin, Boulos 2008, sec. 3).
+Collapse (`collapse`): node by node from the root, a wide node's children start as its
+binary node's two children, and the inner child with the largest surface area is replaced
+by its own two children until there are W (Embree, bvh_builder_sah.h: "find best child with
+largest bounding box area"). That is the SAH's greedy choice: in the SAH cost of a wide
+tree each wide node costs its area times one SIMD box test, so opening the child of largest
+area removes the largest term (Wald, Benthin, Boulos 2008, sec. 3). A wide node's choice
+depends only on its binary subtree, so subtrees are collapsed in parallel: a serial start
+(`collapse_kernel`) computes the subtree sizes and plans the top breadth first down to
+subtrees of at most triangles / SUBTREE_SHARE, then workers on host threads
+(`collapse_subtrees`) each take a subtree, plan it breadth first, take its node and block
+numbers from shared counters and write it while its binary nodes are in the cache, leaf
+blocks included. Numbering: a node's children are consecutive and after it (refit relies
+on the latter); the top comes first, then the subtrees in the order they were finished.
 """
 
 from __future__ import annotations
+
+from collections.abc import Callable
 
 import numpy as np
 import warp as wp
 
 from ..core.box import INF, half_area
-from ..core.launch import host_threads, launch_split
+from ..core.launch import host_pool
+from ..pool.atomics import shared_add, shared_max
+from ..pool.worker import launch_workers
 from .node import BvhNode
 
 wp.set_module_options({"enable_backward": False, "optimization_level": 3})
@@ -124,6 +135,20 @@ def prefetch_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), i:
     ...
 
 
+@wp.func_native(
+    """
+#if !defined(__CUDA_ARCH__)
+    const char* p = (const char*)&tri_verts.data[3 * first];
+    const char* end = (const char*)&tri_verts.data[3 * (first + count)];
+    for (; p < end; p += 64) __builtin_prefetch(p);
+#endif
+"""
+)
+def prefetch_triangles(tri_verts: wp.array(dtype=wp.vec3), first: int, count: int):
+    """Start loading leaf-order triangles [first, first + count) (CPU; a no-op on CUDA)."""
+    ...
+
+
 @wp.func
 def opening_gain(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), c: int) -> float:
     """What opening binary node c saves in SAH terms, its surface area, or -1 if c is a wide
@@ -174,6 +199,178 @@ def greedy_children(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), 
 
 
 @wp.func
+def block_count(triangles: int) -> int:
+    """Blocks of a leaf of this many triangles."""
+    return (triangles + BLOCK - 1) / BLOCK
+
+
+@wp.func
+def fill_block(tri_verts: wp.array(dtype=wp.vec3), blocks: wp.array(dtype=float), block: int,
+               first: int, n: int):
+    """Block `block`: leaf-order triangles [first, first + n) in its lanes, the last one
+    repeated in the lanes after them."""
+    for k in range(BLOCK):
+        i = first + wp.min(k, n - 1)
+        base = block * BLOCK_WORDS + k
+        for m in range(3):
+            v = tri_verts[3 * i + m]
+            for a in range(3):
+                blocks[base + (3 * m + a) * BLOCK] = v[a]
+        blocks[base + 9 * BLOCK] = bits_float(i)
+
+
+@wp.struct
+class WidePlan:
+    """A wide node as the collapse plans it, before the wide tree's size is known (48 bytes).
+    Its children and leaf blocks are numbered within the plan's slab (`plan_node`)."""
+
+    kids: Lanes  # 32 bytes: the binary node of each lane (greedy_children), -1 unused
+    binary: int  # the binary node it is made from
+    stacked: int  # most traversal stack entries held on reaching it
+    first_child: int  # slab index of its first inner child (the others follow); -1: not
+    # planned here (a subtree's root in the top: its worker plans it)
+    first_block: int  # slab number of its first leaf block (the others follow)
+
+
+# Collapse counters (one int32 array shared by the collapse's launches)
+TOP_NODES = wp.constant(0)  # wide nodes of the top (planned by the serial start)
+SUBTREES = wp.constant(1)  # subtrees below it, left to the workers
+WIDE_NODES = wp.constant(2)  # wide nodes numbered so far (the tree's, once done) ...
+LEAF_BLOCKS = wp.constant(3)  # ... and leaf blocks
+MOST = wp.constant(4)  # most stack entries, over the whole tree once done
+BOUND = wp.constant(5)  # 1 + the inner binary nodes that are not wide leaves: >= wide nodes
+BLOCKS = wp.constant(6)  # leaf blocks of the whole tree (known before the greedy choices)
+CLAIM = wp.constant(7)  # next task of the workers (subtrees, then top nodes)
+COUNTERS = 8
+# Subtrees of at most max(triangles / SUBTREE_SHARE, SUBTREE_MIN) triangles are collapsed by
+# the workers, each planned and written at once (its binary nodes still in the cache), the
+# nodes above them planned by one thread: a few hundred tasks for the shared scenes, so the
+# workers' shares are even.
+SUBTREE_SHARE = 256
+SUBTREE_MIN = 512
+MAX_WORKERS = 256  # on CUDA: each worker has a subtree's plans of its own
+
+
+@wp.func
+def plan_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int),
+              plans: wp.array(dtype=WidePlan), slab: int, w: int, width: int, count: int,
+              blocks: int) -> wp.vec3i:
+    """Plan the slab's wide node w (its binary node and stack entries set when it was
+    queued): its lanes, its inner children queued in the slab from `count` on, its leaf
+    blocks numbered from `blocks` on. Returns the new (count, blocks) and the stack entries
+    a traversal holds at the node (all k children are pushed before the nearest is taken
+    back)."""
+    p = plans[slab + w]
+    kids = greedy_children(nodes, sizes, p.binary, width)
+    k = int(0)
+    for j in range(width):
+        if kids[j] >= 0:
+            k += 1
+    p.kids = kids
+    p.first_child = count
+    p.first_block = blocks
+    plans[slab + w] = p
+    for j in range(width):
+        c = kids[j]
+        if c >= 0:
+            if is_wide_leaf(nodes, sizes, c):
+                blocks += block_count(sizes[c])
+            else:
+                q = WidePlan()
+                q.binary = c
+                # what it held at its parent plus the parent's other hit children (at most
+                # k - 1) still on the stack
+                q.stacked = p.stacked + k - 1
+                q.first_child = -1
+                plans[slab + count] = q
+                count += 1
+    return wp.vec3i(count, blocks, p.stacked + k)
+
+
+@wp.func
+def plan_breadth_first(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int),
+                       plans: wp.array(dtype=WidePlan), slab: int, width: int, limit: int,
+                       deferred: wp.array(dtype=int)) -> wp.vec4i:
+    """Plan the wide nodes below the slab's node 0 (queued there) breadth first, except
+    those (below node 0) made from binary subtrees of at most `limit` triangles: their
+    slab indices are listed in `deferred`. Returns the slab's (nodes, leaf blocks, most
+    stack entries, deferred)."""
+    count = int(1)
+    blocks = int(0)
+    most = int(0)
+    queued = int(0)
+    w = int(0)
+    while w < count:
+        if w > 0 and sizes[plans[slab + w].binary] <= limit:
+            deferred[queued] = w
+            queued += 1
+        else:
+            r = plan_node(nodes, sizes, plans, slab, w, width, count, blocks)
+            count = r[0]
+            blocks = r[1]
+            most = wp.max(most, r[2])
+        w += 1
+    return wp.vec4i(count, blocks, most, queued)
+
+
+@wp.func
+def wide_leaf_blocks(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), c: int) -> int:
+    """Leaf blocks of binary node c if it is a wide leaf, else 0."""
+    if is_wide_leaf(nodes, sizes, c):
+        return block_count(sizes[c])
+    return 0
+
+
+@wp.kernel
+def collapse_kernel(
+    nodes: wp.array(dtype=BvhNode),
+    node_count: int,
+    width: int,
+    limit: int,  # subtrees of at most this many triangles are left to the workers
+    sizes: wp.array(dtype=int),  # out, per binary node: triangles in its subtree ...
+    starts: wp.array(dtype=int),  # ... and the first one's leaf position
+    top: wp.array(dtype=WidePlan),  # out: the top's plans, breadth first
+    subtrees: wp.array(dtype=int),  # out: the top index of each subtree's root
+    counters: wp.array(dtype=int),
+):
+    """The collapse's serial start (one thread): subtree sizes bottom up (a child's index is
+    above its parent's), with a bound on the wide nodes and the number of leaf blocks,
+    which the greedy choices do not change: the wide leaves are the wide-leaf children of
+    the other inner nodes. Then the top of the wide tree planned breadth first from the
+    root, down to the subtrees of at most `limit` triangles, whose roots are queued for the
+    workers; the top's nodes and blocks come first in the tree."""
+    bound = int(1)
+    blocks = int(0)
+    for i in range(node_count - 1, -1, -1):
+        # the build's workers wrote the nodes on other cores: asked for well ahead, -8% here
+        prefetch_node(nodes, sizes, wp.max(i - 64, 0))
+        n = nodes[i]
+        if n.count > 0:
+            sizes[i] = n.count
+            starts[i] = n.first
+        else:
+            sizes[i] = sizes[n.first] + sizes[n.first + 1]
+            starts[i] = starts[n.first]
+            if sizes[i] > MERGE:
+                bound += 1
+                blocks += wide_leaf_blocks(nodes, sizes, n.first)
+                blocks += wide_leaf_blocks(nodes, sizes, n.first + 1)
+    if is_wide_leaf(nodes, sizes, 0):  # the root's only lane
+        blocks = wide_leaf_blocks(nodes, sizes, 0)
+    root = WidePlan()
+    root.first_child = -1
+    top[0] = root
+    r = plan_breadth_first(nodes, sizes, top, 0, width, limit, subtrees)
+    counters[TOP_NODES] = r[0]
+    counters[WIDE_NODES] = r[0]
+    counters[LEAF_BLOCKS] = r[1]
+    counters[MOST] = r[2]
+    counters[SUBTREES] = r[3]
+    counters[BOUND] = bound
+    counters[BLOCKS] = blocks
+
+
+@wp.func
 def write_lane(wide: wp.array(dtype=float), base: int, width: int, j: int, lo: wp.vec3,
                hi: wp.vec3, child: int, count: int):
     for a in range(3):
@@ -183,85 +380,85 @@ def write_lane(wide: wp.array(dtype=float), base: int, width: int, j: int, lo: w
     wide[base + 7 * width + j] = bits_float(count)
 
 
-@wp.kernel
-def fill_blocks(tri_verts: wp.array(dtype=wp.vec3), block_triangles: wp.array(dtype=wp.vec3i),
-                blocks: wp.array(dtype=float)):
-    """Block (block, first, n): leaf-order triangles [first, first + n) in its lanes, the
-    last one repeated in the lanes after them."""
-    b = block_triangles[wp.tid()]
-    for k in range(BLOCK):
-        i = b[1] + wp.min(k, b[2] - 1)
-        base = b[0] * BLOCK_WORDS + k
-        for m in range(3):
-            v = tri_verts[3 * i + m]
-            for a in range(3):
-                blocks[base + (3 * m + a) * BLOCK] = v[a]
-        blocks[base + 9 * BLOCK] = bits_float(i)
-
-
-@wp.kernel
-def collapse_kernel(
-    nodes: wp.array(dtype=BvhNode),
-    node_count: int,
-    width: int,
-    wide: wp.array(dtype=float),
-    block_triangles: wp.array(dtype=wp.vec3i),  # out: per leaf block (block, first, n)
-    sizes: wp.array(dtype=int),  # per binary node: triangles in its subtree ...
-    starts: wp.array(dtype=int),  # ... and the first one's leaf position
-    todo: wp.array(dtype=int),  # per wide node: the binary node it is made from
-    stacked: wp.array(dtype=int),  # per wide node: most stack entries held on reaching it
-    counters: wp.array(dtype=int),  # out: [wide nodes, stack entries needed, blocks]
-):
-    """One thread: subtree sizes bottom up (a child's index is above its parent's), then the
-    wide nodes top down in breadth-first order: a wide node's children get consecutive
-    indices, so the children of a node lie side by side in memory. The leaves' blocks are
-    listed here and filled by `fill_blocks`, in parallel."""
-    for i in range(node_count - 1, -1, -1):
-        n = nodes[i]
-        if n.count > 0:
-            sizes[i] = n.count
-            starts[i] = n.first
+@wp.func
+def write_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int),
+               starts: wp.array(dtype=int), tri_verts: wp.array(dtype=wp.vec3),
+               wide: wp.array(dtype=float), blocks: wp.array(dtype=float), width: int,
+               k: int, p: WidePlan, child_base: int, block_base: int):
+    """Wide node k from its plan, whose slab's node q is wide node child_base + q and whose
+    slab's block b is block block_base + b; its leaves' blocks filled."""
+    base = k * WORDS_PER_LANE * width
+    child = child_base + p.first_child
+    block = block_base + p.first_block
+    for j in range(width):
+        c = p.kids[j]
+        if c < 0:
+            write_lane(wide, base, width, j, wp.vec3(INF), wp.vec3(INF), 0, 0)
         else:
-            sizes[i] = sizes[n.first] + sizes[n.first + 1]
-            starts[i] = starts[n.first]
-    todo[0] = 0
-    stacked[0] = 0
-    count = int(1)
-    most = int(0)
-    used = int(0)  # leaf blocks
-    w = int(0)
-    while w < count:
-        kids = greedy_children(nodes, sizes, todo[w], width)
-        k = int(0)
-        base = w * WORDS_PER_LANE * width
-        for j in range(width):
-            if kids[j] >= 0:
-                k += 1
-        for j in range(width):
-            c = kids[j]
-            if c < 0:
-                write_lane(wide, base, width, j, wp.vec3(INF), wp.vec3(INF), 0, 0)
+            n = nodes[c]
+            size = sizes[c]
+            if is_wide_leaf(nodes, sizes, c):
+                write_lane(wide, base, width, j, n.lo, n.hi, block, size)
+                first = starts[c]
+                for q in range(block_count(size)):
+                    fill_block(tri_verts, blocks, block, first + q * BLOCK,
+                               wp.min(BLOCK, size - q * BLOCK))
+                    block += 1
             else:
-                n = nodes[c]
-                if is_wide_leaf(nodes, sizes, c):
-                    write_lane(wide, base, width, j, n.lo, n.hi, used, sizes[c])
-                    for q in range((sizes[c] + BLOCK - 1) / BLOCK):
-                        block_triangles[used] = wp.vec3i(used, starts[c] + q * BLOCK,
-                                                         wp.min(BLOCK, sizes[c] - q * BLOCK))
-                        used += 1
-                else:
-                    write_lane(wide, base, width, j, n.lo, n.hi, count, 0)
-                    todo[count] = c
-                    # A traversal at this node holds what it held at its parent plus the
-                    # parent's other hit children (at most k - 1) still on the stack.
-                    stacked[count] = stacked[w] + k - 1
-                    count += 1
-        # at w, all k children are pushed before the nearest is taken back
-        most = wp.max(most, stacked[w] + k)
-        w += 1
-    counters[0] = count
-    counters[1] = most
-    counters[2] = used
+                write_lane(wide, base, width, j, n.lo, n.hi, child, 0)
+                child += 1
+
+
+@wp.kernel
+def collapse_subtrees(
+    nodes: wp.array(dtype=BvhNode),
+    width: int,
+    limit: int,
+    sizes: wp.array(dtype=int),
+    starts: wp.array(dtype=int),
+    tri_verts: wp.array(dtype=wp.vec3),
+    top: wp.array(dtype=WidePlan),
+    subtrees: wp.array(dtype=int),
+    plans: wp.array(dtype=WidePlan),  # `limit` per worker: its subtree's, breadth first
+    wide: wp.array(dtype=float),  # out
+    blocks: wp.array(dtype=float),  # out
+    counters: wp.array(dtype=int),
+    first_worker: int,
+):
+    """A worker (one per host thread on CPU) takes tasks in turn: a subtree, which it plans
+    breadth first from its root (at the root's top index), then numbers (the next free
+    wide nodes and blocks, taken at once) and writes; or a top node, which it writes. A
+    subtree of c triangles has fewer than c wide nodes, so `limit` plans hold any."""
+    slab = (first_worker + wp.tid()) * limit
+    queued = counters[SUBTREES]
+    total = queued + counters[TOP_NODES]
+    while True:
+        t = shared_add(counters, CLAIM, 1)
+        if t >= total:
+            break
+        if t >= queued:
+            p = top[t - queued]
+            if p.first_child >= 0:  # not a subtree's root
+                write_node(nodes, sizes, starts, tri_verts, wide, blocks, width, t - queued,
+                           p, 0, 0)
+            continue
+        root = subtrees[t]
+        plans[slab] = top[root]
+        # its leaves' blocks are filled from this range, in no order the hardware prefetcher
+        # follows: loaded in order while the subtree is planned
+        b = plans[slab].binary
+        prefetch_triangles(tri_verts, starts[b], sizes[b])
+        r = plan_breadth_first(nodes, sizes, plans, slab, width, 0, subtrees)  # defers none
+        count = r[0]
+        shared_max(counters, MOST, r[2])
+        # its node q > 0 is wide node base + q, its block b is block block_base + b
+        base = shared_add(counters, WIDE_NODES, count - 1) - 1
+        block_base = shared_add(counters, LEAF_BLOCKS, r[1])
+        write_node(nodes, sizes, starts, tri_verts, wide, blocks, width, root, plans[slab],
+                   base, block_base)
+        for q in range(1, count):
+            write_node(nodes, sizes, starts, tri_verts, wide, blocks, width, base + q,
+                       plans[slab + q], base, block_base)
 
 
 def empty_wide(width: int, device) -> wp.array:
@@ -272,22 +469,44 @@ def empty_wide(width: int, device) -> wp.array:
 
 
 def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: int, width: int,
-             device) -> tuple[wp.array, wp.array, dict]:
+             device, workers: int, alongside: Callable[[], None] = lambda: None
+             ) -> tuple[wp.array, wp.array, dict]:
     """The wide tree of width 4 or 8 of a binary tree of `node_count` nodes over
     `triangles` triangles (leaf order), its leaf blocks, and its statistics (wide nodes,
-    most traversal stack entries, leaf blocks)."""
-    wide = wp.empty(max(node_count, 1) * 8 * width, dtype=float, device=device)
-    # every leaf holds a triangle, so a block per triangle is enough
-    block_triangles = wp.empty(max(triangles, 1), dtype=wp.vec3i, device=device)
-    sizes, starts, todo, stacked = (wp.empty(max(node_count, 1), dtype=int, device=device)
-                                    for _ in range(4))
-    counters = wp.zeros(3, dtype=int, device=device)
-    wp.launch(collapse_kernel, dim=1,
-              inputs=[nodes, node_count, width, wide, block_triangles, sizes, starts, todo,
-                      stacked, counters], device=device)
-    count, most, used = (int(x) for x in counters.numpy())
+    most traversal stack entries, leaf blocks). The serial start plans the top, then
+    `workers` collapse the subtrees below it; the subtrees' places in the wide tree are in
+    the order the workers finish them (the tree, and so every traversal, is the same).
+    `alongside` (what fills `tri_verts`, which only the workers read) runs on the calling
+    thread while the serial start runs on a host thread (on CPU; before it elsewhere)."""
+    workers = min(workers, MAX_WORKERS)
+    inner = max(node_count // 2, 1)  # a wide node is made from an inner binary node
+    sizes, starts = (wp.empty(max(node_count, 1), dtype=int, device=device) for _ in range(2))
+    top = wp.empty(inner, dtype=WidePlan, device=device)
+    subtrees = wp.empty(inner, dtype=int, device=device)
+    limit = max(triangles // SUBTREE_SHARE, SUBTREE_MIN)
+    plans = wp.empty(workers * limit, dtype=WidePlan, device=device)
+    counters = wp.zeros(COUNTERS, dtype=int, device=device)
+
+    def start() -> np.ndarray:
+        wp.launch(collapse_kernel, dim=1, inputs=[nodes, node_count, width, limit, sizes,
+                                                  starts, top, subtrees, counters],
+                  device=device)
+        return counters.numpy()
+
+    if device.is_cpu:
+        started = host_pool(1).submit(start)
+        alongside()
+        c = started.result()
+    else:
+        alongside()
+        c = start()
+    bound, used = int(c[BOUND]), int(c[BLOCKS])
+    wide = wp.empty(bound * int(WORDS_PER_LANE) * width, dtype=float, device=device)
     blocks = wp.empty(max(used, 1) * int(BLOCK_WORDS), dtype=float, device=device)
-    launch_split(fill_blocks, used, [tri_verts], [block_triangles[:used]], [], [blocks], device,
-                 host_threads(device, None))
-    return (wide[: count * 8 * width], blocks,
+    launch_workers(collapse_subtrees, workers, [nodes, width, limit, sizes, starts, tri_verts,
+                                                top, subtrees, plans, wide, blocks, counters],
+                   device)
+    c = counters.numpy()
+    count, most = int(c[WIDE_NODES]), int(c[MOST])
+    return (wide[: count * int(WORDS_PER_LANE) * width], blocks,
             {"wide_nodes": count, "wide_stack": most, "leaf_blocks": used})
