@@ -138,7 +138,7 @@ def refit_binary(nodes: wp.array(dtype=BvhNode), tri_verts: wp.array(dtype=wp.ve
 @wp.kernel
 def refit_wide(wide: wp.array(dtype=float), blocks: wp.array(dtype=float), width: int,
                count: int):
-    """One thread, wide nodes from the last to the root (numbered breadth first: children
+    """One thread, wide nodes from the last to the root (the collapse numbers children
     after parents): every used lane's box, a leaf's from its blocks, an inner child's from
     that child's lanes."""
     w = width
