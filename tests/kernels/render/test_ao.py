@@ -373,3 +373,47 @@ def test_progress_of_a_tiny_target_is_a_fraction():
     assert _progress(1e-3, 2e-3, 1e-200) == 0.0  # the error has not come down yet
     assert _progress(1e-3, 1e-6, 0.01) == 1.0  # below the aim: done
     assert 0.0 < _progress(1e-3, 5e-4, 0.01) < 1.0
+
+
+def _touches_box(lo, hi, o, d, t0, t1) -> np.ndarray:
+    """Oracle: the slab test in numpy float64, ray by ray through the axes."""
+    out = np.zeros(len(o), dtype=bool)
+    for i in range(len(o)):
+        enter, leave, inside = float(t0[i]), float(t1[i]), True
+        for k in range(3):
+            ok, dk = float(o[i, k]), float(d[i, k])
+            if dk == 0.0:
+                inside &= lo[k] <= ok <= hi[k]
+            else:
+                a, b = (lo[k] - ok) / dk, (hi[k] - ok) / dk
+                enter, leave = max(enter, min(a, b)), min(leave, max(a, b))
+        out[i] = inside and enter <= leave
+    return out
+
+
+def test_box_candidates_are_the_rays_whose_segment_touches_the_widened_box():
+    import warp as wp
+
+    from kernels.render.ao import box_candidates
+
+    rng = np.random.default_rng(5)
+    n = 4000
+    o = rng.uniform(-3, 3, (n, 3)).astype(np.float32)
+    d = (rng.uniform(-1.5, 1.5, (n, 3)) - o).astype(np.float32)  # toward the box
+    d[rng.random((n, 3)) < 0.2] = 0.0  # rays in the slabs' planes, along axes
+    d[np.all(d == 0, axis=1), 0] = 1.0
+    o[:50] = np.round(o[:50])  # origins on the box's faces (lo -1, hi 1)
+    t0 = rng.uniform(0.0, 1.0, n).astype(np.float32)
+    t1 = np.where(rng.random(n) < 0.3, np.inf, t0 + rng.uniform(0, 4, n)).astype(np.float32)
+    bounds = np.array([[-1, -1, -1], [1, 1, 1]], np.float32)
+    arrays = [wp.array(x, dtype=dt, device="cpu")
+              for x, dt in ((o, wp.vec3), (d, wp.vec3), (t0, float), (t1, float))]
+    got = box_candidates(bounds, *arrays, threads=2)
+    pad = 1e-5 * 3.0 + 1e-30
+    want = np.flatnonzero(_touches_box(np.full(3, -1.0 - pad), np.full(3, 1.0 + pad),
+                                       o.astype(np.float64),
+                                       d.astype(np.float64), t0, t1))
+    assert 0.2 * n < len(want) < 0.8 * n  # both answers are well represented
+    np.testing.assert_array_equal(got, want)
+    empty = np.array([[np.inf] * 3, [-np.inf] * 3], np.float32)
+    assert len(box_candidates(empty, *arrays, threads=2)) == 0
