@@ -83,7 +83,7 @@ import warp as wp
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
 from ..bvh.traversal import closest_hit, traverse
-from ..core.launch import host_threads, launch_split, load_modules, run_parts
+from ..core.launch import PARTS_PER_THREAD, host_threads, launch_split, load_modules, run_parts
 from ..core.mesh import DeviceMesh, Shading, triangle_corners
 from ..core.ray import make_ray
 from ..core.validate import as_rays, ray_range
@@ -1010,7 +1010,10 @@ def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dis
     act = wp.array(active.astype(np.int32), dtype=int, device=device)
     out = wp.zeros(m, dtype=int, device=device)
     out_half = wp.zeros(m, dtype=int, device=device)
-    parts = max(1, min(nthreads, m * count // PART_RAYS, m), -(-m * count // LAUNCH_RAYS))
+    # More parts than threads, taken in turn (`run_parts`): a round's pixels cost very
+    # different amounts (an adaptive round's are clustered where the image is noisy).
+    spread = nthreads * PARTS_PER_THREAD if nthreads > 1 else 1
+    parts = max(1, min(spread, m * count // PART_RAYS, m), -(-m * count // LAUNCH_RAYS))
     bounds = np.linspace(0, m, parts + 1).astype(int)
 
     def run(p: int) -> None:
