@@ -583,9 +583,8 @@ def trace_primary(bvh: Bvh | Scene, origins: np.ndarray, directions: np.ndarray,
     tmin_a, tmax_a = ray_range(tmin, tmax, len(origins))
     device = bvh.device
     nthreads = host_threads(device, threads)
-    rays = [wp.array(x, dtype=dt, device=device)
-            for x, dt in ((origins, wp.vec3), (directions, wp.vec3), (tmin_a, float),
-                          (tmax_a, float))]
+    host = ((origins, wp.vec3), (directions, wp.vec3), (tmin_a, float), (tmax_a, float))
+    rays = [wp.array(x, dtype=dt, device=device) for x, dt in host]
     cand = box_candidates(bvh.bounds, *rays, nthreads)
     m = len(cand)
     shading = scene_shading(bvh, normals, terminator_offset)
@@ -613,9 +612,7 @@ def trace_primary(bvh: Bvh | Scene, origins: np.ndarray, directions: np.ndarray,
     hit = wp.empty(m, dtype=int, device=device)
     if m:
         per_item = rays if m == len(origins) else [
-            wp.array(x[cand], dtype=dt, device=device)
-            for x, dt in ((origins, wp.vec3), (directions, wp.vec3), (tmin_a, float),
-                          (tmax_a, float))]
+            wp.array(x[cand], dtype=dt, device=device) for x, dt in host]
         launch_split(primary_kernel, m, [tracer, shading], per_item, [],
                      [surfaces, hit], device, nthreads)
     keep = np.flatnonzero(hit.numpy())
