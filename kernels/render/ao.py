@@ -42,9 +42,12 @@ Adaptive sampling, two stopping rules (issue 19), which may be combined:
   test_ao_target.py over seeds; benchmarks/ao_error.py on every shared scene): that is
   the confidence the API states. Samples go where they lower the image's error most per
   ray (Neyman allocation, n_i in proportion to sigma_i): every hit pixel gets the
-  minimum spp (in two halves, so that the sampler's rate is measured before the first
-  decision), then each round doubles the pixels below their Neyman count, those with
-  the largest sigma_i^2 / n_i^2 (the variance each new ray removes) first, until the
+  minimum spp in one launch (the kernel also counts the open samples among its first
+  half and quarter, so that the sampler's rate is measured before the first decision;
+  a pixel's rays in one launch share the cache: two launches of half the minimum cost
+  1.5x one on blade), then each round doubles the pixels below their Neyman count, those
+  with the largest sigma_i^2 / n_i^2 (the variance each new ray removes; in 1/16-octave
+  steps, sorted by radix) first, until the
   doubled set is predicted to remove DROP_SHORT of what is left above the aim (all of
   it, with at least MIN_ROUND of the rays so far, when that round would trace less than
   TAIL_ROUND of them; every pixel when it would take FULL_ROUND of the rays left, unless
@@ -444,8 +447,11 @@ def occlusion_kernel(
     seed: int,
     distance: float,
     find_any: int,  # always 1; see below
+    mid: int,  # out_open_mid counts the open samples with index below this (absolute)
+    quarter: int,  # out_open_quarter: those below this
     out_open: wp.array(dtype=int),  # per slot: open samples (accumulated)
-    out_open_half: wp.array(dtype=int),  # per slot: open among the first count / 2
+    out_open_mid: wp.array(dtype=int),
+    out_open_quarter: wp.array(dtype=int),
 ):
     # One occlusion ray per thread, slot-major, so the rays (not the pixels) are split
     # between host threads. A slot's rays never straddle two launches: the plain
@@ -461,8 +467,10 @@ def occlusion_kernel(
     # faster on CPU than bvh_trace.any_hit, whose flag is the literal True.
     if not occluded(bvh, occlusion_origin(hit, w), w, distance, find_any != 0):
         out_open[j] += 1
-        if s < count / 2:
-            out_open_half[j] += 1
+        if first + s < mid:
+            out_open_mid[j] += 1
+            if first + s < quarter:
+                out_open_quarter[j] += 1
 
 
 @wp.kernel
@@ -784,13 +792,17 @@ def render_ao(
     def trace(select: np.ndarray, count: int) -> None:
         """Samples n..n+count-1 of the `select`ed pixels, which all have n samples."""
         first = int(counts.done[select[0]])
-        opened, opened_half = trace_round(bvh, hits, pix, select, first, count, sampler_id,
-                                          int(seed), dist, nthreads)
         end = first + count
-        # the nested estimates: after the samples it had (after the first half when none)
-        mid, open_mid = (first, counts.open[select]) if first else (count // 2, opened_half)
-        counts.measure(end, mid, open_mid, counts.open[select] + opened,
-                       counts.before[select] if first else None)
+        # the nested estimates, after about end / 2 and end / 4 samples: counted in the
+        # launch where they reach into it, else those kept from the rounds before
+        mid, quarter = max(end // 2, first), end // 4 if end % 4 == 0 else -1
+        opened, opened_mid, opened_quarter = trace_round(
+            bvh, hits, pix, select, first, count, sampler_id, int(seed), dist, nthreads,
+            mid, quarter)
+        open_mid = counts.open[select] + opened_mid
+        open_quarter = (counts.open[select] + opened_quarter if quarter >= first
+                        else counts.before[select] if 2 * quarter == first == count else None)
+        counts.measure(end, mid, open_mid, counts.open[select] + opened, open_quarter)
         counts.before[select] = open_mid
         counts.open[select] += opened
         counts.done[select] += count
@@ -815,12 +827,10 @@ def render_ao(
                 report(_fraction(counts.done, len(select), int(counts.done[select[0]])),
                        "occlusion")
             for n in np.unique(counts.done[select]):  # one launch set per sample count
-                group = select[counts.done[select] == n]
-                # doubling: Sobol prefixes of 2^k; the minimum in two halves, so that how
-                # fast the variance falls is measured before the first decision
-                halves = n == 0 and min_spp % 2 == 0
-                for count in ([min_spp // 2] * 2 if halves else [int(n) or min_spp]):
-                    trace(group, count)
+                # doubling: Sobol prefixes of 2^k; the minimum's nested estimates (after a
+                # quarter and a half of it) measure how fast the variance falls before
+                # the first decision
+                trace(select[counts.done[select] == n], int(n) or min_spp)
             rounds += 1
             mse0 = counts.mse() if mse0 is None else mse0
             select = _next_round(counts, aim, max_pixel_error, int(max_spp))
@@ -877,14 +887,12 @@ class _Counts:
             store[key] = store.get(key, 0.0) + _spread_sums(*args)
             return store[key]
 
-        m = len(open_mid)
-        total = pooled(self.sums, n, open_mid, np.full(m, mid), open_end, np.full(m, n))
+        total = pooled(self.sums, n, open_mid, mid, open_end, n)
         if total[2] < EFFICIENCY_PIXELS:
             return
         self.spread[n] = float(np.clip(total[0] / total[1], EFFICIENCY_MIN, 1.0))
         if open_before is not None:  # the same pixels' previous halves: the rate
-            before = pooled(self.sums_before, n, open_before, np.full(m, mid // 2), open_mid,
-                            np.full(m, mid))
+            before = pooled(self.sums_before, n, open_before, mid // 2, open_mid, mid)
             if before[2] >= EFFICIENCY_PIXELS:
                 ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])
                 self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
@@ -962,11 +970,10 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
         if need > 0.0 and np.any(room & ~want):
             sigma = np.sqrt(eff * smoothed_variance(k, n))
             neyman = sigma * sigma.sum() / (len(n) * aim**2)
-            gain = sigma**2 / n**2  # variance removed per ray by doubling
             order = np.flatnonzero(room & ~want)
-            order = order[np.argsort(-gain[order], kind="stable")]
-            under = neyman[order] > math.sqrt(2.0) * n[order]
-            order = np.concatenate([order[under], order[~under]])  # below Neyman first
+            gain = (sigma[order] / n[order]).astype(np.float32) ** 2  # removed per ray
+            order = order[np.argsort(_allocation_key(gain, neyman[order] > math.sqrt(2.0)
+                                                     * n[order]), kind="stable")]
             dropped = np.cumsum(drop[order])
             rays = np.cumsum(n[order])  # doubling a pixel traces as many rays as it has
             # a round stops short of the aim (DROP_SHORT of the need): Sobol's variance
@@ -992,21 +999,31 @@ def _next_round(counts: _Counts, aim: float | None, max_pixel_error: float | Non
     return np.flatnonzero(want)
 
 
+def _allocation_key(gain: np.ndarray, under: np.ndarray) -> np.ndarray:
+    """Sort keys (int16, which numpy's stable sort orders by radix) for doublings: those
+    `under` the Neyman count first, then by the variance removed per ray, `gain` (positive
+    float32), in steps of 1/16 octave (ties in the given order)."""
+    # a positive float32's bits grow with it: sign 0, then 8 exponent bits, then mantissa
+    octave16 = gain.view(np.int32) >> 19  # 12 bits: exponent and the mantissa's first 4
+    return (np.int16(4095) - octave16.astype(np.int16)
+            + np.where(under, 0, 4096).astype(np.int16))
+
+
 def _first(condition: np.ndarray) -> int:
     """Index of the first True (the last index when there is none)."""
     return int(np.argmax(condition)) if condition.any() else len(condition) - 1
 
 
 def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
-                     nthreads) -> tuple[np.ndarray, np.ndarray]:
-    """Trace samples first..first+count-1 of the `active` hit pixels: (open samples, open
-    among the first count // 2) per active pixel. The rays are split between host threads
-    at pixel boundaries (a CPU launch runs on one thread)."""
+                     nthreads, mid, quarter) -> tuple[np.ndarray, ...]:
+    """Trace samples first..first+count-1 of the `active` hit pixels: per active pixel, the
+    open samples, and those among them with index below `mid` and below `quarter`. The
+    rays are split between host threads at pixel boundaries (a CPU launch runs on one
+    thread)."""
     device = bvh.device
     m = len(active)
     act = wp.array(active.astype(np.int32), dtype=int, device=device)
-    out = wp.zeros(m, dtype=int, device=device)
-    out_half = wp.zeros(m, dtype=int, device=device)
+    outs = [wp.zeros(m, dtype=int, device=device) for _ in range(3)]
     # More parts than threads, taken in turn (`run_parts`): a round's pixels cost very
     # different amounts (an adaptive round's are clustered where the image is noisy).
     spread = nthreads * PARTS_PER_THREAD if nthreads > 1 else 1
@@ -1016,22 +1033,24 @@ def _occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dis
     def run(p: int) -> None:
         wp.launch(occlusion_kernel, dim=int(bounds[p + 1] - bounds[p]) * count,
                   inputs=[bvh.arrays, hits.surfaces, pix, act, int(bounds[p]),
-                          int(first), int(count), sampler_id, seed, dist, 1],
-                  outputs=[out, out_half], device=device)
+                          int(first), int(count), sampler_id, seed, dist, 1, int(mid),
+                          int(quarter)],
+                  outputs=outs, device=device)
 
     run_parts(run, parts, nthreads)
-    return out.numpy().astype(np.int64), out_half.numpy().astype(np.int64)
+    return tuple(out.numpy().astype(np.int64) for out in outs)
 
 
 def _occlusion_round_dacrt(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
-                           nthreads) -> tuple[np.ndarray, np.ndarray]:
+                           nthreads, mid, quarter) -> tuple[np.ndarray, ...]:
     """`_occlusion_round` with the round's rays traced by DACRT (closest hit within the AO
     distance: occluded if there is one)."""
     m = len(active)
     origins, dirs = _occlusion_rays(hits, first, count, seed, sampler_id, active)
     h = dacrt_trace_mesh(scene_mesh(bvh), origins, dirs, 0.0, dist)
     opened = (h.triangle < 0).reshape(m, count)
-    return opened.sum(axis=1), opened[:, : count // 2].sum(axis=1)
+    return tuple(opened[:, : max(0, k - first)].sum(axis=1) for k in (first + count, mid,
+                                                                        quarter))
 
 
 def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
@@ -1051,16 +1070,24 @@ def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.nda
     return float(np.clip(diff2 / bernoulli, EFFICIENCY_MIN, 1.0))
 
 
-def _spread_sums(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
-                 n_end: np.ndarray) -> np.ndarray:
+def _spread_sums(open_mid: np.ndarray, n_mid: np.ndarray | int, open_end: np.ndarray,
+                 n_end: np.ndarray | int) -> np.ndarray:
     """`sampler_efficiency`'s sums over the disagreeing pixels: (squared differences,
-    Bernoulli variances, pixels), so that measurements of one count can be pooled."""
-    p = open_end / n_end
-    mixed = (open_end > 0) & (open_end < n_end) & (n_mid > 0) & (n_end > n_mid)
-    p, n_mid, n_end = p[mixed], n_mid[mixed].astype(np.float64), n_end[mixed]
+    Bernoulli variances, pixels), so that measurements of one count can be pooled. The
+    counts are per pixel or one for all (a round's: no array of copies)."""
+    mixed = np.flatnonzero((open_end > 0) & (open_end < n_end) & (n_mid > 0)
+                           & (n_end > n_mid))
+    if not len(mixed):
+        return np.zeros(3)
+
+    def take(x: np.ndarray | int) -> np.ndarray | float:
+        return x[mixed].astype(np.float64) if np.ndim(x) else float(x)
+
+    n_mid, n_end = take(n_mid), take(n_end)
+    p = open_end[mixed] / n_end
     diff2 = (open_mid[mixed] / n_mid - p) ** 2
-    bernoulli = p * (1.0 - p) * (n_end - n_mid) / (n_mid * n_end)
-    return np.array([diff2.sum(), bernoulli.sum(), float(mixed.sum())])
+    bernoulli = p * (1.0 - p) * ((n_end - n_mid) / (n_mid * n_end))
+    return np.array([diff2.sum(), np.sum(bernoulli), float(len(mixed))])
 
 
 def sample_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:

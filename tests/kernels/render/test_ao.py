@@ -11,7 +11,13 @@ from embreex.mesh_construction import TriangleMesh
 
 import kernels
 from kernels import Camera
-from kernels.render.ao import EFFICIENCY_MIN, Z95, half_width, sampler_efficiency
+from kernels.render.ao import (
+    EFFICIENCY_MIN,
+    Z95,
+    _allocation_key,
+    half_width,
+    sampler_efficiency,
+)
 
 SAMPLERS = ("random", "sobol")
 
@@ -417,3 +423,10 @@ def test_box_candidates_are_the_rays_whose_segment_touches_the_widened_box():
     np.testing.assert_array_equal(got, want)
     empty = np.array([[np.inf] * 3, [-np.inf] * 3], np.float32)
     assert len(box_candidates(empty, *arrays, threads=2)) == 0
+
+
+def test_allocation_key_orders_under_first_then_by_gain():
+    gain = np.array([1e-3, 1e-5, 1e-1, 2e-3, 1e-3], dtype=np.float32)
+    under = np.array([False, True, False, True, False])
+    order = np.argsort(_allocation_key(gain, under), kind="stable")
+    np.testing.assert_array_equal(order, [3, 1, 2, 0, 4])  # ties (0, 4) in item order
