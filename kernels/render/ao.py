@@ -799,12 +799,13 @@ def render_ao(
         opened, opened_mid, opened_quarter = trace_round(
             bvh, hits, pix, select, first, count, sampler_id, int(seed), dist, nthreads,
             mid, quarter)
-        open_mid = counts.open[select] + opened_mid
-        open_quarter = (counts.open[select] + opened_quarter if quarter >= first
+        open_now = counts.open[select]
+        open_mid = open_now + opened_mid
+        open_quarter = (open_now + opened_quarter if quarter >= first
                         else counts.before[select] if 2 * quarter == first == count else None)
-        counts.measure(end, mid, open_mid, counts.open[select] + opened, open_quarter)
+        counts.measure(end, mid, open_mid, open_now + opened, open_quarter)
         counts.before[select] = open_mid
-        counts.open[select] += opened
+        counts.open[select] = open_now + opened
         counts.done[select] += count
         counts.changed()
 
