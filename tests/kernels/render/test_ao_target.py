@@ -43,8 +43,8 @@ def test_achieved_rmse_is_calibrated_to_the_target(bunny_view, target):
     """Over 20 seeds the achieved RMSE lies in [0.7, 1.0] x target in >= 95% of runs (at
     most one outside), and the reported estimate is within 20% of the measured RMSE in
     as many. False-failure rate: over 40 other seeds (100-139) every run landed inside
-    (achieved 0.73-0.93x at 0.05, 0.80-0.94x at 0.02, 0.79-0.97x at 0.01) and every
-    estimate within 0.85-1.03 of the measured RMSE; if the per-run miss rate were 1/40, a
+    (achieved 0.73-0.89x at 0.05, 0.77-0.93x at 0.02, 0.74-0.95x at 0.01) and every
+    estimate within 0.85-1.08 of the measured RMSE; if the per-run miss rate were 1/40, a
     fresh set of 20 seeds would fail (two misses) with probability ~9% per target. The
     seeds are fixed, so the test itself is deterministic."""
     bvh, o, d, kw, ref = bunny_view
@@ -61,15 +61,16 @@ def test_achieved_rmse_is_calibrated_to_the_target(bunny_view, target):
 
 def test_samples_follow_the_pixels_standard_deviation(bunny_view):
     """Neyman allocation: pixels whose samples disagree get more samples than those
-    whose samples all agree, and the spp varies across the image; far fewer rays than
-    the per-pixel bound at the same number."""
+    whose samples all agree (the median at least one doubling more: a few flat pixels
+    whose samples happened to disagree double too), and the spp varies across the image;
+    far fewer rays than the per-pixel bound at the same number."""
     bvh, o, d, kw, ref = bunny_view
     res = kernels.render_ao(bvh, o, d, spp=1, seed=3, target_error=0.02, **kw)
     hit = res.spp_used > 0
     p = ref.ao[hit]
     mixed = (p > 0.2) & (p < 0.8)
     flat = p > 0.995
-    assert res.spp_used[hit][mixed].mean() >= 2 * res.spp_used[hit][flat].mean()
+    assert np.median(res.spp_used[hit][mixed]) >= 2 * np.median(res.spp_used[hit][flat])
     stats = res.stats()
     assert stats["spp_max"] > stats["spp_mean"] >= 8
     assert stats["rays"] == res.rays["primary"] + res.rays["occlusion"]
