@@ -91,11 +91,11 @@ def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, ou
 
 def part_launcher(kernel, args: list, device) -> Callable[[int, dict[int, Any]], None]:
     """launch(dim, changes): `kernel` over dim items with its arguments `args` (inputs,
-    then outputs), argument i replaced by changes[i], from any host thread. Each thread
-    records the launch once and then re-packs only what changed: wp.launch resolves a
-    generic kernel's overload and packs every argument each time (on CPU, 47 us a launch of
-    the AO kernel against 5 us re-launching a recorded one, measured), and a split launch
-    makes PARTS_PER_THREAD of them per thread."""
+    then outputs), argument i replaced by changes[i] (every call names the same i), from
+    any host thread. Each thread records the launch once and then re-packs only what
+    changed: wp.launch resolves a generic kernel's overload and packs every argument each
+    time (on CPU, 47 us a launch of the AO kernel against 5 us re-launching a recorded one,
+    measured), and a split launch makes PARTS_PER_THREAD of them per thread."""
     local = threading.local()
 
     def launch(dim: int, changes: dict[int, Any]) -> None:
