@@ -1,11 +1,13 @@
 """The engine on a CUDA GPU: its device tests, then a short benchmark beside the CPU.
 
     .venv/bin/python benchmarks/gpu_check.py [--scenes bunny,sponza] [--size 1024]
-        [--repeat 3] [--no-tests] [--device cuda:0]
+        [--repeat 3] [--no-tests] [--test-workers 8] [--junit F] [--device cuda:0]
 
 On a machine with a CUDA device it
 1. runs the device tests: `pytest tests/kernels tests/stability -k cuda` (every engine test
-   is parametrised over the devices present, tests/devices.py), and prints their summary;
+   is parametrised over the devices present, tests/devices.py; the CUDA compile test apart),
+   in --test-workers processes with pytest-xdist where it is installed, and prints their
+   summary;
 2. times, on two shared scenes (an object and an indoor scene) at size x size camera rays:
    BVH build (binned SAH), closest-hit trace, any-hit trace (one occlusion ray per primary
    hit, within 0.1 of the scene box's diagonal), task-pool DACRT (RDH) and breadth-first
@@ -23,6 +25,7 @@ CPU itself (to check the program, not the GPU).
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import statistics
 import subprocess
 import sys
@@ -43,17 +46,24 @@ import kernels  # noqa: E402
 from backend.scenes import shared_scene  # noqa: E402
 
 AO_SPP = 4
-BUDGET_S = 225.0  # stop adding rows after this (the whole check: under 4 minutes)
 
 
-def run_device_tests(device: str) -> str:
-    """The device half of the engine's tests; returns pytest's summary line."""
-    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "--timeout=300",
-           "tests/kernels", "tests/stability", "-k", device.split(":")[0]]
+def run_device_tests(device: str, workers: int, junit: str | None) -> str:
+    """The device half of the engine's tests (the CUDA compile test apart: it needs no GPU);
+    returns pytest's summary line. With pytest-xdist, `workers` processes share the GPU, and
+    a test that hangs is ended by its timeout without ending the others."""
+    kind = device.split(":")[0]
+    cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rfE",
+           "--timeout=120", "tests/kernels", "tests/stability",
+           "-k", f"{kind} and not test_cuda_compile"]
+    if workers > 1 and importlib.util.find_spec("xdist") is not None:
+        cmd += ["-n", str(workers), "--timeout-method=thread"]
+    if junit:
+        cmd += [f"--junitxml={junit}"]
     proc = subprocess.run(cmd, cwd=REPO, capture_output=True, text=True)
     lines = [ln for ln in proc.stdout.splitlines() if ln.strip()]
     if proc.returncode != 0:
-        print("\n".join(lines[-40:]))
+        print("\n".join(lines[-60:]))
     return lines[-1] if lines else f"pytest exited {proc.returncode}"
 
 
@@ -148,6 +158,11 @@ def main() -> int:
     p.add_argument("--repeat", type=int, default=3)
     p.add_argument("--device", default="cuda:0")
     p.add_argument("--no-tests", action="store_true")
+    p.add_argument("--budget", type=float, default=225.0,
+                   help="seconds from the start after which no timing row is added")
+    p.add_argument("--test-workers", type=int, default=8,
+                   help="pytest-xdist processes sharing the device (when xdist is installed)")
+    p.add_argument("--junit", default=None, help="write the device tests' JUnit XML here")
     args = p.parse_args()
     start = time.perf_counter()
     wp.init()
@@ -158,8 +173,9 @@ def main() -> int:
     device = str(wp.get_device(args.device))
     print(f"device {device}: {wp.get_device(args.device).name}")
     if not args.no_tests:
-        print(f"device tests: {run_device_tests(device)} ({time.perf_counter() - start:.0f} s)")
-    deadline = start + BUDGET_S
+        summary = run_device_tests(device, args.test_workers, args.junit)
+        print(f"device tests: {summary} ({time.perf_counter() - start:.0f} s)", flush=True)
+    deadline = start + args.budget
     rows = []
     for name in args.scenes.split(","):
         rows += scene_rows(name, args.size, device, args.repeat, deadline)

@@ -39,10 +39,15 @@ from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
 Method = Literal["sah", "median"]
 METHODS: dict[str, int] = {"median": int(METHOD_MEDIAN), "sah": int(METHOD_SAH)}
 Width = Literal[2, 4, 8]
-# width=None: the faster traversal per device, measured (docs/benchmarks.md, issue 17): the
-# wide tree with the SIMD box test on CPU; on CUDA the binary tree (the wide one runs there
-# lane by lane, unmeasured).
+# width=None: the faster traversal per device, measured (docs/benchmarks.md): the wide tree
+# with the SIMD box test on CPU; on CUDA the binary tree (an H200 ran the wide one, lane by
+# lane, 10-30x slower; CUDA kernels now traverse the binary tree whatever the width, see
+# traversal.wide_tree_traversed).
 DEFAULT_WIDTH = {"cpu": 8, "cuda": 2}
+# K of eq. 3.1 per device: the paper's 14 on CPU; on CUDA 64, where 33,792 one-thread workers
+# grabbing fewer, larger runs of chunks built Conference 1.5x and the 1.1 M-triangle bunny 3x
+# faster on an H200 (docs/benchmarks.md, CUDA sweeps)
+BUILD_MIN_CHUNKS = {"cpu": DEFAULT_MIN_CHUNKS, "cuda": 64}
 
 
 def default_width(device) -> int:
@@ -79,14 +84,16 @@ def build_bvh(
     max_depth: int = STACK_SIZE,
     device=None,
     *,
-    min_chunks: int = DEFAULT_MIN_CHUNKS,
+    min_chunks: int | None = None,
     workers: int | None = None,
     pool_capacity: int | None = None,
     width: Width | None = None,
 ) -> Bvh:
     """Build a BVH with the task pool in one persistent launch (2012 paper, sec. 4), then
     collapse it into a tree of `width` 4 or 8 (bvh.wide; 2: none; None: the device's
-    default, DEFAULT_WIDTH), which `trace` and AO then traverse."""
+    default, DEFAULT_WIDTH), which `trace` and AO then traverse on CPU (CUDA kernels
+    traverse the binary tree). `min_chunks` (K of eq. 3.1) and `workers`: None takes the
+    device's (BUILD_MIN_CHUNKS, pool.state.default_workers)."""
     if width is not None and width not in WIDTHS:
         raise ValueError(f"width must be one of {list(WIDTHS)} or None, got {width!r}")
     if method not in METHODS:
@@ -95,7 +102,7 @@ def build_bvh(
         raise ValueError(f"leaf_size must be in 1..64 (8, 16 or 32 are usual), got {leaf_size}")
     if not 1 <= int(max_depth) <= STACK_SIZE:
         raise ValueError(f"max_depth must be in 1..{STACK_SIZE}, got {max_depth}")
-    if int(min_chunks) < 1:
+    if min_chunks is not None and int(min_chunks) < 1:
         raise ValueError(f"min_chunks must be >= 1, got {min_chunks}")
     device = get_device(device)
     width = default_width(device) if width is None else int(width)
@@ -208,7 +215,7 @@ class BoxTree:
 
 def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.array,
                      method: str, leaf_size: int, max_depth: int, device, *,
-                     min_chunks: int = DEFAULT_MIN_CHUNKS, workers: int | None = None,
+                     min_chunks: int | None = None, workers: int | None = None,
                      pool_capacity: int | None = None, phase_ms: dict[str, float],
                      start: float) -> BoxTree:
     """The pool's build (2012 paper, sec. 4) over any boxes: `build_bvh`'s triangle boxes
@@ -218,6 +225,8 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
     `phase_ms`."""
     m = lo.shape[0]
     workers = default_workers(device) if workers is None else int(workers)
+    if min_chunks is None:
+        min_chunks = BUILD_MIN_CHUNKS["cpu" if device.is_cpu else "cuda"]
     b = BuildData()
     offsets = wp.empty(m, dtype=int, device=device)
     if m:

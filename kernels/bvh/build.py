@@ -24,6 +24,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..core.box import INF, max3, median_plane, min3
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.mesh import triangle_corners
 from ..core.triangle import is_degenerate
 from ..pool.atomics import shared_add, shared_max
@@ -71,7 +72,7 @@ from .build_data import (
 )
 from .sweep_sah import small_subtree
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func

@@ -27,6 +27,7 @@ import numpy as np
 import warp as wp
 
 from ..core.box import INF, max3, min3
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import host_threads, launch_split, load_modules, run_parts, sync_ms
 from ..core.mesh import DeviceMesh, degenerate_mask
 from ..core.validate import as_triangle_mesh
@@ -35,7 +36,7 @@ from .build import store_leaf_triangle
 from .node import BvhNode
 from .wide import BLOCK, BLOCK_WORDS, WORDS_PER_LANE, float_bits
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 # The refit tree's SAH cost over the last build's above which `refit_bvh` rebuilds: between
 # the measured ratios where the refit tree's trace and AO time were within the measurement's

@@ -57,12 +57,13 @@ import numpy as np
 import warp as wp
 
 from ..core.box import INF, half_area
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import host_pool
 from ..pool.atomics import shared_add, shared_max
 from ..pool.worker import launch_workers
 from .node import BvhNode
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 WIDTHS = (2, 4, 8)  # 2: the binary tree itself, traversed as before
 WORDS_PER_LANE = wp.constant(8)  # lo_x hi_x lo_y hi_y lo_z hi_z child count

@@ -29,6 +29,7 @@ from __future__ import annotations
 import warp as wp
 
 from ..core.box import INF
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import FAR_WIDEN, Hit, Ray, intersect_box
 from ..core.triangle import intersect_triangle
 from .leaf import finish_hit
@@ -44,7 +45,7 @@ from .wide import (
     float_bits,
 )
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.func_native(

@@ -14,11 +14,12 @@ import numpy as np
 import warp as wp
 
 from .box import max3, min3
+from .compile_options import MODULE_OPTIONS
 from .launch import get_device, host_threads, launch_split, to_device
 from .triangle import is_degenerate
 from .validate import as_shading, as_triangle_mesh
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 
 @wp.struct

@@ -26,6 +26,7 @@ from warp.utils import array_scan, radix_sort_pairs, runlength_encode
 
 from ..core import mesh as core_mesh
 from ..core.box import INF, median_plane
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
 from ..core.mesh import DeviceMesh
@@ -43,7 +44,7 @@ from .records import (
     unpack_hits,
 )
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 NONE = wp.constant(0)
 LEFT = wp.constant(1)

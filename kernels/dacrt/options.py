@@ -28,7 +28,8 @@ class DacrtOptions:
     """How `dacrt_trace` divides and conquers; None: the default for the device.
 
     Task-pool variant (2012 paper, sec. 5):
-      workers: pool workers (one per core on CPU; enough to fill a GPU).
+      workers: pool workers (one per core on CPU; on CUDA task_pool.WORKERS_PER_SM per
+          multiprocessor).
       min_chunks: K of eq. 3.1; steps with fewer chunks run inline (sec. 3.4).
       pool_capacity: task-pool slots; None starts with POOL_SLOTS and, if the tasks alive
           at once outgrow them (many incoherent rays), runs again with 4x as many (stats

@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from ..core.box import INF
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
 from ..core.launch import host_threads, launch_split
@@ -20,7 +21,7 @@ from ..core.mesh import DeviceMesh
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle, refine_hit
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 KEY_NONE = wp.constant(wp.uint64(0xFFFFFFFFFFFFFFFF))
 MARGIN_REL = 2.0**-16  # box and plane widening, relative to the largest coordinate

@@ -4,8 +4,10 @@ A Warp CPU launch is one serial loop and Warp's CPU atomics are plain read-modif
 on CPU each core runs its own launch of a worker kernel and every access to state shared
 between workers goes through the functions below: `__atomic` builtins (sequentially
 consistent, which also orders task data written before a header against the reads after
-it). On CUDA they are CUDA's atomics, and `memory_fence()` orders task data before the
-header that publishes it.
+it). On CUDA they are CUDA's atomics, which are relaxed: `memory_fence()` (a no-op on CPU)
+orders plain loads and stores around them where the pool hands data from one worker to
+another (pool.state: a fence before the atomic that publishes, one after the atomic that
+receives, so that a worker on another multiprocessor reads no stale L1 line).
 """
 
 from __future__ import annotations
@@ -125,7 +127,7 @@ def cycles() -> wp.int64: ...
 @wp.func_native(
     """
 #if defined(__CUDA_ARCH__)
-    return atomicAdd(&a[i], 0);
+    return *(volatile const int*)&a[i];
 #else
     return __atomic_load_n(&a[i], __ATOMIC_SEQ_CST);
 #endif
@@ -133,7 +135,9 @@ def cycles() -> wp.int64: ...
 )
 def pool_load(a: wp.array(dtype=wp.int32), i: int) -> int:
     """Atomic read: a plain load may be served from a stale cache line or register. (On x86
-    a plain `mov`, so idle workers polling the pool do not take the cache line away.)"""
+    a plain `mov`, so idle workers polling the pool do not take the cache line away; on
+    CUDA a volatile load, served by L2: an `atomicAdd(p, 0)` would serialise thousands of
+    polling threads on the header's address.)"""
     ...
 
 

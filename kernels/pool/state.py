@@ -94,14 +94,20 @@ def pool_acquire(pool: Pool) -> wp.vec3i:
             take = wp.min(want, h)
             seen = shared_cas(pool.header, slot, h, h - take)
             if seen == h:
+                memory_fence()  # acquire: the task's data, published before its header
                 return wp.vec3i(slot, h - take, take)
             h = seen
 
 
 @wp.func
 def pool_finish(pool: Pool, slot: int, count: int) -> bool:
-    """Report `count` finished chunks; True for the last finisher of the step."""
-    return shared_add(pool.unfinished, slot, -count) == count
+    """Report `count` finished chunks; True for the last finisher of the step, which then
+    sees every other finisher's results (the fences: release before, acquire after)."""
+    memory_fence()
+    last = shared_add(pool.unfinished, slot, -count) == count
+    if last:
+        memory_fence()
+    return last
 
 
 @wp.func
@@ -130,8 +136,12 @@ def pool_wait(pool: Pool, slot: int, dependencies: int):
 @wp.func
 def pool_resolve(pool: Pool, slot: int) -> bool:
     """One dependency of `slot` finished; True when it was the last (the task is now locked
-    and the caller publishes its first step)."""
-    return shared_add(pool.header, slot, 1) == -1
+    and the caller publishes its first step, seeing what the finished tasks wrote)."""
+    memory_fence()
+    last = shared_add(pool.header, slot, 1) == -1
+    if last:
+        memory_fence()
+    return last
 
 
 @wp.func
@@ -210,7 +220,9 @@ def check_pool(pool: Pool) -> np.ndarray:
     return state
 
 
-def default_workers(device) -> int:
-    """One worker per core on CPU (each a launch of its own); enough to fill a GPU."""
+def default_workers(device, per_sm: int = 256) -> int:
+    """One worker per core on CPU (each a launch of its own); on CUDA `per_sm` one-thread
+    workers per multiprocessor: the build ran best with 256 on an H200, the task-pool DACRT
+    with 32 (docs/benchmarks.md, CUDA sweeps)."""
     device = wp.get_device(device)
-    return cpu_cores() if device.is_cpu else 64 * device.sm_count * 4
+    return cpu_cores() if device.is_cpu else per_sm * device.sm_count

@@ -87,6 +87,7 @@ import warp as wp
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
 from ..bvh.traversal import closest_hit, traverse
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import (
     PARTS_PER_THREAD,
     host_threads,
@@ -114,7 +115,7 @@ from ..scene.top import (
 from .denoise import denoise_ao, require_denoiser
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 DISTANCE_FRACTION = 0.1  # distance=None: this fraction of the scene box's diagonal
 OFFSET_ULPS = 128.0  # occlusion-ray origin offset, in float32 ulps of the local scale

@@ -22,9 +22,10 @@ import warp as wp
 from ..bvh.node import BvhArrays, BvhNode
 from ..bvh.traversal import STACK_SIZE, traverse
 from ..core.box import INF
+from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import Hit, Ray, make_ray, per_ray
 
-wp.set_module_options({"enable_backward": False, "optimization_level": 3})
+wp.set_module_options(MODULE_OPTIONS)
 
 TopStack = wp.types.vector(length=STACK_SIZE, dtype=wp.int32)
 TopDists = wp.types.vector(length=STACK_SIZE, dtype=wp.float32)

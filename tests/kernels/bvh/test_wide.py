@@ -262,10 +262,10 @@ def test_axis_aligned_rays_and_empty_mesh(width):
     assert np.all(kernels.trace(empty, o, d, any_hit=True).triangle == -1)
 
 
-def test_width_option():
+def test_width_option(device):
     v, f = random_soup(np.random.default_rng(1), 50)
     bvh = kernels.build_bvh(v, f)
-    assert bvh.stats["width"] == bvh_api.DEFAULT_WIDTH["cpu"]
+    assert bvh.stats["width"] == bvh_api.default_width(wp.get_device(device))
     assert "collapse" in bvh.stats["phase_ms"]
     with pytest.raises(ValueError, match="width must be one of"):
         kernels.build_bvh(v, f, width=3)
