@@ -32,7 +32,7 @@ import urllib.parse
 from pathlib import Path
 
 STOP_TIMEOUT_S = 5.0
-ENGINE_PACKAGE = "backend"  # the service's package inside the bundled scenesort wheel
+ENGINE_PACKAGE = "scenesort.backend"  # the service's package inside the scenesort wheel
 _PR_SET_PDEATHSIG = 1
 # `scenesort serve` prints this first, with the port it bound (also for --port 0).
 _SERVING = re.compile(r"scenesort serving on (http://\S+)")
@@ -89,13 +89,19 @@ def split_command(command: str) -> list[str]:
 
 
 def engine_root() -> Path | None:
-    """The folder that holds the bundled engine's packages, found without importing them
-    (Blender puts its extensions' site-packages first on `sys.path`)."""
-    spec = importlib.util.find_spec(ENGINE_PACKAGE)
+    """The folder that holds the bundled engine, `scenesort/` (Blender puts its extensions'
+    site-packages first on `sys.path`), found without importing the engine: only the two
+    package markers `scenesort` and `scenesort.backend`, which import nothing, run."""
+    try:
+        spec = importlib.util.find_spec(ENGINE_PACKAGE)
+    except ImportError:  # no `scenesort` package at all
+        return None
     if spec is None or not spec.submodule_search_locations:
         return None
-    package = Path(next(iter(spec.submodule_search_locations)))
-    return package.parent if (package / "cli.py").is_file() else None
+    if not (Path(next(iter(spec.submodule_search_locations))) / "cli.py").is_file():
+        return None
+    top = importlib.util.find_spec(ENGINE_PACKAGE.split(".")[0])
+    return Path(top.origin).parent.parent if top and top.origin else None
 
 
 def _bundled_engine() -> Path:

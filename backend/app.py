@@ -23,14 +23,9 @@ import numpy as np
 from fastapi import FastAPI, Path, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
-from starlette.background import BackgroundTask
-from starlette.concurrency import run_in_threadpool
-from starlette.exceptions import HTTPException as StarletteHTTPException
-from starlette.requests import ClientDisconnect
-
-from backend import __version__, jobs, wire
-from backend.frames import resolve
-from backend.jobs import (
+from scenesort.backend import __version__, jobs, wire
+from scenesort.backend.frames import resolve
+from scenesort.backend.jobs import (
     TOO_LARGE,
     AoParams,
     DeviceWorker,
@@ -39,7 +34,7 @@ from backend.jobs import (
     Stopped,
     StopSignal,
 )
-from backend.models import (
+from scenesort.backend.models import (
     MAX_PIXEL_ERROR_DOC,
     OCTET,
     TARGET_ERROR_DOC,
@@ -55,9 +50,13 @@ from backend.models import (
     binary_body,
     error_responses,
 )
-from backend.problems import ApiError, busy
-from backend.security import AUTHORIZED, Guard, Policy, escape
-from backend.store import Store
+from scenesort.backend.problems import ApiError, busy
+from scenesort.backend.security import AUTHORIZED, Guard, Policy, escape
+from scenesort.backend.store import Store
+from starlette.background import BackgroundTask
+from starlette.concurrency import run_in_threadpool
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 BEARER = "bearer"  # the OpenAPI security scheme of the token
 log = logging.getLogger("scenesort.app")
@@ -234,7 +233,7 @@ def _check_ao(params: AoParams) -> None:
             "invalid_parameter",
         )
     if params.denoise:
-        from kernels.render.denoise import EXTRA_HINT, DenoiserMissing, require_denoiser
+        from scenesort.kernels.render.denoise import EXTRA_HINT, DenoiserMissing, require_denoiser
 
         try:
             require_denoiser()
@@ -387,7 +386,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         # Import the engine and load its kernels before the first request, not during it.
-        await run_in_threadpool(importlib.import_module, "kernels")
+        await run_in_threadpool(importlib.import_module, "scenesort.kernels")
         worker.submit(lambda: jobs.warm_up(settings.device))
         yield
         stop_work(app)

@@ -24,12 +24,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
+    from scenesort.backend import peers
+    from scenesort.backend.render import load_scene
+    from scenesort.kernels.core import cpu_cores
+    from scenesort.kernels.render import default_distance
 
-    import kernels
-    from backend import peers
-    from backend.render import load_scene
-    from kernels.core import cpu_cores
-    from kernels.render import default_distance
+    from scenesort import kernels
 
     console = Console()
     scene = load_scene(args.scene, args.width, args.height)

@@ -28,10 +28,9 @@ from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
-
-from backend import wire
-from backend.models import JobRequest
-from backend.problems import ApiError
+from scenesort.backend import wire
+from scenesort.backend.models import JobRequest
+from scenesort.backend.problems import ApiError
 
 FORMAT = "scenesort-frame-bundle"
 VERSION = 1

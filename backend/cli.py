@@ -10,13 +10,16 @@ import sys
 # `add_arguments(parser)` and `run(args) -> int`; importing is lazy so that
 # `scenesort --help` does not pay for Warp or FastAPI.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "render": ("backend.render", "render a scene (default: the built-in scene) and print timings"),
-    "render-frames": ("backend.render_frames",
+    "render": ("scenesort.backend.render",
+               "render a scene (default: the built-in scene) and print timings"),
+    "render-frames": ("scenesort.backend.render_frames",
                       "render a frame bundle (File > Export > scenesort animation)"),
-    "bench": ("backend.bench", "build and trace a scene with every engine and peer, print a table"),
-    "serve": ("backend.serve", "run the local HTTP service (FastAPI + uvicorn)"),
-    "addon-zip": ("backend.addon_zip", "build the installable Blender extension zip"),
-    "token": ("backend.token_file", "print the token `scenesort serve` uses (clients send it)"),
+    "bench": ("scenesort.backend.bench",
+              "build and trace a scene with every engine and peer, print a table"),
+    "serve": ("scenesort.backend.serve", "run the local HTTP service (FastAPI + uvicorn)"),
+    "addon-zip": ("scenesort.backend.addon_zip", "build the installable Blender extension zip"),
+    "token": ("scenesort.backend.token_file",
+              "print the token `scenesort serve` uses (clients send it)"),
 }
 
 

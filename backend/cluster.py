@@ -20,8 +20,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from backend.bundle import Frame, read_bundle
-from backend.frames import BuildReport, FrameRenderer, FrameResult, frame_done, write_frame
+from scenesort.backend.bundle import Frame, read_bundle
+from scenesort.backend.frames import (
+    BuildReport,
+    FrameRenderer,
+    FrameResult,
+    frame_done,
+    write_frame,
+)
 
 EXTRA_HINT = 'pip install "scenesort[cluster]"'
 DEFAULT_RETRIES = 3

@@ -38,10 +38,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-
-from backend import wire
-from backend.bundle import Bundle, read_bundle
-from backend.store import Store, bvh_key, bvh_nbytes
+from scenesort.backend import wire
+from scenesort.backend.bundle import Bundle, read_bundle
+from scenesort.backend.store import Store, bvh_key, bvh_nbytes
 
 TopLevel = Literal["built", "reused", "none"]
 DEFAULT_CACHE_BYTES = 4096 * 2**20
@@ -124,7 +123,7 @@ def mesh_bvh(store: Store, mesh: wire.SceneArrays, method: str, leaf_size: int, 
     (one that `in_use`, the meshes of the same instance list, does not hold), else built.
     `in_use` None: a single-mesh scene, built as the single-mesh API always has (with the
     statistics of a fresh build), and never a refit's donor."""
-    import kernels
+    from scenesort import kernels
 
     key = bvh_key(mesh.scene_id, method, leaf_size)
     bvh = store.get(key)
@@ -172,8 +171,9 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     BVHs, each from `mesh_bvh`); with a `view`, only what may change its pixels (module
     doc). An instance list is kept in the store with its top level, which lives no longer
     than it (store.py drops a scene's BVHs with it)."""
-    import kernels
-    from kernels.scene import bvh_nbytes as mesh_bytes
+    from scenesort.kernels.scene import bvh_nbytes as mesh_bytes
+
+    from scenesort import kernels
 
     report = BuildReport()
     if isinstance(scene, wire.SceneArrays):
@@ -220,9 +220,9 @@ def visible(store: Store, scene: wire.InstanceScene, view: View) -> tuple[np.nda
     placement (`place_instances`, which `build_scene` then reuses). The placement and the
     meshes' triangle sizes depend on the instance list alone: kept under `placement_key`,
     so a camera-only change pays the planes' test only."""
-    from kernels.render import default_distance
-    from kernels.render.cull import mesh_box, visible_instances
-    from kernels.scene.api import place_instances
+    from scenesort.kernels.render import default_distance
+    from scenesort.kernels.render.cull import mesh_box, visible_instances
+    from scenesort.kernels.scene.api import place_instances
 
     kept = store.get(placement_key(scene.scene_id))
     if kept is None:
@@ -308,7 +308,7 @@ class FrameRenderer:
 
     def render(self, frame_number: int) -> FrameResult:
         """Render one frame (its meshes read from the bundle when first needed)."""
-        from backend import jobs  # which imports this module for scene_bvh
+        from scenesort.backend import jobs  # which imports this module for scene_bvh
 
         frame = self.bundle.frame(frame_number)
         request = frame.request

@@ -18,8 +18,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-
-from kernels import Camera
+from scenesort.kernels import Camera
 
 
 @dataclass(frozen=True)

@@ -21,8 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-
-from backend.frames import View, scene_bvh
+from scenesort.backend.frames import View, scene_bvh
 
 log = logging.getLogger("scenesort.jobs")
 
@@ -418,7 +417,7 @@ def ao_params(request: Any, threads: int | None = None) -> AoParams:
 def job_camera(request: Any) -> Any:
     """The framed camera of a job request (its camera, window and pixel aspect); raises
     ValueError naming the camera field at fault."""
-    from backend.framing import framed
+    from scenesort.backend.framing import framed
 
     window = None if request.window is None else request.window.model_dump()
     return framed(request.camera.model_dump(), window, request.pixel_aspect)
@@ -428,7 +427,7 @@ def warm_up(device: str) -> None:
     """Build and render a one-triangle scene so that Warp loads (or compiles) every kernel
     module now; a failure is logged and left for real requests to report."""
     try:
-        import kernels
+        from scenesort import kernels
 
         vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
         bvh = kernels.build_bvh(vertices, np.array([[0, 1, 2]], np.int32), device=device)
@@ -463,7 +462,7 @@ def bvh_for_ao(
 
 def adaptive_max_spp() -> int:
     """The engine's cap on samples per ray in adaptive (target_error) mode."""
-    from kernels.render import ao
+    from scenesort.kernels.render import ao
 
     return int(getattr(ao, "DEFAULT_MAX_SPP", 1024))
 
@@ -475,7 +474,7 @@ def ambient_occlusion(
     """AO for explicit rays, exactly `kernels.ambient_occlusion` (which is
     `render_ao(...).ao`) with the scene's normals, with the engine's phase timings;
     `signal` is checked between the engine's rounds (it raises Stopped there)."""
-    import kernels
+    from scenesort import kernels
 
     result = kernels.render_ao(
         bvh, origins, directions, progress=lambda *_: signal.check(), **params.kwargs(),
@@ -498,7 +497,7 @@ def render_camera(
     """A camera job: BVH (cached or built; with `cull`, of an instance list only what the
     camera may see: backend/frames.py), primary rays, AO with progress, the primary hits'
     depth and coverage, PNG."""
-    from backend.wire import encode_png
+    from scenesort.backend.wire import encode_png
 
     def timed(phase: str, fn: Callable[[], Any]) -> Any:
         job.report(phase)  # also the cancellation point between phases
@@ -537,7 +536,7 @@ def camera_depth(
 ) -> np.ndarray:
     """Cycles' Z pass: the closest hit's camera-space depth `t * dot(d, forward)` per ray,
     BACKGROUND_DEPTH where the ray misses (the same closest-hit query as AO's primary rays)."""
-    import kernels
+    from scenesort import kernels
 
     hits = kernels.trace(bvh, origins, directions, tmin, tmax)
     z = hits.t.astype(np.float64) * (directions.astype(np.float64) @ camera.forward)
@@ -558,7 +557,7 @@ def _render_ao(
     """`kernels.render_ao` within the camera's clip range with the scene's normals,
     reporting progress between its rounds, denoised if asked (an image of `shape`); its
     `AoResult`."""
-    import kernels
+    from scenesort import kernels
 
     def progress(fraction: float, phase: str) -> None:
         job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop

@@ -12,8 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 import warp as wp
-
-from kernels.core import launch_split
+from scenesort.kernels.core import launch_split
 
 wp.set_module_options({"enable_backward": False})
 

@@ -80,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_scene(scene: str | None, width: int | None, height: int | None) -> Any:
     """The built-in scene, a shared scene by name, or a mesh file with a framing camera."""
-    from backend import scenes
+    from scenesort.backend import scenes
 
     w = width or scenes.DEFAULT_WIDTH
     h = height or scenes.DEFAULT_HEIGHT
@@ -96,7 +96,7 @@ def load_scene(scene: str | None, width: int | None, height: int | None) -> Any:
 def framing_camera(vertices: np.ndarray, width: int, height: int) -> Any:
     """A 35-degree pinhole camera on the +Y+Z diagonal that fits the mesh's bounding
     sphere with a 10% margin (like the shared scenes' object cameras)."""
-    from kernels import Camera
+    from scenesort.kernels import Camera
 
     lo, hi = vertices.min(axis=0).astype(float), vertices.max(axis=0).astype(float)
     centre = 0.5 * (lo + hi)
@@ -111,7 +111,7 @@ def framing_camera(vertices: np.ndarray, width: int, height: int) -> Any:
 
 def load_camera(path: Path, width: int, height: int) -> Any:
     """A camera from JSON: the Camera wire form, or a scenes.json look-at description."""
-    from kernels import Camera
+    from scenesort.kernels import Camera
 
     try:
         data = json.loads(path.read_text())
@@ -149,7 +149,7 @@ def _check(args: argparse.Namespace) -> None:
         if value is not None and not 0 < value < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {value}")
     if args.denoise:
-        from kernels.render.denoise import DenoiserMissing, require_denoiser
+        from scenesort.kernels.render.denoise import DenoiserMissing, require_denoiser
 
         try:
             require_denoiser()
@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace, console: Any) -> int:
-    import kernels
+    from scenesort import kernels
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()

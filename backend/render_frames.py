@@ -61,8 +61,7 @@ def parse_frames(spec: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-
-    from backend.cluster import ClusterError
+    from scenesort.backend.cluster import ClusterError
 
     console = Console()
     try:
@@ -75,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         frames = None if args.frames is None else parse_frames(args.frames)
         start = time.perf_counter()
         if args.ray is None:
-            from backend.frames import render_frames
+            from scenesort.backend.frames import render_frames
 
             done = render_frames(args.bundle, args.out, frames=frames, resume=args.resume,
                                  threads=args.threads, progress=not args.no_progress,
@@ -102,9 +101,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _on_ray(args: argparse.Namespace, frames: list[int] | None,
             console: Any) -> tuple[list[tuple[int, Any]], dict[int, str]]:
-    from backend.bundle import read_bundle
-    from backend.cluster import import_ray, render_frames_ray
-    from backend.frames import frame_progress
+    from scenesort.backend.bundle import read_bundle
+    from scenesort.backend.cluster import import_ray, render_frames_ray
+    from scenesort.backend.frames import frame_progress
 
     import_ray()  # the missing extra, named before any work
     total = len(read_bundle(args.bundle).frames) if frames is None else len(frames)

@@ -16,8 +16,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from kernels import Camera
+from scenesort.kernels import Camera
 
 SCENES_ENV = "SCENESORT_SCENES"
 DEFAULT_WIDTH, DEFAULT_HEIGHT = 640, 480

@@ -21,8 +21,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-
-from backend.problems import ApiError
+from scenesort.backend.problems import ApiError
 
 F32 = np.dtype("<f4")
 I32 = np.dtype("<i4")
@@ -100,7 +99,7 @@ class InstanceScene:
     @cached_property
     def _shading(self) -> dict[str, object]:
         # Made once per list: the engine keeps its device copy for the same objects.
-        from kernels.render.ao import DEFAULT_TERMINATOR_OFFSET
+        from scenesort.kernels.render.ao import DEFAULT_TERMINATOR_OFFSET
 
         normals = [m.normals for m in self.meshes]
         if all(n is None for n in normals):
@@ -194,7 +193,9 @@ def _check_finite(parameter: str, values: np.ndarray, what: str) -> None:
 
 def count_degenerate(vertices: np.ndarray, indices: np.ndarray) -> int:
     """Zero-area triangles (kept, never hit), counted by the engine on every core."""
-    from kernels.core import count_degenerate as engine_count  # Warp only where it is needed
+    from scenesort.kernels.core import (
+        count_degenerate as engine_count,  # Warp only where it is needed
+    )
 
     return engine_count(vertices, indices, device="cpu")
 

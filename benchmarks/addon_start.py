@@ -66,8 +66,8 @@ def main() -> int:
         zip_path = args.zip or work / "scenesort-linux-x64.zip"
         if args.zip is None:
             subprocess.run(
-                [sys.executable, "-m", "backend.cli", "addon-zip", "--platform", "linux-x64",
-                 "-o", str(zip_path)], cwd=ROOT, check=True,
+                [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--platform",
+                 "linux-x64", "-o", str(zip_path)], cwd=ROOT, check=True,
             )  # fmt: skip
         env = {"PATH": "/usr/bin:/bin", "HOME": os.environ.get("HOME", tmp),
                "WARP_CACHE_PATH": str(work / "warp-cache")}  # fmt: skip

@@ -51,14 +51,14 @@ import warp as wp
 wp.config.quiet = True
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
+from scenesort.backend import wire  # noqa: E402
+from scenesort.backend.scenes import load_mesh, shared_scene, shared_scenes_dir  # noqa: E402
+from scenesort.kernels import Camera  # noqa: E402
+from scenesort.kernels.core import cpu_cores  # noqa: E402
+from scenesort.kernels.render import default_distance  # noqa: E402
+from scenesort.kernels.scene import bvh_nbytes  # noqa: E402
 
-import kernels  # noqa: E402
-from backend import wire  # noqa: E402
-from backend.scenes import load_mesh, shared_scene, shared_scenes_dir  # noqa: E402
-from kernels import Camera  # noqa: E402
-from kernels.core import cpu_cores  # noqa: E402
-from kernels.render import default_distance  # noqa: E402
-from kernels.scene import bvh_nbytes  # noqa: E402
+from scenesort import kernels  # noqa: E402
 
 REFIT_FLOOR = 0.3  # refit time / rebuild time, at most
 MEMORY_FLOOR = 1.1  # scene bytes / (one bunny + top level), at most
@@ -561,8 +561,8 @@ def part_cull(args) -> tuple[list[str], dict]:
     import tempfile
     from pathlib import Path
 
-    from backend.bundle import BundleWriter
-    from backend.frames import FrameRenderer
+    from scenesort.backend.bundle import BundleWriter
+    from scenesort.backend.frames import FrameRenderer
 
     width = args.frame_size
     anim = Animation(1, args.cull_triangles, width, width * 3 // 4)
@@ -649,8 +649,8 @@ def part_cull(args) -> tuple[list[str], dict]:
 def cull_decision_costs(args) -> dict:
     """Per camera over the bunny field: the cull decision, the top level over what is in
     view, and the top level over everything; medians of (wall, CPU) ms."""
-    from backend.frames import View, visible
-    from backend.store import Store
+    from scenesort.backend.frames import View, visible
+    from scenesort.backend.store import Store
 
     bunny = shared_scene("bunny")
     v, f = bunny.vertices, bunny.indices

@@ -53,12 +53,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
+from scenesort.backend import peers  # noqa: E402
+from scenesort.backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
+from scenesort.kernels.core import host_threads  # noqa: E402
+from scenesort.kernels.render import ao  # noqa: E402
 
-import kernels  # noqa: E402
-from backend import peers  # noqa: E402
-from backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
-from kernels.core import host_threads  # noqa: E402
-from kernels.render import ao  # noqa: E402
+from scenesort import kernels  # noqa: E402
 
 RMSE_GOAL = 0.02
 FIXED_SPP = (1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128, 192, 256, 384)

@@ -32,12 +32,12 @@ wp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="scenesort-bench-cache-")
 wp.config.quiet = True
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
+from scenesort.backend import peers  # noqa: E402
+from scenesort.backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
+from scenesort.kernels.core import cpu_cores  # noqa: E402
+from scenesort.kernels.render import default_distance  # noqa: E402
 
-import kernels  # noqa: E402
-from backend import peers  # noqa: E402
-from backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
-from kernels.core import cpu_cores  # noqa: E402
-from kernels.render import default_distance  # noqa: E402
+from scenesort import kernels  # noqa: E402
 
 LEAVES = (8, 16, 32)
 METHODS = ("sah", "median")
@@ -47,7 +47,7 @@ AO_PER_HIT = 4  # issue 17's AO rays: 4 cosine rays per primary hit, tmax 0.1 x 
 
 def compile_seconds() -> dict[str, float]:
     """First-use cost of each engine module in an empty kernel cache."""
-    from kernels.bvh import build, traversal, wide
+    from scenesort.kernels.bvh import build, traversal, wide
 
     out = {}
     for name, module in (("bvh_build", build.build_worker.module),

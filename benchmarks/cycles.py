@@ -56,10 +56,10 @@ from cycles_reference import (  # noqa: E402
     exr_channels,
     render_cycles_ao,
 )
+from scenesort.backend.scenes import shared_scenes_dir  # noqa: E402
 
 import addon  # noqa: E402
 from addon import export, prefs, service  # noqa: E402
-from backend.scenes import shared_scenes_dir  # noqa: E402
 from benchmarks.docs_section import write_section  # noqa: E402
 
 PARITY_RATIO = 1.25
@@ -190,8 +190,8 @@ def f12_seconds(scene, engine: str) -> float:
 def pixel_classes(scene) -> np.ndarray:
     """Per pixel (row 0 at the top): -1 background, 0 flat, 1 smooth, from the exported
     triangles the camera rays hit first (the engine's own camera model)."""
-    import kernels
     from addon import camera
+    from scenesort import kernels
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
     mesh = export.export_scene(depsgraph)

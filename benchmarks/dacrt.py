@@ -47,11 +47,11 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
+from scenesort.backend.peers import samples_each, timeit_each  # noqa: E402
+from scenesort.backend.scenes import shared_scene  # noqa: E402
+from scenesort.kernels import dacrt_trace  # noqa: E402
 
-import kernels  # noqa: E402
-from backend.peers import samples_each, timeit_each  # noqa: E402
-from backend.scenes import shared_scene  # noqa: E402
-from kernels import dacrt_trace  # noqa: E402
+from scenesort import kernels  # noqa: E402
 
 AO_SPP = 7  # 2012 paper: 7 AO rays per primary ray (the 2013 paper's 8 is close)
 ALL_SCENES = ("bunny", "dragon", "buddha", "blade", "sponza", "sibenik", "conference")

@@ -31,10 +31,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from backend.bundle import BundleWriter  # noqa: E402
-from backend.cluster import connect, import_ray, render_frames_ray  # noqa: E402
-from backend.frames import render_frames  # noqa: E402
-from backend.scenes import load_mesh, shared_scenes_dir  # noqa: E402
+from scenesort.backend.bundle import BundleWriter  # noqa: E402
+from scenesort.backend.cluster import connect, import_ray, render_frames_ray  # noqa: E402
+from scenesort.backend.frames import render_frames  # noqa: E402
+from scenesort.backend.scenes import load_mesh, shared_scenes_dir  # noqa: E402
+
 from benchmarks.docs_section import write_section  # noqa: E402
 
 WARM_UP = 2

@@ -42,8 +42,9 @@ import warp as wp  # noqa: E402
 
 wp.config.quiet = True
 
-import kernels  # noqa: E402
-from backend.scenes import shared_scene  # noqa: E402
+from scenesort.backend.scenes import shared_scene  # noqa: E402
+
+from scenesort import kernels  # noqa: E402
 
 AO_SPP = 4
 
@@ -179,7 +180,7 @@ def main() -> int:
     rows = []
     for name in args.scenes.split(","):
         rows += scene_rows(name, args.size, device, args.repeat, deadline)
-    from kernels.core import cpu_cores
+    from scenesort.kernels.core import cpu_cores
 
     print(f"{args.size}x{args.size} camera rays; {device}: median of {args.repeat} after a "
           f"warm-up; CPU: one run after a warm-up; {time.perf_counter() - start:.0f} s in all")

@@ -45,12 +45,12 @@ sys.path[:0] = [str(REPO), str(REPO / "benchmarks")]
 wp.config.quiet = True
 
 from dacrt import TUNINGS, scene_rays  # noqa: E402
+from scenesort.backend.peers import _mesh_closest, _mesh_occluded, ao_rays, random_rays  # noqa: E402
+from scenesort.backend.scenes import shared_scene  # noqa: E402
+from scenesort.kernels.bvh.build_data import PHASE_NAMES  # noqa: E402
+from scenesort.kernels.bvh.traversal import trace_kernel  # noqa: E402
 
-import kernels  # noqa: E402
-from backend.peers import _mesh_closest, _mesh_occluded, ao_rays, random_rays  # noqa: E402
-from backend.scenes import shared_scene  # noqa: E402
-from kernels.bvh.build_data import PHASE_NAMES  # noqa: E402
-from kernels.bvh.traversal import trace_kernel  # noqa: E402
+from scenesort import kernels  # noqa: E402
 
 PAPER_SCENES = ("conference", "sponza", "sibenik", "bunny", "dragon", "buddha", "blade")
 BIG = "bunny4x"  # the bunny subdivided twice: 1.1 M triangles

@@ -27,6 +27,7 @@ several workers it also counts the time idle workers spin.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import os
 import statistics
@@ -47,10 +48,16 @@ def measure(args: argparse.Namespace) -> None:
     import warp as wp
 
     wp.config.quiet = True
-    import kernels
-    from backend.scenes import shared_scene
+    # The engine by its import name; a checkout from before the one import name (an --old
+    # one) installs it as the top-level packages `kernels` and `backend`.
+    try:
+        kernels = importlib.import_module("scenesort.kernels")
+        scenes = importlib.import_module("scenesort.backend.scenes")
+    except ImportError:
+        kernels = importlib.import_module("kernels")
+        scenes = importlib.import_module("backend.scenes")
 
-    scene = shared_scene(args.scene)
+    scene = scenes.shared_scene(args.scene)
     v, f = scene.vertices, scene.indices
     o, d, tmin, tmax = replace(scene.camera, width=args.size, height=args.size).rays()
     so, sd, stmin, stmax = replace(scene.camera, width=args.small, height=args.small).rays()

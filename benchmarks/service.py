@@ -29,9 +29,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import kernels  # noqa: E402
-from backend.scenes import load_mesh, shared_scenes_dir  # noqa: E402
-from kernels import Camera  # noqa: E402
+from scenesort.backend.scenes import load_mesh, shared_scenes_dir  # noqa: E402
+from scenesort.kernels import Camera  # noqa: E402
+
+from scenesort import kernels  # noqa: E402
 
 OCTET = {"Content-Type": "application/octet-stream"}
 
@@ -66,7 +67,7 @@ def start_service(*extra: str) -> tuple[subprocess.Popen, str, dict[str, str]]:
         [
             sys.executable,
             "-m",
-            "backend.cli",
+            "scenesort.backend.cli",
             "serve",
             "--port",
             "0",

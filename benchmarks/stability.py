@@ -28,7 +28,7 @@ import warp as wp
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-import kernels  # noqa: E402
+from scenesort import kernels  # noqa: E402
 from tests.stability import cases as C  # noqa: E402
 from tests.stability.test_axis_aligned import in_wall_rays, room  # noqa: E402
 

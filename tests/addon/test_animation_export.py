@@ -10,9 +10,9 @@ import bpy
 import numpy as np
 import pytest
 from blender_scenes import FRAMES, add_object, animated_scene, box_mesh
+from scenesort.backend.bundle import BundleError, read_bundle
 
 from addon import animation, camera, export
-from backend.bundle import BundleError, read_bundle
 
 
 @pytest.fixture

@@ -11,11 +11,11 @@ import bpy
 import numpy as np
 import pytest
 from blender_scenes import FRAMES, animated_scene, read_image
+from scenesort.backend.cli import main
 
 import addon
 from addon import connection, export, pipeline, prefs, service
 from addon.tasks import Task
-from backend.cli import main
 
 
 @pytest.fixture(scope="module")

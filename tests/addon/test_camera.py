@@ -15,7 +15,7 @@ from addon import camera
 
 def _rays(desc: dict) -> tuple[np.ndarray, ...]:
     """The service's rays for a camera description (the engine's model)."""
-    from kernels import Camera
+    from scenesort.kernels import Camera
 
     return Camera.from_dict(desc).rays()
 
@@ -47,7 +47,7 @@ def _setup(
 
 @pytest.mark.parametrize("name,settings,w,h,pct,scale", CAMERAS, ids=[c[0] for c in CAMERAS])
 def test_description_is_the_engines_wire_form(registered, name, settings, w, h, pct, scale) -> None:
-    from kernels import Camera
+    from scenesort.kernels import Camera
 
     _setup(registered, settings, w, h, pct, scale)
     desc = camera.camera_dict(registered)

@@ -106,8 +106,9 @@ def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
     """AO and coverage of the scene's camera rays from the engine itself (no add-on, no
     service): `kernels.render_ao` on the exported triangles (denoised as the Sampling
     panel's Denoise says)."""
-    import kernels
-    from kernels import Camera
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
 
     depsgraph = bpy.context.evaluated_depsgraph_get()
     mesh = export.export_scene(depsgraph)

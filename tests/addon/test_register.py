@@ -66,7 +66,8 @@ def test_addon_imports_neither_warp_nor_the_project() -> None:
     code = (
         "import sys, bpy, addon; addon.register(); addon.unregister();"
         "bad = sorted(m for m in sys.modules if m.split('.')[0] in "
-        "{'warp', 'kernels', 'backend', 'fastapi', 'httpx', 'uvicorn', 'requests'});"
+        "{'warp', 'scenesort', 'kernels', 'backend', 'fastapi', 'httpx', 'uvicorn', "
+        "'requests'});"
         "print('BAD', bad); sys.exit(1 if bad else 0)"
     )
     proc = subprocess.run(

@@ -142,7 +142,7 @@ def test_a_missing_windows_program_is_named_in_full() -> None:
 def test_default_launch_is_this_python_running_the_engine_on_its_path() -> None:
     """No command: Blender's own interpreter, the engine's folder as the whole path."""
     argv = service.command_line("", "127.0.0.1", 0, "cpu")
-    assert argv[:4] == [sys.executable, "-s", "-m", "backend.cli"]
+    assert argv[:4] == [sys.executable, "-s", "-m", "scenesort.backend.cli"]
     assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--device", "cpu"]
     assert service.engine_root() == REPO  # here the checkout; in Blender the wheels' folder
     env = service.child_env("", "secret")
@@ -150,6 +150,22 @@ def test_default_launch_is_this_python_running_the_engine_on_its_path() -> None:
     assert env["SCENESORT_TOKEN"] == "secret"
     # An override of the user's own runs in the user's environment, path included.
     assert service.child_env(SLEEPER, "t").get("PYTHONPATH") == os.environ.get("PYTHONPATH")
+
+
+def test_a_folder_named_backend_where_blender_runs_is_not_the_engine(tmp_path) -> None:
+    """Many projects have a `backend/` (and a `kernels/`) of their own: run from such a
+    folder (on `sys.path` first, as a script's folder is), the add-on still finds the
+    engine by its one import name, `scenesort`."""
+    for name in ("backend", "kernels"):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "__init__.py").write_text("raise ImportError('not the engine')\n")
+        (tmp_path / name / "cli.py").write_text("")
+    code = ("import sys; sys.path.insert(0, ''); sys.path.append(sys.argv[1]);"
+            "from addon import service; print(service.engine_root())")
+    out = subprocess.run([sys.executable, "-c", code, str(REPO)], cwd=tmp_path,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == str(REPO)
 
 
 def test_default_launch_without_the_engine_explains(monkeypatch) -> None:

@@ -24,10 +24,10 @@ from blender_scenes import (
     shading,
 )
 from cycles_reference import clean_pixels, render_cycles_ao
+from scenesort.backend import wire
 
 import addon
 from addon import camera, client, export, prefs
-from backend import wire
 
 WIDTH, HEIGHT = 48, 36
 
@@ -190,8 +190,9 @@ def test_mirrored_instances_keep_normals_outward_and_offsets_travel(scene) -> No
 def _direct(scn: bpy.types.Scene, distance: float, **kwargs) -> tuple[np.ndarray, np.ndarray]:
     """AO and coverage from `kernels.render_ao` on the exported scene (subdivision at its
     render level, as F12 exports it), without the add-on or the service."""
-    import kernels
-    from kernels import Camera
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
 
     modifier = bpy.data.objects["Subd"].modifiers["Subdivision"]
     levels, modifier.levels = modifier.levels, modifier.render_levels

@@ -99,7 +99,7 @@ def test_build_fills_timings_and_reuses_the_bvh(live) -> None:
 
 def _direct_ao(scene: bpy.types.Scene, scene_id: str) -> np.ndarray:
     """The service's answer for the engine camera model's rays, sent without the add-on."""
-    from kernels import Camera
+    from scenesort.kernels import Camera
 
     desc = camera.camera_dict(scene, bpy.context.evaluated_depsgraph_get())
     origins, directions, _, _ = Camera.from_dict(desc).rays()

@@ -11,10 +11,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bundles import look_at_camera
+from scenesort.backend.bundle import BundleWriter, mesh_id
+from scenesort.backend.frames import FrameRenderer, FrameResult
 from test_render_frames import at, box, grid, service_frame, upload_meshes
-
-from backend.bundle import BundleWriter, mesh_id
-from backend.frames import FrameRenderer, FrameResult
 
 
 def scaled(mesh: tuple[np.ndarray, np.ndarray], s: float) -> tuple[np.ndarray, np.ndarray]:

@@ -10,10 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bundles import look_at_camera
-from service_client import OCTET
-
-from backend import frames as frames_module
-from backend.bundle import (
+from scenesort.backend import frames as frames_module
+from scenesort.backend.bundle import (
     BundleError,
     BundleWriter,
     instance_body,
@@ -21,8 +19,9 @@ from backend.bundle import (
     mesh_id,
     read_bundle,
 )
-from backend.cli import main
-from backend.frames import FrameRenderer, render_frames
+from scenesort.backend.cli import main
+from scenesort.backend.frames import FrameRenderer, render_frames
+from service_client import OCTET
 
 
 def grid(n: int, size: float, lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -124,8 +123,9 @@ def test_frames_match_the_flattened_scene(bundle, rendered) -> None:
     """Each frame's coverage, depth and AO are those of its flattened triangles traced with
     one BVH (the same camera rays and samples; a path through the engine without the
     instance levels, bit for bit for the AO)."""
-    import kernels
-    from backend import jobs
+    from scenesort.backend import jobs
+
+    from scenesort import kernels
 
     for number, result in rendered.items():
         bvh = kernels.build_bvh(*_flattened(number))

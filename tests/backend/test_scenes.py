@@ -8,10 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import warp as wp
-
-from backend import scenes
-from backend.scenes import Scene, default_scene, load_mesh, shared_scene, shared_scenes_dir
-from kernels import Camera
+from scenesort.backend import scenes
+from scenesort.backend.scenes import (
+    Scene,
+    default_scene,
+    load_mesh,
+    shared_scene,
+    shared_scenes_dir,
+)
+from scenesort.kernels import Camera
 
 SHARED = shared_scenes_dir()
 INFOS = scenes.shared_scene_infos()

@@ -11,7 +11,7 @@ import httpx
 import numpy as np
 import pytest
 
-import kernels
+from scenesort import kernels
 
 OCTET = {"Content-Type": "application/octet-stream"}
 

@@ -7,10 +7,9 @@ from __future__ import annotations
 import httpx
 import numpy as np
 import pytest
+from scenesort.backend import wire
+from scenesort.backend.bundle import instance_body, mesh_id
 from service_client import OCTET, floor_and_box, rays_towards_floor, scene_body
-
-from backend import wire
-from backend.bundle import instance_body, mesh_id
 
 
 def cube() -> tuple[np.ndarray, np.ndarray]:
@@ -203,8 +202,9 @@ def test_a_deformed_mesh_is_refit_and_renders_as_a_fresh_build(api) -> None:  # 
     """A mesh of an instance list with an earlier one's positions moved (same topology) is
     refit from that one's BVH, and the image is a fresh build's; the same arrays through
     the single-mesh API are built afresh (its BVH statistics stay a build's)."""
-    import kernels
-    from kernels import Camera
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
 
     v, i = floor_and_box(6)
     moved = v.copy()
@@ -249,7 +249,7 @@ def test_ao_on_an_instance_list_is_the_flattened_scenes(api, meshes) -> None:  #
     rays and samples), and its BVH route says that jobs build its levels."""
     from service_client import rays_towards_floor
 
-    import kernels
+    from scenesort import kernels
 
     placed = transforms((0.0, 0.0, 0.0), (0.4, 0.3, -0.2))
     placed[1, :, :3] = np.diag([-0.5, 0.7, 0.5])  # mirrored, non-uniform
@@ -275,7 +275,7 @@ def test_smooth_meshes_shade_as_their_flattened_triangles(api, mirrored) -> None
     or not, mirrored instance; a terminator offset) shade as the flattened scene with
     world-space normals (the inverse transpose; a mirror reverses the winding and the
     corners, as addon/export.py flattens) does, bit for bit."""
-    import kernels
+    from scenesort import kernels
 
     v, i = floor_and_box(4)
     normals = (v[i] + np.float32([0.0, 0.5, 0.0]))  # smooth, pointing away from below

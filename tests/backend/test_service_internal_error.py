@@ -14,9 +14,8 @@ import time
 import httpx
 import pytest
 import uvicorn
-
-from backend.app import Settings, create_app
-from backend.serve import _listen
+from scenesort.backend.app import Settings, create_app
+from scenesort.backend.serve import _listen
 
 
 @pytest.fixture

@@ -10,10 +10,10 @@ import httpx
 import numpy as np
 import pytest
 from PIL import Image
+from scenesort.kernels import Camera
 from service_client import Api, floor_and_box
 
-import kernels
-from kernels import Camera
+from scenesort import kernels
 
 POLL_LIMIT_S = 120.0
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import kernels
+from scenesort import kernels
 
 
 @pytest.fixture(scope="module")

@@ -303,7 +303,7 @@ def check_escapes(v, f, o, d, t, tri, exact_t: bool = True) -> Check:
 def engine_tracers() -> dict:
     """name -> trace(v, f, o, d, tmin, tmax, any_hit) -> (t, triangle) for every engine
     path: the BVH with both builders, and DACRT's variants where the engine has them."""
-    import kernels
+    from scenesort import kernels
 
     def bvh(method: str, leaf_size: int):
         def run(v, f, o, d, tmin=0.0, tmax=np.inf, any_hit=False):

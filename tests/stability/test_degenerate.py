@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import kernels
+from scenesort import kernels
 from tests.kernels.reference import check_bvh
 
 from .cases import check_closest, mixed_scene, plane_grid, scene_rays

@@ -10,7 +10,7 @@ import functools
 import numpy as np
 import pytest
 
-import kernels
+from scenesort import kernels
 from tests.backend.service_client import Api, ray_body, scene_body
 
 from .cases import plane_grid

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-import kernels
+from scenesort import kernels
 
 from .cases import (
     CLOSED_MESHES,

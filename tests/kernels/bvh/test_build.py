@@ -14,7 +14,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import kernels
+from scenesort import kernels
 
 from ..reference import check_bvh, random_soup
 
@@ -169,7 +169,7 @@ def test_compile_time_is_reported_apart_from_build_time(tmp_path):
     71 ms build). Run in a child process with a cache of its own."""
     code = textwrap.dedent("""
         import json, numpy as np, kernels
-        from backend.scenes import default_scene
+        from scenesort.backend.scenes import default_scene
         scene = default_scene(64, 48)
         first = kernels.build_bvh(scene.vertices, scene.indices, device="cpu").stats
         again = kernels.build_bvh(scene.vertices, scene.indices, device="cpu").stats

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import trimesh
 
-import kernels
+from scenesort import kernels
 from tests.kernels.reference import assert_same_hits, brute_force
 
 

@@ -8,7 +8,7 @@ import trimesh
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 
-import kernels
+from scenesort import kernels
 
 from ..reference import (
     assert_same_hits,

@@ -7,20 +7,20 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-
-import kernels
-from kernels.bvh import BvhArrays, wide
-from kernels.bvh import api as bvh_api
-from kernels.bvh.wide import WIDE_STACK, WideDists, WideStack
-from kernels.bvh.wide_traversal import (
+from scenesort.kernels.bvh import BvhArrays, wide
+from scenesort.kernels.bvh import api as bvh_api
+from scenesort.kernels.bvh.wide import WIDE_STACK, WideDists, WideStack
+from scenesort.kernels.bvh.wide_traversal import (
     simd_lanes,
     traverse_simd,
     traverse_wide_portable,
     wide_node_portable,
     wide_node_simd,
 )
-from kernels.core.box import INF
-from kernels.core.ray import FAR_WIDEN, Hit, make_ray
+from scenesort.kernels.core.box import INF
+from scenesort.kernels.core.ray import FAR_WIDEN, Hit, make_ray
+
+from scenesort import kernels
 
 from ..reference import (
     assert_same_hits,

@@ -8,10 +8,10 @@ import time
 import numpy as np
 import pytest
 import warp as wp
+from scenesort.kernels.core import launch
+from scenesort.kernels.core.launch import host_pool, launch_split, load_modules, run_parts
 
-import kernels
-from kernels.core import launch
-from kernels.core.launch import host_pool, launch_split, load_modules, run_parts
+from scenesort import kernels
 
 from ..reference import random_rays, random_soup
 

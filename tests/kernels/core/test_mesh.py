@@ -4,10 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scenesort.kernels.core import DeviceMesh, degenerate_mask
+from scenesort.kernels.render import ao
 
-import kernels
-from kernels.core import DeviceMesh, degenerate_mask
-from kernels.render import ao
+from scenesort import kernels
 
 from ..reference import degenerate_triangles, random_rays, random_soup
 

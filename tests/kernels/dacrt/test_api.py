@@ -10,9 +10,9 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from scenesort.kernels import dacrt_trace
 
-import kernels
-from kernels import dacrt_trace
+from scenesort import kernels
 
 from ..reference import (
     assert_same_hits,
@@ -252,7 +252,7 @@ def test_pool_overflow_raises_pool_error():
 def test_default_pool_grows_after_an_overflow(monkeypatch):
     """With pool_capacity=None an overflow is not the caller's problem: the trace runs
     again with a bigger pool and gives the BVH's hits."""
-    import kernels.dacrt.api as api
+    import scenesort.kernels.dacrt.api as api
 
     monkeypatch.setattr(api, "POOL_SLOTS", 3)
     rng = np.random.default_rng(3)

@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
+from scenesort.kernels import dacrt_trace
+from scenesort.kernels.core import DeviceArrays
+from scenesort.kernels.dacrt import breadth_first as bf
 
-import kernels
-from kernels import dacrt_trace
-from kernels.core import DeviceArrays
-from kernels.dacrt import breadth_first as bf
+from scenesort import kernels
 
 from ..reference import assert_same_hits, random_rays, random_soup
 

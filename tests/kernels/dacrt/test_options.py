@@ -7,10 +7,9 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-
-from kernels import dacrt_trace
-from kernels.dacrt import DacrtOptions
-from kernels.dacrt.options import DEVICE_DEFAULTS
+from scenesort.kernels import dacrt_trace
+from scenesort.kernels.dacrt import DacrtOptions
+from scenesort.kernels.dacrt.options import DEVICE_DEFAULTS
 
 from ..reference import random_rays, random_soup
 

@@ -6,12 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-
-from kernels.core import DeviceArrays, DeviceMesh
-from kernels.core.box import INF
-from kernels.dacrt import classify, rdh
-from kernels.dacrt import task as dk
-from kernels.dacrt.records import margin_for, rays_and_triangles
+from scenesort.kernels.core import DeviceArrays, DeviceMesh
+from scenesort.kernels.core.box import INF
+from scenesort.kernels.dacrt import classify, rdh
+from scenesort.kernels.dacrt import task as dk
+from scenesort.kernels.dacrt.records import margin_for, rays_and_triangles
 
 from ..reference import random_rays, random_soup
 

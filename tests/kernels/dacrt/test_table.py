@@ -6,8 +6,7 @@ import itertools
 
 import numpy as np
 import pytest
-
-from kernels.dacrt import table as tb
+from scenesort.kernels.dacrt import table as tb
 
 pytestmark = pytest.mark.host_only  # numpy
 

@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-
-import kernels
-from kernels.pool.state import (
+from scenesort.kernels.pool.state import (
     Pool,
     PoolError,
     check_pool,
@@ -22,6 +20,8 @@ from kernels.pool.state import (
     pool_running,
     pool_wait,
 )
+
+from scenesort import kernels
 
 from ..reference import random_soup
 

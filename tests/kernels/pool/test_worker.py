@@ -13,10 +13,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-
-from kernels.pool.chunks import CHUNK, level_count, level_size
-from kernels.pool.phases import pps_count, pps_total, pps_up_chunk
-from kernels.pool.state import (
+from scenesort.kernels.pool.chunks import CHUNK, level_count, level_size
+from scenesort.kernels.pool.phases import pps_count, pps_total, pps_up_chunk
+from scenesort.kernels.pool.state import (
     Pool,
     check_pool,
     make_pool,
@@ -26,7 +25,7 @@ from kernels.pool.state import (
     pool_resolve,
     pool_wait,
 )
-from kernels.pool.worker import CYCLE_ROW, Application, launch_workers, make_worker
+from scenesort.kernels.pool.worker import CYCLE_ROW, Application, launch_workers, make_worker
 
 PH_SUM = wp.constant(0)  # one step per level of the segment's up-sweep
 PH_TOTAL = wp.constant(1)  # the dependent task: one chunk

@@ -8,16 +8,16 @@ import pytest
 import trimesh
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
-
-import kernels
-from kernels import Camera
-from kernels.render.ao import (
+from scenesort.kernels import Camera
+from scenesort.kernels.render.ao import (
     EFFICIENCY_MIN,
     Z95,
     _allocation_key,
     half_width,
     sampler_efficiency,
 )
+
+from scenesort import kernels
 
 SAMPLERS = ("random", "sobol")
 
@@ -360,7 +360,7 @@ def test_bad_arguments_name_the_field(kwargs, field):
 def test_compile_time_is_reported_apart(monkeypatch, device):
     """Warp's compile time (loading the render's modules first) is its own entry of
     `timings_ms`, not part of the render's total."""
-    from kernels.render import ao as ao_module
+    from scenesort.kernels.render import ao as ao_module
 
     monkeypatch.setattr(ao_module, "load_modules", lambda device, *modules: 1.0e6)
     v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
@@ -373,7 +373,7 @@ def test_compile_time_is_reported_apart(monkeypatch, device):
 def test_progress_of_a_tiny_target_is_a_fraction():
     """The round loop's progress for any target in (0, 1): its aim squared underflows to 0
     for 1e-200 (the service answered 500 with a ZeroDivisionError there)."""
-    from kernels.render.ao import _progress
+    from scenesort.kernels.render.ao import _progress
 
     assert 0.0 < _progress(1e-3, 5e-4, 1e-200) < 1.0
     assert _progress(1e-3, 2e-3, 1e-200) == 0.0  # the error has not come down yet
@@ -399,8 +399,7 @@ def _touches_box(lo, hi, o, d, t0, t1) -> np.ndarray:
 
 def test_box_candidates_are_the_rays_whose_segment_touches_the_widened_box():
     import warp as wp
-
-    from kernels.render.ao import box_candidates
+    from scenesort.kernels.render.ao import box_candidates
 
     rng = np.random.default_rng(5)
     n = 4000

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scenesort.kernels import Camera
 
-import kernels
-from kernels import Camera
+from scenesort import kernels
 
 
 def floor_and_sphere(subdivisions: int = 1):

@@ -8,11 +8,11 @@ import math
 
 import numpy as np
 import pytest
+from scenesort.backend.scenes import shared_scene
+from scenesort.kernels.render import ao
+from scenesort.kernels.render.ao import half_width
 
-import kernels
-from backend.scenes import shared_scene
-from kernels.render import ao
-from kernels.render.ao import half_width
+from scenesort import kernels
 
 SEEDS = range(20)
 _CACHE: dict = {}  # made once per test session

@@ -7,8 +7,7 @@ import math
 
 import numpy as np
 import pytest
-
-from kernels import Camera
+from scenesort.kernels import Camera
 
 pytestmark = pytest.mark.host_only  # numpy and bpy
 

@@ -6,12 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scenesort.kernels import Camera
+from scenesort.kernels.render import default_distance
+from scenesort.kernels.render.cull import mesh_box, visible_instances
+from scenesort.kernels.scene.api import place_instances
 
-import kernels
-from kernels import Camera
-from kernels.render import default_distance
-from kernels.render.cull import mesh_box, visible_instances
-from kernels.scene.api import place_instances
+from scenesort import kernels
 
 
 def sphere():

@@ -8,10 +8,10 @@ import sys
 
 import numpy as np
 import pytest
+from scenesort.backend.scenes import shared_scene
+from scenesort.kernels.render.denoise import DenoiserMissing
 
-import kernels
-from backend.scenes import shared_scene
-from kernels.render.denoise import DenoiserMissing
+from scenesort import kernels
 
 WIDTH, HEIGHT = 128, 96
 _CACHE: dict = {}

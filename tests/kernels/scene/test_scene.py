@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import trimesh
+from scenesort.kernels.scene import bvh_nbytes
 
-import kernels
-from kernels.scene import bvh_nbytes
+from scenesort import kernels
 from tests.kernels.reference import brute_force
 
 
