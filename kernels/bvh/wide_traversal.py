@@ -100,15 +100,13 @@ def simd_function(node_test: bool) -> str:
     """The body of a `wp.func_native` running wide_simd.h (its header says how): where
     SIMD_GUARD holds, bvh.wide's NATIVE_LAYOUT as constants, then the file once per width
     (8, 4) with `width` a constant; 0 elsewhere."""
-    source = SIMD_SOURCE
     layout = "".join(f"    constexpr int {name} = {int(value)};\n"
                      for name, value in NATIVE_LAYOUT.items())
-    entry = "#define WIDE_SIMD_NODE_TEST\n" if node_test else ""
-    return (f"{SIMD_GUARD}\n{entry}{layout}"
-            f"    if (width == 8) {{\n        constexpr int width = 8;\n{source}    }}"
-            f" else {{\n        constexpr int width = 4;\n{source}    }}\n"
-            + ("#undef WIDE_SIMD_NODE_TEST\n" if node_test else "")
-            + "#else\n    return 0;\n#endif\n")
+    entry, leave = (("#define WIDE_SIMD_NODE_TEST\n", "#undef WIDE_SIMD_NODE_TEST\n")
+                    if node_test else ("", ""))
+    per_width = (f"    if (width == 8) {{\n        constexpr int width = 8;\n{SIMD_SOURCE}    }}"
+                 f" else {{\n        constexpr int width = 4;\n{SIMD_SOURCE}    }}\n")
+    return f"{SIMD_GUARD}\n{entry}{layout}{per_width}{leave}#else\n    return 0;\n#endif\n"
 
 
 @wp.func_native(simd_function(node_test=False))
