@@ -4,6 +4,7 @@ one and Embree side by side (`--part wide` runs only that).
 
     python benchmarks/bvh.py [--scenes bunny,sponza] [--repeat 5] [--width 1024 --height 768]
     python benchmarks/bvh.py --part wide --width 1024 --height 1024
+    python benchmarks/bvh.py --part wide --target-cpu x86-64 --no-docs   # a CPU without AVX2
 
 Times are medians of `--repeat` runs after one warm-up. Warp's kernel compile time is
 measured once, in a fresh kernel cache, and reported on its own. Writes the tables into
@@ -35,6 +36,7 @@ from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.pat
 from scenesort.backend import peers  # noqa: E402
 from scenesort.backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
 from scenesort.kernels.core import cpu_cores  # noqa: E402
+from scenesort.kernels.core.compile_options import cpu_target_flags  # noqa: E402
 from scenesort.kernels.render import default_distance  # noqa: E402
 
 from scenesort import kernels  # noqa: E402
@@ -365,7 +367,15 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--part", choices=("all", "wide"), default="all",
                         help="wide: only the wide-BVH tables (issue 17)")
     parser.add_argument("--no-docs", action="store_true", help="print only")
+    parser.add_argument("--target-cpu", help="compile the engine for this clang target CPU, "
+                        "not the host's (x86-64: no AVX2, the wide trees traversed lane by "
+                        "lane; x86-64-v3: AVX2); needs --no-docs")
     args = parser.parse_args(argv)
+    if args.target_cpu:
+        if not args.no_docs:
+            parser.error("--target-cpu measures another target than the documented one: "
+                         "add --no-docs")
+        wp.config.cpu_compiler_flags = cpu_target_flags(args.target_cpu)
     command = "python benchmarks/bvh.py " + " ".join(argv if argv is not None else sys.argv[1:])
     wp.init()
     load = "{:.2f}, {:.2f}, {:.2f} (1, 5, 15 min)".format(*os.getloadavg())

@@ -49,6 +49,18 @@ def test_every_package_folder_is_in_the_wheel(wheel: Path) -> None:
     assert packages == source_packages()
 
 
+def test_every_file_the_engine_reads_is_in_the_wheel(wheel: Path) -> None:
+    """The files beside the modules that they read at import (bvh/wide_simd.h, the SIMD
+    traversal's C++): without one the engine fails on import."""
+    wanted = {"/".join(("scenesort", *p.relative_to(REPO).parts))
+              for folder in ("kernels", "backend") for p in (REPO / folder).rglob("*")
+              if p.is_file() and p.suffix not in (".py", ".pyc")
+              and "__pycache__" not in p.parts}
+    assert "scenesort/kernels/bvh/wide_simd.h" in wanted
+    with zipfile.ZipFile(wheel) as zf:
+        assert wanted <= set(zf.namelist())
+
+
 def test_the_command_line_is_scenesorts(wheel: Path) -> None:
     with zipfile.ZipFile(wheel) as zf:
         (entry,) = [n for n in zf.namelist() if n.endswith("entry_points.txt")]

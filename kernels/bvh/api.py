@@ -35,15 +35,18 @@ from .build_data import (
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
 from .traversal import STACK_SIZE, trace_kernel
 from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
+from .wide_traversal import simd_support
 
 Method = Literal["sah", "median"]
 METHODS: dict[str, int] = {"median": int(METHOD_MEDIAN), "sah": int(METHOD_SAH)}
 Width = Literal[2, 4, 8]
 # width=None: the faster traversal per device, measured (docs/benchmarks.md): the wide tree
-# with the SIMD box test on CPU; on CUDA the binary tree (an H200 ran the wide one, lane by
-# lane, 10-30x slower; CUDA kernels now traverse the binary tree whatever the width, see
+# where its SIMD traversal is compiled in (a CPU with AVX2: wide_traversal.simd_support);
+# the binary tree on other CPUs (the lane-by-lane wide traversal ran slower than it, docs/
+# architecture.md, "Wide BVH") and on CUDA (an H200 ran the wide one, lane by lane, 10-30x
+# slower; CUDA kernels now traverse the binary tree whatever the width, see
 # traversal.wide_tree_traversed).
-DEFAULT_WIDTH = {"cpu": 8, "cuda": 2}
+SIMD_WIDTH, PORTABLE_WIDTH = 8, 2
 # K of eq. 3.1 per device: the paper's 14 on CPU; on CUDA 64, where 33,792 one-thread workers
 # grabbing fewer, larger runs of chunks built Conference 1.5x and the 1.1 M-triangle bunny 3x
 # faster on an H200 (docs/benchmarks.md, CUDA sweeps)
@@ -51,7 +54,7 @@ BUILD_MIN_CHUNKS = {"cpu": DEFAULT_MIN_CHUNKS, "cuda": 64}
 
 
 def default_width(device) -> int:
-    return DEFAULT_WIDTH["cpu" if device.is_cpu else "cuda"]
+    return SIMD_WIDTH if simd_support(device)[0] > 0 else PORTABLE_WIDTH
 
 
 @dataclass
@@ -91,7 +94,7 @@ def build_bvh(
 ) -> Bvh:
     """Build a BVH with the task pool in one persistent launch (2012 paper, sec. 4), then
     collapse it into a tree of `width` 4 or 8 (bvh.wide; 2: none; None: the device's
-    default, DEFAULT_WIDTH), which `trace` and AO then traverse on CPU (CUDA kernels
+    default, default_width), which `trace` and AO then traverse on CPU (CUDA kernels
     traverse the binary tree). `min_chunks` (K of eq. 3.1) and `workers`: None takes the
     device's (BUILD_MIN_CHUNKS, pool.state.default_workers)."""
     if width is not None and width not in WIDTHS:

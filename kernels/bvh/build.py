@@ -27,6 +27,7 @@ from ..core.box import INF, max3, median_plane, min3
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.mesh import triangle_corners
 from ..core.triangle import is_degenerate
+from ..pool import clock
 from ..pool.atomics import shared_add, shared_max
 from ..pool.chunks import CHUNK, ceil_div, level_count
 from ..pool.phases import (
@@ -453,4 +454,5 @@ def gather_leaf_triangles(
     store_leaf_triangle(vertices, indices, tri, i, tri_verts)
 
 
-WARP_MODULES = (build_worker.module,)  # this module's kernels (see core.launch.load_modules)
+# this module's kernels and the pool clock's rate probe (see core.launch.load_modules)
+WARP_MODULES = (build_worker.module, *clock.WARP_MODULES)

@@ -34,7 +34,15 @@ from ..core.validate import as_triangle_mesh
 from .api import Bvh, build_bvh
 from .build import store_leaf_triangle
 from .node import BvhNode
-from .wide import BLOCK, BLOCK_WORDS, WORDS_PER_LANE, float_bits
+from .wide import (
+    BLOCK,
+    BLOCK_WORDS,
+    ROW_CHILD,
+    ROW_COUNT,
+    ROW_POSITION,
+    WORDS_PER_LANE,
+    float_bits,
+)
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -62,7 +70,7 @@ def refit_blocks(tri_verts: wp.array(dtype=wp.vec3), blocks: wp.array(dtype=floa
     b = block_ids[wp.tid()]
     for k in range(BLOCK):
         base = b * BLOCK_WORDS + k
-        i = float_bits(blocks[base + 9 * BLOCK])
+        i = float_bits(blocks[base + ROW_POSITION * BLOCK])
         for m in range(3):
             v = tri_verts[3 * i + m]
             for a in range(3):
@@ -88,7 +96,7 @@ def union_of_blocks(blocks: wp.array(dtype=float), first: int, count: int) -> wp
     the leaf, so every lane counts)."""
     box = wp.mat33(INF, INF, INF, -INF, -INF, -INF, 0.0, 0.0, 0.0)
     for q in range((count + BLOCK - 1) / BLOCK):
-        for r in range(9 * BLOCK):
+        for r in range(ROW_POSITION * BLOCK):  # the coordinate rows
             x = blocks[(first + q) * BLOCK_WORDS + r]
             a = (r / BLOCK) % 3
             box[0, a] = wp.min(box[0, a], x)
@@ -147,8 +155,8 @@ def refit_wide(wide: wp.array(dtype=float), blocks: wp.array(dtype=float), width
         base = k * WORDS_PER_LANE * w
         for j in range(w):
             if wide[base + j] != INF:
-                child = float_bits(wide[base + 6 * w + j])
-                n = float_bits(wide[base + 7 * w + j])
+                child = float_bits(wide[base + ROW_CHILD * w + j])
+                n = float_bits(wide[base + ROW_COUNT * w + j])
                 box = lane_box(wide, blocks, w, child, n)
                 for a in range(3):
                     wide[base + (2 * a) * w + j] = box[0, a]

@@ -66,9 +66,15 @@ from .node import BvhNode
 wp.set_module_options(MODULE_OPTIONS)
 
 WIDTHS = (2, 4, 8)  # 2: the binary tree itself, traversed as before
-WORDS_PER_LANE = wp.constant(8)  # lo_x hi_x lo_y hi_y lo_z hi_z child count
+# The layout (module docstring) in numbers: their one source, for Python and native code.
+# A wide node's rows, W words each: lo and hi of axis a in rows 2a and 2a + 1, then these.
+ROW_CHILD = wp.constant(6)
+ROW_COUNT = wp.constant(7)
+WORDS_PER_LANE = wp.constant(ROW_COUNT + 1)  # 8 rows: lo_x hi_x lo_y hi_y lo_z hi_z child count
+# A leaf block's rows, BLOCK words each: coordinate a of vertex m in row 3m + a, then this.
 BLOCK = wp.constant(4)  # triangles per leaf block
-BLOCK_WORDS = wp.constant(40)  # 9 coordinate rows and 1 position row of BLOCK lanes
+ROW_POSITION = wp.constant(9)  # the triangles' leaf-order positions (int32)
+BLOCK_WORDS = wp.constant((ROW_POSITION + 1) * BLOCK)  # 40: 9 coordinate rows, 1 position row
 # A binary subtree of at most MERGE triangles becomes one wide leaf (its triangles are
 # contiguous in leaf order): one block test instead of a visit per binary leaf, as tinybvh
 # combines leaves to 4 triangles before its BVH8_CPU conversion (CombineLeafs(4)).
@@ -83,6 +89,12 @@ LaneFloats = wp.types.vector(length=MAX_WIDTH, dtype=wp.float32)
 WIDE_STACK = 128
 WideStack = wp.types.vector(length=WIDE_STACK, dtype=wp.int32)
 WideDists = wp.types.vector(length=WIDE_STACK, dtype=wp.float32)
+# The constants native code reads the layout with (bvh/wide_simd.h), by their names here.
+NATIVE_LAYOUT = {
+    "ROW_CHILD": ROW_CHILD, "ROW_COUNT": ROW_COUNT, "WORDS_PER_LANE": WORDS_PER_LANE,
+    "MAX_WIDTH": MAX_WIDTH, "BLOCK": BLOCK, "ROW_POSITION": ROW_POSITION,
+    "BLOCK_WORDS": BLOCK_WORDS, "WIDE_STACK": WIDE_STACK,
+}
 
 
 @wp.func_native(
@@ -217,7 +229,7 @@ def fill_block(tri_verts: wp.array(dtype=wp.vec3), blocks: wp.array(dtype=float)
             v = tri_verts[3 * i + m]
             for a in range(3):
                 blocks[base + (3 * m + a) * BLOCK] = v[a]
-        blocks[base + 9 * BLOCK] = bits_float(i)
+        blocks[base + ROW_POSITION * BLOCK] = bits_float(i)
 
 
 @wp.struct
@@ -377,8 +389,8 @@ def write_lane(wide: wp.array(dtype=float), base: int, width: int, j: int, lo: w
     for a in range(3):
         wide[base + (2 * a) * width + j] = lo[a]
         wide[base + (2 * a + 1) * width + j] = hi[a]
-    wide[base + 6 * width + j] = bits_float(child)
-    wide[base + 7 * width + j] = bits_float(count)
+    wide[base + ROW_CHILD * width + j] = bits_float(child)
+    wide[base + ROW_COUNT * width + j] = bits_float(count)
 
 
 @wp.func

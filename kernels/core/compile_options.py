@@ -12,4 +12,17 @@ one-operation-per-statement code either way, so the CPU's results stay what they
 
 from __future__ import annotations
 
+import warp as wp
+
 MODULE_OPTIONS = {"enable_backward": False, "optimization_level": 3, "fuse_fp": False}
+
+
+def cpu_target_flags(target_cpu: str, flags: str | None = None) -> str:
+    """Warp's CPU compiler flags (`flags`, else `wp.config.cpu_compiler_flags`) for clang's
+    target CPU `target_cpu` instead of the host's: `-march=native` (Warp expands it into the
+    host's CPU and features) becomes `-target-cpu <target_cpu>`; Warp's clang takes no other
+    `-march`. On x86-64 'x86-64' has no AVX2 (Warp adds F16C, and with it AVX), 'x86-64-v3'
+    has AVX2 and 'x86-64-v4' AVX-512: the branches of bvh/wide_simd.h. For a module's
+    `cpu_compiler_flags` option, or for `wp.config.cpu_compiler_flags` before any compile."""
+    words = (flags if flags is not None else wp.config.cpu_compiler_flags or "").split()
+    return " ".join(["-target-cpu", target_cpu, *(w for w in words if w != "-march=native")])

@@ -36,6 +36,7 @@ from ..core.hits import Hits
 from ..core.mesh import DeviceMesh
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle
+from ..pool import clock
 from ..pool.atomics import shared_add, shared_max
 from ..pool.chunks import CHUNK, ceil_div, level_count
 from ..pool.phases import (
@@ -933,4 +934,5 @@ def pool_trace(mesh: DeviceMesh, origins, directions, tmin, tmax, margin: float,
 
 
 # the Warp modules a trace runs (loaded first: Warp's compile time is reported apart)
-WARP_MODULES = (dacrt_worker.module, *records.WARP_MODULES, *core_mesh.WARP_MODULES)
+WARP_MODULES = (dacrt_worker.module, *records.WARP_MODULES, *core_mesh.WARP_MODULES,
+                *clock.WARP_MODULES)

@@ -115,18 +115,6 @@ def shared_max_vec3(a: wp.array(dtype=wp.vec3), i: int, v: wp.vec3): ...
 @wp.func_native(
     """
 #if defined(__CUDA_ARCH__)
-    return clock64();
-#else
-    return (int64_t)__builtin_readcyclecounter();
-#endif
-"""
-)
-def cycles() -> wp.int64: ...
-
-
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
     return *(volatile const int*)&a[i];
 #else
     return __atomic_load_n(&a[i], __ATOMIC_SEQ_CST);

@@ -20,7 +20,6 @@ import warp as wp
 from ..core.launch import cpu_cores
 from .atomics import (
     cpu_relax,
-    cycles,
     memory_fence,
     pool_load,
     shared_add,
@@ -28,6 +27,7 @@ from .atomics import (
     shared_exch,
     shared_max,
 )
+from .clock import ticks, ticks_per_second
 
 EMPTY = wp.constant(-(1 << 30))
 # state[] entries
@@ -51,7 +51,7 @@ class Pool:
     capacity: int
     workers: int  # W in eq. 3.1
     min_chunks: int  # K in eq. 3.1 and the inline threshold of sec. 3.4
-    max_idle: wp.int64  # cycles without work before a worker declares the pool stuck
+    max_idle: wp.int64  # clock ticks without work before a worker declares the pool stuck
 
 
 class PoolError(RuntimeError):
@@ -173,11 +173,11 @@ def pool_running(pool: Pool) -> bool:
 
 @wp.func
 def pool_idle(pool: Pool, idle_since: wp.int64) -> wp.int64:
-    """Call when a search found no work; returns the cycle count the worker has been idle
-    since. After `max_idle` cycles without work the pool is declared stuck (ERR_STUCK), so
-    that a lost dependency ends the launch with an error instead of a hang."""
+    """Call when a search found no work; returns the clock reading (pool.clock) the worker
+    has been idle since. After `max_idle` ticks without work the pool is declared stuck
+    (ERR_STUCK), so that a lost dependency ends the launch with an error instead of a hang."""
     cpu_relax()
-    now = cycles()
+    now = ticks()
     if idle_since < wp.int64(0):
         return now
     if now - idle_since > pool.max_idle:
@@ -185,13 +185,16 @@ def pool_idle(pool: Pool, idle_since: wp.int64) -> wp.int64:
     return idle_since
 
 
-# Cycles a worker may wait for work while others still hold some (about 10 s): only a lost
-# dependency waits that long. A lone worker with nothing to do is stuck at once.
-WAIT_CYCLES = 30_000_000_000
+# Seconds a worker may wait for work while others still hold some: only a lost dependency
+# waits that long. A lone worker with nothing to do is stuck at once. Converted to ticks of
+# the device's clock, whose rate varies from 24 MHz to a few GHz (pool.clock).
+WAIT_SECONDS = 10.0
 
 
 def make_pool(capacity: int, workers: int, min_chunks: int, device,
-              max_idle: int | None = None) -> Pool:
+              wait_seconds: float | None = None) -> Pool:
+    """An empty pool of `capacity` slots for `workers` workers; an idle worker declares it
+    stuck after `wait_seconds` (WAIT_SECONDS; 0 for a lone worker) without work."""
     pool = Pool()
     pool.header = wp.full(capacity, int(EMPTY), dtype=wp.int32, device=device)
     pool.unfinished = wp.zeros(capacity, dtype=wp.int32, device=device)
@@ -200,7 +203,10 @@ def make_pool(capacity: int, workers: int, min_chunks: int, device,
     pool.capacity = capacity
     pool.workers = workers
     pool.min_chunks = min_chunks
-    pool.max_idle = wp.int64((0 if workers == 1 else WAIT_CYCLES) if max_idle is None else max_idle)
+    if wait_seconds is None:
+        wait_seconds = 0.0 if workers == 1 else WAIT_SECONDS
+    rate = ticks_per_second(device) if wait_seconds > 0 else 0.0
+    pool.max_idle = wp.int64(int(wait_seconds * rate))
     return pool
 
 
@@ -213,9 +219,11 @@ def check_pool(pool: Pool) -> np.ndarray:
             "pass a larger pool_capacity"
         )
     if state[ERROR] == ERR_STUCK or state[LIVE] != 0:
+        idle = int(pool.max_idle)
+        waited = idle / ticks_per_second(pool.state.device) if idle > 0 else 0.0
         raise PoolError(
             f"task pool stuck with {state[LIVE]} unfinished tasks (capacity {pool.capacity}, "
-            f"{pool.workers} workers found no work for {pool.max_idle} cycles)"
+            f"{pool.workers} workers found no work for {waited:.3g} s)"
         )
     return state
 

@@ -6,10 +6,11 @@ step (`pool_acquire`), runs them, reports them finished, and the last finisher o
 advances the task: it interprets the step's results, and runs the following steps inline
 while they have fewer than K chunks (sec. 3.4), finishing tasks and continuing with a child
 or an activated dependant, until a step is big enough to hand to the pool. A worker that
-finds no work waits (`pool_idle`), and declares the pool stuck after `max_idle` cycles.
-Each worker counts the cycle counter's ticks per phase in its own row of `phase_cycles`:
-running a phase's chunks and completing its steps go to that phase, finishing a task to
-the application's `done` phase.
+finds no work waits (`pool_idle`), and declares the pool stuck after a while without work
+(pool.state.WAIT_SECONDS). Each worker counts the ticks of the pool's clock (pool.clock) per
+phase in its own row of `phase_cycles`: running a phase's chunks and completing its steps go
+to that phase, finishing a task to the application's `done` phase. Only their ratios are
+used (the host shares a launch's time out by them), so the clock's rate does not matter.
 
 An application (`Application`) supplies its data struct, its task struct and three Warp
 functions; `make_worker` generates the worker kernel from them, compiled in the
@@ -31,7 +32,7 @@ from typing import Any
 import warp as wp
 
 from ..core.launch import host_pool
-from .atomics import cycles
+from .clock import ticks
 from .state import (
     Pool,
     pool_acquire,
@@ -41,7 +42,7 @@ from .state import (
     pool_running,
 )
 
-CYCLE_ROW = wp.constant(16)  # int64 per worker in phase_cycles: two cache lines, no sharing
+CYCLE_ROW = wp.constant(16)  # int64 per worker in phase_cycles (ticks): two cache lines, no sharing
 
 
 @dataclass(frozen=True)
@@ -59,7 +60,7 @@ class Application:
     finish_task(data, pool, task, slot) -> int: a task in phase `done`: store its children
         or activate its dependants, release or reuse its slot; return a locked slot whose
         task this worker continues with (its data in `data.tasks`), or -1.
-    done: the phase of a finished task (its cycles: the time spent finishing tasks).
+    done: the phase of a finished task (its ticks: the time spent finishing tasks).
     module: the Warp module to compile the worker in: the application's (`__name__`).
     name: a prefix for the generated kernel and functions.
     """
@@ -81,11 +82,11 @@ def make_worker(app: Application) -> wp.Kernel:
     run_chunks, complete_step, finish_task = app.run_chunks, app.complete_step, app.finish_task
     done = int(app.done)
 
-    def add_cycles(d: Data, worker: int, phase: int, since: wp.int64):
+    def add_ticks(d: Data, worker: int, phase: int, since: wp.int64):
         i = worker * CYCLE_ROW + phase
-        d.phase_cycles[i] = d.phase_cycles[i] + (cycles() - since)
+        d.phase_cycles[i] = d.phase_cycles[i] + (ticks() - since)
 
-    add_cycles = wp.func(add_cycles, module=app.module, name=f"{app.name}_add_cycles")
+    add_ticks = wp.func(add_ticks, module=app.module, name=f"{app.name}_add_ticks")
 
     def advance(d: Data, pool: Pool, worker: int, slot: int, t: Task):
         """The last finisher of a step: complete it, run the following steps inline while
@@ -95,13 +96,13 @@ def make_worker(app: Application) -> wp.Kernel:
         task = t
         while True:
             phase = task.phase
-            since = cycles()
+            since = ticks()
             task = complete_step(d, task, s)
-            add_cycles(d, worker, phase, since)
+            add_ticks(d, worker, phase, since)
             if task.phase == done:
-                since = cycles()
+                since = ticks()
                 next_slot = finish_task(d, pool, task, s)
-                add_cycles(d, worker, done, since)
+                add_ticks(d, worker, done, since)
                 if next_slot < 0:
                     return
                 s = next_slot
@@ -110,9 +111,9 @@ def make_worker(app: Application) -> wp.Kernel:
                 d.tasks[s] = task
                 pool_hand_over(pool, s, task.chunks)
                 return
-            since = cycles()
+            since = ticks()
             run_chunks(d, worker, s, task, 0, task.chunks)
-            add_cycles(d, worker, task.phase, since)
+            add_ticks(d, worker, task.phase, since)
 
     advance = wp.func(advance, module=app.module, name=f"{app.name}_advance")
 
@@ -128,9 +129,9 @@ def make_worker(app: Application) -> wp.Kernel:
                 continue
             idle_since = wp.int64(-1)
             t = d.tasks[slot]
-            since = cycles()
+            since = ticks()
             run_chunks(d, worker, slot, t, got[1], got[2])
-            add_cycles(d, worker, t.phase, since)
+            add_ticks(d, worker, t.phase, since)
             if pool_finish(pool, slot, got[2]):
                 advance(d, pool, worker, slot, d.tasks[slot])
 

@@ -12,6 +12,7 @@ from scenesort.kernels.bvh import api as bvh_api
 from scenesort.kernels.bvh.wide import WIDE_STACK, WideDists, WideStack
 from scenesort.kernels.bvh.wide_traversal import (
     simd_lanes,
+    simd_support,
     traverse_simd,
     traverse_wide_portable,
     wide_node_portable,
@@ -266,9 +267,21 @@ def test_width_option(device):
     v, f = random_soup(np.random.default_rng(1), 50)
     bvh = kernels.build_bvh(v, f)
     assert bvh.stats["width"] == bvh_api.default_width(wp.get_device(device))
+    assert bvh.stats["width"] == (8 if simd_support(device)[0] > 0 else 2)
     assert "collapse" in bvh.stats["phase_ms"]
     with pytest.raises(ValueError, match="width must be one of"):
         kernels.build_bvh(v, f, width=3)
+
+
+@pytest.mark.host_only
+def test_default_width_follows_the_simd_traversal_compiled_in(monkeypatch):
+    """Width 8 where the SIMD traversal is compiled in (a CPU with AVX2), the binary tree
+    where it is not: there the lane-by-lane wide traversal ran at 0.4-0.6x the binary one's
+    speed (benchmarks/bvh.py --target-cpu x86-64, docs/architecture.md)."""
+    v, f = random_soup(np.random.default_rng(1), 50)
+    for support, width in (((0, 0), 2), ((8, 1), 8), ((8, 2), 8)):
+        monkeypatch.setattr(bvh_api, "simd_support", lambda device, s=support: s)
+        assert kernels.build_bvh(v, f).stats["width"] == width
 
 
 def tricky_tree(width: int):
