@@ -10,7 +10,7 @@ import bpy
 import numpy as np
 import pytest
 from blender_scenes import FRAMES, add_object, animated_scene, box_mesh
-from scenesort.backend.bundle import BundleError, read_bundle
+from scenesort.backend.render.bundle import BundleError, read_bundle
 
 from addon import animation, camera, export
 

@@ -110,7 +110,7 @@ def test_export_leaves_the_scene_alone(mixed_scene) -> None:
 
 def test_body_layout_and_scene_id_match_the_service(mixed_scene) -> None:
     """The upload body is V*3 float32 then T*3 int32, and the add-on's id is the service's."""
-    from scenesort.backend import wire
+    from scenesort.backend.wire import binary as wire
 
     mesh = export.export_scene(_depsgraph())
     body = mesh.body()

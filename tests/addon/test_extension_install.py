@@ -49,7 +49,7 @@ def _run(argv: list, timeout: float, **kwargs) -> subprocess.CompletedProcess:
 def platform_zips(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """`scenesort addon-zip --platform all`: one zip per platform, sizes printed."""
     out = tmp_path_factory.mktemp("zips")
-    argv = [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--platform", "all",
+    argv = [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--platform", "all",
             "-o", out]
     lines = _run(argv, INSTALL_TIMEOUT_S, cwd=REPO).stdout.strip().splitlines()
     zips = {}
@@ -145,7 +145,7 @@ def test_install_from_zip_then_render_with_no_other_step(
     info = json.loads((tmp_path / "render.json").read_text())
     site = user / "extensions" / ".local" / "lib" / "python3.11" / "site-packages"
     assert Path(info["site_packages"]) == site  # the engine came from the zip's wheel
-    assert info["argv"][:4] == [str(bpy_only_python), "-s", "-m", "scenesort.backend.cli"]
+    assert info["argv"][:4] == [str(bpy_only_python), "-s", "-m", "scenesort.backend.commands"]
     assert info["service_exit"] is not None  # disabling the add-on stopped it
 
     from scenesort.kernels import Camera

@@ -13,7 +13,7 @@ from pathlib import Path
 import bpy
 import pytest
 from blender_scenes import BLENDER_EXT, REPO
-from scenesort.backend import addon_zip
+from scenesort.backend.tools import addon_zip
 
 ADDON = REPO / "addon"
 
@@ -48,7 +48,7 @@ def test_no_bl_info_and_relative_imports_only() -> None:
 def built_zip(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("zip") / "scenesort.zip"
     proc = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--output", str(out)],
+        [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--output", str(out)],
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -99,7 +99,8 @@ def test_zip_registers_as_its_own_package(built_zip: Path, tmp_path: Path) -> No
 
 def test_missing_source_fails_with_a_message(tmp_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--source", str(tmp_path)],
+        [sys.executable, "-m", "scenesort.backend.commands", "addon-zip",
+         "--source", str(tmp_path)],
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 1 and "no blender_manifest.toml" in proc.stderr
@@ -121,7 +122,7 @@ def test_platform_zip_refuses_versions_that_differ(tmp_path: Path) -> None:
     (source / "blender_manifest.toml").write_text(newer)
     (tmp_path / "pyproject.toml").write_text('[project]\nversion = "0.1.0"\n')
     proc = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--platform", "linux-x64",
+        [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--platform", "linux-x64",
          "--source", str(source), "-o", str(tmp_path / "x.zip")],
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip

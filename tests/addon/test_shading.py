@@ -24,7 +24,7 @@ from blender_scenes import (
     shading,
 )
 from cycles_reference import clean_pixels, render_cycles_ao
-from scenesort.backend import wire
+from scenesort.backend.wire import binary as wire
 
 import addon
 from addon import camera, client, export, prefs

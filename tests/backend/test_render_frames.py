@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bundles import look_at_camera
-from scenesort.backend import frames as frames_module
-from scenesort.backend.bundle import (
+from scenesort.backend.commands import main
+from scenesort.backend.render import frames as frames_module
+from scenesort.backend.render.bundle import (
     BundleError,
     BundleWriter,
     instance_body,
@@ -19,8 +20,7 @@ from scenesort.backend.bundle import (
     mesh_id,
     read_bundle,
 )
-from scenesort.backend.cli import main
-from scenesort.backend.frames import FrameRenderer, render_frames
+from scenesort.backend.render.frames import FrameRenderer, render_frames
 from service_client import OCTET
 
 
@@ -123,7 +123,7 @@ def test_frames_match_the_flattened_scene(bundle, rendered) -> None:
     """Each frame's coverage, depth and AO are those of its flattened triangles traced with
     one BVH (the same camera rays and samples; a path through the engine without the
     instance levels, bit for bit for the AO)."""
-    from scenesort.backend import jobs
+    from scenesort.backend.work import jobs
 
     from scenesort import kernels
 

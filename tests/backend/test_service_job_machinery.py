@@ -8,7 +8,7 @@ import threading
 
 import numpy as np
 import pytest
-from scenesort.backend.jobs import DeviceWorker, Job, JobManager, QueueFull, job_events
+from scenesort.backend.work.jobs import DeviceWorker, Job, JobManager, QueueFull, job_events
 
 WAIT_S = 30.0  # bound on every wait below; none should come close
 
@@ -167,8 +167,8 @@ def test_events_end_with_the_final_state(worker) -> None:
 def test_explicit_ray_ao_stops_between_the_engines_rounds() -> None:
     """The signal reaches the engine's progress calls: stopped (the client hung up) or past
     its deadline, `jobs.ambient_occlusion` raises Stopped instead of rendering on."""
-    from scenesort.backend.jobs import AoParams, Stopped, StopSignal, ambient_occlusion
-    from scenesort.backend.wire import SceneArrays
+    from scenesort.backend.wire.binary import SceneArrays
+    from scenesort.backend.work.jobs import AoParams, Stopped, StopSignal, ambient_occlusion
 
     from scenesort import kernels
 

@@ -6,8 +6,8 @@ import hashlib
 
 import numpy as np
 import pytest
-from scenesort.backend import wire
-from scenesort.backend.problems import ApiError
+from scenesort.backend.wire import binary as wire
+from scenesort.backend.wire.problems import ApiError
 
 V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]], np.float32)
 IDX = np.array([[0, 1, 2], [0, 1, 3]], np.int32)  # the second is collinear: zero area

@@ -23,18 +23,11 @@ import numpy as np
 from fastapi import FastAPI, Path, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
-from scenesort.backend import __version__, jobs, wire
-from scenesort.backend.frames import resolve
-from scenesort.backend.jobs import (
-    TOO_LARGE,
-    AoParams,
-    DeviceWorker,
-    JobManager,
-    QueueFull,
-    Stopped,
-    StopSignal,
-)
-from scenesort.backend.models import (
+from scenesort.backend import __version__
+from scenesort.backend.api.security import AUTHORIZED, Guard, Policy, escape
+from scenesort.backend.render.frames import resolve
+from scenesort.backend.wire import binary as wire
+from scenesort.backend.wire.models import (
     MAX_PIXEL_ERROR_DOC,
     OCTET,
     TARGET_ERROR_DOC,
@@ -50,9 +43,18 @@ from scenesort.backend.models import (
     binary_body,
     error_responses,
 )
-from scenesort.backend.problems import ApiError, busy
-from scenesort.backend.security import AUTHORIZED, Guard, Policy, escape
-from scenesort.backend.store import Store
+from scenesort.backend.wire.problems import ApiError, busy
+from scenesort.backend.work import jobs
+from scenesort.backend.work.jobs import (
+    TOO_LARGE,
+    AoParams,
+    DeviceWorker,
+    JobManager,
+    QueueFull,
+    Stopped,
+    StopSignal,
+)
+from scenesort.backend.work.store import Store
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException

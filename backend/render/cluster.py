@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scenesort.backend.bundle import Frame, read_bundle
-from scenesort.backend.frames import (
+from scenesort.backend.render.bundle import Frame, read_bundle
+from scenesort.backend.render.frames import (
     BuildReport,
     FrameRenderer,
     FrameResult,

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
-from scenesort.backend import wire
-from scenesort.backend.models import JobRequest
-from scenesort.backend.problems import ApiError
+from scenesort.backend.wire import binary as wire
+from scenesort.backend.wire.models import JobRequest
+from scenesort.backend.wire.problems import ApiError
 
 FORMAT = "scenesort-frame-bundle"
 VERSION = 1

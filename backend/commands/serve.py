@@ -19,7 +19,7 @@ import socket
 import sys
 from typing import Any
 
-from scenesort.backend.token_file import TOKEN_ENV, service_token
+from scenesort.backend.api.token_file import TOKEN_ENV, service_token
 
 log = logging.getLogger("scenesort.serve")
 
@@ -160,8 +160,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _app(args: argparse.Namespace, token: str | None, port: int, shown: str) -> Any:
-    from scenesort.backend.app import Settings, create_app
-    from scenesort.backend.security import Policy
+    from scenesort.backend.api.app import Settings, create_app
+    from scenesort.backend.api.security import Policy
 
     hosts = {name.lower() for name in args.allow_host}
     if not is_loopback(args.host) and not ipaddress.ip_address(shown.strip("[]")).is_unspecified:
@@ -189,7 +189,7 @@ def _app(args: argparse.Namespace, token: str | None, port: int, shown: str) -> 
 def _server(app: Any, args: argparse.Namespace) -> Any:
     """uvicorn's server, told to stop the work before it waits for connections to close."""
     import uvicorn
-    from scenesort.backend.app import stop_work
+    from scenesort.backend.api.app import stop_work
 
     class Server(uvicorn.Server):
         def handle_exit(self, sig: int, frame: Any) -> None:

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scenesort.backend.problems import ApiError
+from scenesort.backend.wire.problems import ApiError
 
 F32 = np.dtype("<f4")
 I32 = np.dtype("<i4")

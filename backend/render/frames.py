@@ -38,9 +38,9 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from scenesort.backend import wire
-from scenesort.backend.bundle import Bundle, read_bundle
-from scenesort.backend.store import Store, bvh_key, bvh_nbytes
+from scenesort.backend.render.bundle import Bundle, read_bundle
+from scenesort.backend.wire import binary as wire
+from scenesort.backend.work.store import Store, bvh_key, bvh_nbytes
 
 TopLevel = Literal["built", "reused", "none"]
 DEFAULT_CACHE_BYTES = 4096 * 2**20
@@ -308,7 +308,7 @@ class FrameRenderer:
 
     def render(self, frame_number: int) -> FrameResult:
         """Render one frame (its meshes read from the bundle when first needed)."""
-        from scenesort.backend import jobs  # which imports this module for scene_bvh
+        from scenesort.backend.work import jobs  # which imports this module for scene_bvh
 
         frame = self.bundle.frame(frame_number)
         request = frame.request

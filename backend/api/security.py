@@ -31,8 +31,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from scenesort.backend.models import OCTET
-from scenesort.backend.problems import ApiError, busy
+from scenesort.backend.wire.models import OCTET
+from scenesort.backend.wire.problems import ApiError, busy
 
 log = logging.getLogger("scenesort.app")
 

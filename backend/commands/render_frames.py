@@ -61,7 +61,7 @@ def parse_frames(spec: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from scenesort.backend.cluster import ClusterError
+    from scenesort.backend.render.cluster import ClusterError
 
     console = Console()
     try:
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
         frames = None if args.frames is None else parse_frames(args.frames)
         start = time.perf_counter()
         if args.ray is None:
-            from scenesort.backend.frames import render_frames
+            from scenesort.backend.render.frames import render_frames
 
             done = render_frames(args.bundle, args.out, frames=frames, resume=args.resume,
                                  threads=args.threads, progress=not args.no_progress,
@@ -101,9 +101,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _on_ray(args: argparse.Namespace, frames: list[int] | None,
             console: Any) -> tuple[list[tuple[int, Any]], dict[int, str]]:
-    from scenesort.backend.bundle import read_bundle
-    from scenesort.backend.cluster import import_ray, render_frames_ray
-    from scenesort.backend.frames import frame_progress
+    from scenesort.backend.render.bundle import read_bundle
+    from scenesort.backend.render.cluster import import_ray, render_frames_ray
+    from scenesort.backend.render.frames import frame_progress
 
     import_ray()  # the missing extra, named before any work
     total = len(read_bundle(args.bundle).frames) if frames is None else len(frames)

@@ -80,7 +80,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def load_scene(scene: str | None, width: int | None, height: int | None) -> Any:
     """The built-in scene, a shared scene by name, or a mesh file with a framing camera."""
-    from scenesort.backend import scenes
+    from scenesort.backend.render import scenes
 
     w = width or scenes.DEFAULT_WIDTH
     h = height or scenes.DEFAULT_HEIGHT

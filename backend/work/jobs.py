@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from scenesort.backend.frames import View, scene_bvh
+from scenesort.backend.render.frames import View, scene_bvh
 
 log = logging.getLogger("scenesort.jobs")
 
@@ -417,7 +417,7 @@ def ao_params(request: Any, threads: int | None = None) -> AoParams:
 def job_camera(request: Any) -> Any:
     """The framed camera of a job request (its camera, window and pixel aspect); raises
     ValueError naming the camera field at fault."""
-    from scenesort.backend.framing import framed
+    from scenesort.backend.render.framing import framed
 
     window = None if request.window is None else request.window.model_dump()
     return framed(request.camera.model_dump(), window, request.pixel_aspect)
@@ -497,7 +497,7 @@ def render_camera(
     """A camera job: BVH (cached or built; with `cull`, of an instance list only what the
     camera may see: backend/frames.py), primary rays, AO with progress, the primary hits'
     depth and coverage, PNG."""
-    from scenesort.backend.wire import encode_png
+    from scenesort.backend.wire.binary import encode_png
 
     def timed(phase: str, fn: Callable[[], Any]) -> Any:
         job.report(phase)  # also the cancellation point between phases

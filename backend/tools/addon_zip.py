@@ -28,7 +28,7 @@ import tomllib
 import zipfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ADDON_DIR = ROOT / "addon"
 CACHE_DIR = ROOT / ".cache" / "addon-wheels"
 MANIFEST = "blender_manifest.toml"
