@@ -649,7 +649,7 @@ def part_cull(args) -> tuple[list[str], dict]:
 def cull_decision_costs(args) -> dict:
     """Per camera over the bunny field: the cull decision, the top level over what is in
     view, and the top level over everything; medians of (wall, CPU) ms."""
-    from scenesort.backend.render.frames import View, visible
+    from scenesort.backend.render.visibility import View, visible
     from scenesort.backend.work.store import Store
 
     bunny = shared_scene("bunny")

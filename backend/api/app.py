@@ -11,7 +11,6 @@ carries on. docs/api.md describes the API for people, docs/security.md its defen
 from __future__ import annotations
 
 import asyncio
-import importlib
 import logging
 import time
 from collections.abc import AsyncIterator, Callable
@@ -25,7 +24,9 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, StreamingResponse
 from scenesort.backend import __version__
 from scenesort.backend.api.security import AUTHORIZED, Guard, Policy, escape
-from scenesort.backend.render.frames import resolve
+from scenesort.backend.render import ao as service_ao
+from scenesort.backend.render import bvhs, camera_render, engine
+from scenesort.backend.render.ao import AoParams
 from scenesort.backend.wire import binary as wire
 from scenesort.backend.wire.models import (
     MAX_PIXEL_ERROR_DOC,
@@ -45,16 +46,10 @@ from scenesort.backend.wire.models import (
 )
 from scenesort.backend.wire.problems import ApiError, busy
 from scenesort.backend.work import jobs
-from scenesort.backend.work.jobs import (
-    TOO_LARGE,
-    AoParams,
-    DeviceWorker,
-    JobManager,
-    QueueFull,
-    Stopped,
-    StopSignal,
-)
+from scenesort.backend.work.jobs import TOO_LARGE, JobManager
+from scenesort.backend.work.stop import Stopped, StopSignal
 from scenesort.backend.work.store import Store
+from scenesort.backend.work.worker import DeviceWorker, QueueFull
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 from starlette.exceptions import HTTPException as StarletteHTTPException
@@ -206,7 +201,7 @@ async def run_on_worker(
 
 def _check_work(settings: Settings, count: int, count_name: str, params: AoParams) -> None:
     """Refuse a request whose ray casts (count x samples per ray) exceed --max-work."""
-    per_ray = jobs.adaptive_max_spp() if params.adaptive else params.spp
+    per_ray = engine.adaptive_max_spp() if params.adaptive else params.spp
     spp_name = "the adaptive cap of spp" if params.adaptive else "spp"
     work = count * per_ray
     if work > settings.max_work:
@@ -223,7 +218,7 @@ def _check_work(settings: Settings, count: int, count_name: str, params: AoParam
 
 def _check_ao(params: AoParams) -> None:
     """Refuse what the engine would refuse, naming the query parameter."""
-    max_spp = jobs.adaptive_max_spp()
+    max_spp = engine.adaptive_max_spp()
     if params.adaptive and params.spp > max_spp:
         raise ApiError(
             422,
@@ -234,18 +229,14 @@ def _check_ao(params: AoParams) -> None:
             "a fixed spp",
             "invalid_parameter",
         )
-    if params.denoise:
-        from scenesort.kernels.render.denoise import EXTRA_HINT, DenoiserMissing, require_denoiser
-
-        try:
-            require_denoiser()
-        except DenoiserMissing as exc:
-            raise ApiError(
-                422, "denoise", f"this service cannot denoise: {exc}",
-                f'install the extra where the service runs ({EXTRA_HINT}) and restart it, '
-                "or send denoise=false",
-                "denoiser_missing",
-            ) from None
+    problem = engine.denoiser_problem() if params.denoise else None
+    if problem is not None:
+        raise ApiError(
+            422, "denoise", f"this service cannot denoise: {problem}",
+            f"install the extra where the service runs ({engine.denoise_extra()}) and "
+            "restart it, or send denoise=false",
+            "denoiser_missing",
+        )
 
 
 def _check_engine(scene: Any, params: AoParams) -> None:
@@ -388,8 +379,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @asynccontextmanager
     async def lifespan(_: FastAPI) -> AsyncIterator[None]:
         # Import the engine and load its kernels before the first request, not during it.
-        await run_in_threadpool(importlib.import_module, "scenesort.kernels")
-        worker.submit(lambda: jobs.warm_up(settings.device))
+        await run_in_threadpool(engine.load)
+        worker.submit(lambda: engine.warm_up(settings.device))
         yield
         stop_work(app)
         await run_in_threadpool(worker.stop, 3.0)  # the running task ends at its next round
@@ -417,15 +408,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
              openapi_extra={"security": [{}, {BEARER: []}]})  # the token is optional here
     async def health(request: Request) -> Health:
         """Liveness and versions; with the token also the device, cache and queue."""
-        import warp
-
         if not request.scope.get(AUTHORIZED):
-            return Health(version=__version__, warp_version=warp.config.version)
+            return Health(version=__version__, warp_version=engine.warp_version())
         return Health(
             version=__version__,
-            warp_version=warp.config.version,
+            warp_version=engine.warp_version(),
             device=settings.device,
-            devices=[str(d) for d in warp.get_devices()],
+            devices=engine.devices(),
             cache=CacheUse(**store.usage()),
             queued=worker.queued,
             active_jobs=manager.active(),
@@ -456,6 +445,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             try:
                 scene = await run_in_threadpool(
                     lambda: wire.decode_scene(body, vertices, triangles, scene_id,
+                                              count_degenerate=engine.count_degenerate,
                                               normals=normals,
                                               terminator_offsets=terminator_offsets)
                 )
@@ -549,7 +539,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         scene = store.get(listing.scene_id)
         if scene is None:
             try:
-                scene = resolve(listing, lambda mesh_id: _mesh_or_none(store, mesh_id))
+                scene = wire.resolve(listing, lambda mesh_id: _mesh_or_none(store, mesh_id))
             except ValueError as exc:
                 raise ApiError(422, "body (mesh ids)", str(exc), "upload the mesh with one "
                                "terminator offset repeated over its triangles",
@@ -623,7 +613,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         def work() -> tuple[Any, bool]:
             signal.check()  # a build cannot stop half-way: only before it starts
             started.append(time.perf_counter())
-            return jobs.get_or_build_bvh(store, scene, spec.method, spec.leaf_size, settings.device)
+            return bvhs.get_or_build_bvh(store, scene, spec.method, spec.leaf_size, settings.device)
 
         bvh, cached = await run_on_worker(request, signal, "scene", work)
         t1 = time.perf_counter()
@@ -693,9 +683,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             # Runs on the worker: pick or build the BVH there, never on the event loop.
             signal.check()
             w0 = time.perf_counter()
-            bvh = jobs.bvh_for_ao(store, scene, method, leaf_size, settings.device)
+            bvh = bvhs.bvh_for_ao(store, scene, method, leaf_size, settings.device)
             w1 = time.perf_counter()
-            ao, engine_ms = jobs.ambient_occlusion(bvh, scene, origins, directions, params,
+            ao, engine_ms = service_ao.ambient_occlusion(bvh, scene, origins, directions, params,
                                                    signal)
             timings.update(bvh=1000 * (w1 - w0), ao=1000 * (time.perf_counter() - w1))
             timings.update({f"ao.{k}": v for k, v in engine_ms.items() if k != "total"})
@@ -721,7 +711,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def create_job(request: JobRequest, response: Response) -> JobStatus:
         """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
         try:
-            camera = jobs.job_camera(request)
+            camera = camera_render.job_camera(request)
         except ValueError as exc:
             raise ApiError(
                 422,
@@ -738,7 +728,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                 "render a smaller image or tiles",
                 "too_many_pixels",
             )
-        params = jobs.ao_params(request)
+        params = service_ao.ao_params(request)
         _check_ao(params)
         _check_work(settings, camera.width * camera.height, "camera.width x camera.height",
                     params)
@@ -746,7 +736,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         _check_engine(scene, params)
 
         def work(job: jobs.Job) -> None:
-            jobs.render_camera(
+            camera_render.render_camera(
                 job,
                 store,
                 scene,

@@ -20,6 +20,7 @@ import sys
 from typing import Any
 
 from scenesort.backend.api.token_file import TOKEN_ENV, service_token
+from scenesort.backend.render import engine
 
 log = logging.getLogger("scenesort.serve")
 
@@ -93,20 +94,6 @@ def _token(args: argparse.Namespace) -> tuple[str | None, str]:
     return token, f"token {'from' if source.startswith('$') else 'in'} {source}"
 
 
-def _check_device(device: str) -> str | None:
-    """None if Warp has `device`, else a message listing the devices it has."""
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_WARNING  # no greeting: stdout is for the 'serving on' line
-    wp.init()
-    try:
-        wp.get_device(device)
-    except (RuntimeError, ValueError):
-        names = [str(d) for d in wp.get_devices()]
-        return f"--device {device!r} is not available here; this machine has {names}"
-    return None
-
-
 def _listen(family: socket.AddressFamily, host: str, port: int) -> socket.socket:
     """A listening TCP socket. The protocol is given explicitly: asyncio turns Nagle off
     (TCP_NODELAY) only on sockets whose proto is IPPROTO_TCP, and without that every
@@ -124,7 +111,7 @@ def _listen(family: socket.AddressFamily, host: str, port: int) -> socket.socket
 
 def run(args: argparse.Namespace) -> int:
     """Start uvicorn; return its exit status (2 for refused options)."""
-    problem = _problem(args) or _check_device(args.device)
+    problem = _problem(args) or engine.device_problem(args.device)
     token, described = None, ""
     if problem is None:
         try:
