@@ -139,7 +139,8 @@ def run(args: argparse.Namespace) -> int:
           flush=True)
     with contextlib.suppress(KeyboardInterrupt):  # uvicorn re-raises the SIGINT it handled
         _server(app, args).run(sockets=[sock])
-    if not app.state.worker.stop(0.0):  # a launch that ignored the cancel: do not wait on it
+    # A launch that ignored the cancel: do not wait on it.
+    if not app.state.service.worker.stop(0.0):
         log.warning("the device worker is still in a kernel launch; exiting without it")
         logging.shutdown()
         os._exit(0)
@@ -147,8 +148,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _app(args: argparse.Namespace, token: str | None, port: int, shown: str) -> Any:
-    from scenesort.backend.api.app import Settings, create_app
+    from scenesort.backend.api.app import create_app
     from scenesort.backend.api.security import Policy
+    from scenesort.backend.api.service import Settings
 
     hosts = {name.lower() for name in args.allow_host}
     if not is_loopback(args.host) and not ipaddress.ip_address(shown.strip("[]")).is_unspecified:

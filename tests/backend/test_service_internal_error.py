@@ -14,7 +14,8 @@ import time
 import httpx
 import pytest
 import uvicorn
-from scenesort.backend.api.app import Settings, create_app
+from scenesort.backend.api.app import create_app
+from scenesort.backend.api.service import Settings
 from scenesort.backend.commands.serve import _listen
 
 
