@@ -102,6 +102,11 @@ def test_manifest_lists_the_platform_and_every_wheel(extension_zip: Path) -> Non
     names = {re.split(r"-\d", Path(w).name, maxsplit=1)[0].lower() for w in wheels}
     assert {"scenesort", "warp_lang", "fastapi", "uvicorn", "pydantic_core"} <= names
     assert "numpy" not in names  # Blender ships it
+    (engine,) = [w for w in wheels if Path(w).name.startswith("scenesort-")]
+    with zipfile.ZipFile(extension_zip) as zf, zf.open(engine) as raw, \
+            zipfile.ZipFile(raw) as wheel:
+        tools = [n for n in wheel.namelist() if n.startswith("scenesort/backend/tools/")]
+    assert not tools  # a packager's tools (addon-zip, bench, peers): not for Blender
     # Compiled packages come for Blender 4.2-5.0's Python 3.11 and 5.1+'s 3.13.
     core = sorted(w for w in wheels if "pydantic_core" in w)
     assert [re.search(r"-(cp3\d+)-", w).group(1) for w in core] == ["cp311", "cp313"]
