@@ -53,8 +53,3 @@ async def _lifespan(app: FastAPI) -> AsyncIterator[None]:
     service.stop_work()
     await run_in_threadpool(service.worker.stop, 3.0)  # the running task ends at its next round
 
-
-def stop_work(app: FastAPI) -> None:
-    """Cancel every job and running request (SIGTERM/SIGINT): they end at their next
-    round, and queued ones never start."""
-    app.state.service.stop_work()
