@@ -5,9 +5,9 @@
 
 Writes `DIR/<frame>.png` (8-bit AO, the service's PNG) and `DIR/<frame>.npy` (float32 AO,
 row 0 at the top) per frame with a progress bar, then a table of what the frames built:
-meshes built, refit or reused, top levels built (backend/frames.py's skip rules), and what
+meshes built, refit or reused, top levels built (render/bvhs.py's skip rules), and what
 culling left out (instances out of view, meshes none of the instances in view uses).
-With `--ray` the frames are Ray tasks on a cluster (backend/cluster.py, docs/cluster.md).
+With `--ray` the frames are Ray tasks on a cluster (render/cluster.py, docs/cluster.md).
 """
 
 from __future__ import annotations

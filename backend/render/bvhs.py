@@ -142,7 +142,7 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     single mesh's BVH, or an instance list's two levels (the top level over the meshes'
     BVHs, each from `mesh_bvh`); with a `view`, only what may change its pixels (module
     doc). An instance list is kept in the store with its top level, which lives no longer
-    than it (store.py drops a scene's BVHs with it)."""
+    than it (work/store.py drops a scene's BVHs with it)."""
     from scenesort.kernels.scene import bvh_nbytes as mesh_bytes
 
     from scenesort import kernels

@@ -45,7 +45,7 @@ class FrameRenderer:
     def __init__(self, bundle: Bundle | str | Path, *, device: str | None = None,
                  threads: int | None = None, cache_bytes: int = DEFAULT_CACHE_BYTES,
                  cull: bool = True) -> None:
-        # Anything with the Bundle's frame() and mesh(): backend/cluster.py ships frames in
+        # Anything with the Bundle's frame() and mesh(): render/cluster.py ships frames in
         # tasks and meshes through Ray's object store.
         self.bundle = read_bundle(bundle) if isinstance(bundle, str | Path) else bundle
         self.device = device or "cpu"

@@ -1,6 +1,6 @@
 """Binary wire format of the service: decode, validate and encode little-endian arrays.
 
-Everything here is plain numpy and raises `ApiError` (backend/problems.py: a 4xx naming
+Everything here is plain numpy and raises `ApiError` (wire/problems.py: a 4xx naming
 the parameter and the fix) for client mistakes, so the routes stay thin and the rules are
 testable without a server. Layouts (also in docs/api.md):
 

@@ -122,7 +122,7 @@ class Job:
         self.version += 1
 
     def snapshot(self) -> dict[str, Any]:
-        """The JSON status of the job (the `JobStatus` model in app.py)."""
+        """The JSON status of the job (the `JobStatus` model in wire/models.py)."""
         with self._lock:
             return {
                 "job_id": self.job_id,

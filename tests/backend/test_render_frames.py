@@ -1,4 +1,4 @@
-"""`scenesort render-frames` and backend/frames.py: the skip rules by the build reports,
+"""`scenesort render-frames` and backend/render/: the skip rules by the build reports,
 the frames against the flattened scene and against the service's jobs for the same frames,
 resume, and bad bundles named by file and field."""
 

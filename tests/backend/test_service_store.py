@@ -1,4 +1,4 @@
-"""The byte-bounded LRU store (backend/store.py)."""
+"""The byte-bounded LRU store (backend/work/store.py)."""
 
 from __future__ import annotations
 
