@@ -56,29 +56,15 @@ class Service:
 
     def scene(self, scene_id: str) -> Any:
         """The scene, mesh or instance list stored under `scene_id`; 404 if none."""
-        scene = self.store.get(scene_id)
-        if scene is None:
-            raise ApiError(
-                404,
-                "scene_id",
-                f"no scene {scene_id} on this service (or evicted)",
-                "upload it with POST /v1/scenes first",
-                "unknown_scene",
-            )
-        return scene
+        return _found(self.store.get(scene_id), "scene_id",
+                      f"no scene {scene_id} on this service (or evicted)",
+                      "upload it with POST /v1/scenes first", "unknown_scene")
 
     def job(self, job_id: str) -> Job:
         """The job `job_id`; 404 if unknown."""
-        job = self.jobs.get(job_id)
-        if job is None:
-            raise ApiError(
-                404,
-                "job_id",
-                f"no job {job_id} (unknown, or finished long ago)",
-                "create a job with POST /v1/jobs",
-                "unknown_job",
-            )
-        return job
+        return _found(self.jobs.get(job_id), "job_id",
+                      f"no job {job_id} (unknown, or finished long ago)",
+                      "create a job with POST /v1/jobs", "unknown_job")
 
     def stop_work(self) -> None:
         """Cancel every job and running request (SIGTERM/SIGINT): they end at their next
@@ -86,6 +72,13 @@ class Service:
         self.jobs.cancel_all(SHUTDOWN)
         for signal in list(self.live):
             signal.stop(SHUTDOWN)
+
+
+def _found(value: Any, parameter: str, message: str, fix: str, code: str) -> Any:
+    """`value`, or a 404 naming `parameter` when there is none."""
+    if value is None:
+        raise ApiError(404, parameter, message, fix, code)
+    return value
 
 
 def service(request: Request) -> Service:

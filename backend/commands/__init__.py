@@ -25,6 +25,14 @@ COMMANDS: dict[str, tuple[str, str]] = {
 TOOLS = "scenesort.backend.tools"  # left out of the wheel the Blender extension bundles
 
 
+def check_at_least(args: argparse.Namespace, minimum: int, *names: str) -> None:
+    """ValueError naming the first option among `names` that is set and below `minimum`."""
+    for name in names:
+        value = getattr(args, name)
+        if value is not None and value < minimum:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= {minimum}, got {value}")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(prog="scenesort", description=__doc__)

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scenesort.backend.commands import check_at_least
 
 SAMPLERS = ("sobol", "random")
 
@@ -78,12 +79,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _check(args: argparse.Namespace) -> None:
-    for name in ("width", "height"):
-        value = getattr(args, name)
-        if value is not None and value < 1:
-            raise ValueError(f"--{name} must be >= 1, got {value}")
-    if args.spp < 1:
-        raise ValueError(f"--spp must be >= 1, got {args.spp}")
+    check_at_least(args, 1, "width", "height", "spp")
     if args.distance is not None and not args.distance > 0:
         raise ValueError(f"--distance must be > 0, got {args.distance}")
     for name in ("target_error", "max_pixel_error"):

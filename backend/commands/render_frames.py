@@ -17,6 +17,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from scenesort.backend.commands import check_at_least
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("bundle", type=Path, help="the bundle's folder (holds manifest.json)")
@@ -65,12 +67,8 @@ def run(args: argparse.Namespace) -> int:
 
     console = Console()
     try:
-        for name in ("threads", "ray_workers"):
-            value = getattr(args, name)
-            if value is not None and value < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
-        if args.retries < 0:
-            raise ValueError(f"--retries must be >= 0, got {args.retries}")
+        check_at_least(args, 1, "threads", "ray_workers")
+        check_at_least(args, 0, "retries")
         frames = None if args.frames is None else parse_frames(args.frames)
         start = time.perf_counter()
         if args.ray is None:
