@@ -1,7 +1,7 @@
 """File > Export > scenesort animation: the scene's frame range as a frame bundle, which
 `scenesort render-frames BUNDLE --out DIR` renders without Blender.
 
-The layout is backend/bundle.py's (docs/api.md, "Frame bundles"): each distinct mesh once,
+The layout is backend/render/bundle.py's (docs/api.md, "Frame bundles"): each distinct mesh once,
 in its own space and named by its content hash (a deformed mesh is a new one in the frames
 where it changed), per frame the camera and the instance list, and the render settings
 in the manifest. Instances come from the depsgraph's object instances without expanding
@@ -20,7 +20,7 @@ from bpy.props import StringProperty
 
 from . import camera, export, pipeline
 
-FORMAT = "scenesort-frame-bundle"  # backend/bundle.py reads this format and version
+FORMAT = "scenesort-frame-bundle"  # backend/render/bundle.py reads this format and version
 VERSION = 1
 
 

@@ -23,7 +23,7 @@ HEALTH_TIMEOUT_S = 2.0  # health and HEAD are cheap: fail fast when nothing list
 UPLOAD_TIMEOUT_S = 60.0
 # Build and render answer only when done; this bounds the silence between bytes.
 WORK_TIMEOUT_S = 900.0
-SCENE_HASH_CHARS = 32  # backend/wire.py keeps 32 hex characters of the sha256
+SCENE_HASH_CHARS = 32  # backend/wire/binary.py keeps 32 hex characters of the sha256
 
 
 class ServiceError(Exception):
@@ -35,14 +35,14 @@ class ServiceError(Exception):
 
 
 def scene_id(vertex_count: int, triangle_count: int, body: bytes) -> str:
-    """The service's content id of a scene upload (same rule as backend/wire.py)."""
+    """The service's content id of a scene upload (same rule as backend/wire/binary.py)."""
     digest = hashlib.sha256(b"scenesort-scene-v1 %d %d\n" % (vertex_count, triangle_count))
     digest.update(body)
     return digest.hexdigest()[:SCENE_HASH_CHARS]
 
 
 def instances_id(mesh_count: int, instance_count: int, body: bytes) -> str:
-    """The service's content id of an instance list (same rule as backend/wire.py)."""
+    """The service's content id of an instance list (same rule as backend/wire/binary.py)."""
     digest = hashlib.sha256(b"scenesort-instances-v1 %d %d\n" % (mesh_count, instance_count))
     digest.update(body)
     return digest.hexdigest()[:SCENE_HASH_CHARS]

@@ -9,7 +9,7 @@ and shows the step in the status bar. Blender writes the files of Ctrl-F12 itsel
 Frame ranges (Ctrl-F12) with the BVH engine send the scene as an instance list
 (`export.export_instances`): per frame each mesh is asked for by its hash (HEAD) and sent
 only when the service lacks it, and the list of instances is sent when it changed; the
-service then builds only what changed (backend/frames.py). F12 sends the flattened scene.
+service then builds only what changed (backend/render/bvhs.py). F12 sends the flattened scene.
 
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
 alpha = coverage with Film > Transparent and 1 without; `AO` (one channel, 0 on

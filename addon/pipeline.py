@@ -84,7 +84,7 @@ class Outcome:
     spp_mean: float = 0.0
     spp_max: int = 0
     rays: int = 0
-    # what the job built, refit or reused (the job status's `build`; backend/frames.py)
+    # what the job built, refit or reused (the job status's `build`; backend/render/bvhs.py)
     build_report: dict | None = None
     denoised: bool = False  # the image is OIDN's output (rmse_estimate is the raw render's)
     requests: list[str] = field(default_factory=list)

@@ -33,6 +33,7 @@ from pathlib import Path
 
 STOP_TIMEOUT_S = 5.0
 ENGINE_PACKAGE = "scenesort.backend"  # the service's package inside the scenesort wheel
+ENGINE_COMMAND = f"{ENGINE_PACKAGE}.commands"  # `python -m` this: the `scenesort` command
 _PR_SET_PDEATHSIG = 1
 # `scenesort serve` prints this first, with the port it bound (also for --port 0).
 _SERVING = re.compile(r"scenesort serving on (http://\S+)")
@@ -98,7 +99,8 @@ def engine_root() -> Path | None:
         return None
     if spec is None or not spec.submodule_search_locations:
         return None
-    if not (Path(next(iter(spec.submodule_search_locations))) / "cli.py").is_file():
+    folder = Path(next(iter(spec.submodule_search_locations)))
+    if not (folder / "commands" / "__main__.py").is_file():
         return None
     top = importlib.util.find_spec(ENGINE_PACKAGE.split(".")[0])
     return Path(top.origin).parent.parent if top and top.origin else None
@@ -123,7 +125,7 @@ def command_line(command: str, host: str, port: int, device: str = "cpu") -> lis
     if not command.strip():
         _bundled_engine()
         # -s: the user's own site-packages must not shadow the bundled wheels.
-        return [sys.executable, "-s", "-m", f"{ENGINE_PACKAGE}.cli", *serve]
+        return [sys.executable, "-s", "-m", ENGINE_COMMAND, *serve]
     argv = split_command(command)
     if not argv:
         raise LaunchError("The service command is empty: set it in the add-on preferences")

@@ -66,7 +66,7 @@ def main() -> int:
         zip_path = args.zip or work / "scenesort-linux-x64.zip"
         if args.zip is None:
             subprocess.run(
-                [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--platform",
+                [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--platform",
                  "linux-x64", "-o", str(zip_path)], cwd=ROOT, check=True,
             )  # fmt: skip
         env = {"PATH": "/usr/bin:/bin", "HOME": os.environ.get("HOME", tmp),

@@ -51,8 +51,8 @@ import warp as wp
 wp.config.quiet = True
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
-from scenesort.backend import wire  # noqa: E402
-from scenesort.backend.scenes import load_mesh, shared_scene, shared_scenes_dir  # noqa: E402
+from scenesort.backend.render.scenes import load_mesh, shared_scene, shared_scenes_dir  # noqa: E402
+from scenesort.backend.wire import binary as wire  # noqa: E402
 from scenesort.kernels import Camera  # noqa: E402
 from scenesort.kernels.core import cpu_cores  # noqa: E402
 from scenesort.kernels.render import default_distance  # noqa: E402
@@ -561,8 +561,8 @@ def part_cull(args) -> tuple[list[str], dict]:
     import tempfile
     from pathlib import Path
 
-    from scenesort.backend.bundle import BundleWriter
-    from scenesort.backend.frames import FrameRenderer
+    from scenesort.backend.render.bundle import BundleWriter
+    from scenesort.backend.render.frames import FrameRenderer
 
     width = args.frame_size
     anim = Animation(1, args.cull_triangles, width, width * 3 // 4)
@@ -649,8 +649,8 @@ def part_cull(args) -> tuple[list[str], dict]:
 def cull_decision_costs(args) -> dict:
     """Per camera over the bunny field: the cull decision, the top level over what is in
     view, and the top level over everything; medians of (wall, CPU) ms."""
-    from scenesort.backend.frames import View, visible
-    from scenesort.backend.store import Store
+    from scenesort.backend.render.visibility import View, visible
+    from scenesort.backend.work.store import Store
 
     bunny = shared_scene("bunny")
     v, f = bunny.vertices, bunny.indices

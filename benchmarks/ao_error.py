@@ -53,8 +53,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
-from scenesort.backend import peers  # noqa: E402
-from scenesort.backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
+from scenesort.backend.render.scenes import shared_scene, shared_scene_infos  # noqa: E402
+from scenesort.backend.tools import peers  # noqa: E402
 from scenesort.kernels.core import host_threads  # noqa: E402
 from scenesort.kernels.render import ao  # noqa: E402
 

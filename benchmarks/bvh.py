@@ -33,8 +33,8 @@ wp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="scenesort-bench-cache-")
 wp.config.quiet = True
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
-from scenesort.backend import peers  # noqa: E402
-from scenesort.backend.scenes import shared_scene, shared_scene_infos  # noqa: E402
+from scenesort.backend.render.scenes import shared_scene, shared_scene_infos  # noqa: E402
+from scenesort.backend.tools import peers  # noqa: E402
 from scenesort.kernels.core import cpu_cores  # noqa: E402
 from scenesort.kernels.core.compile_options import cpu_target_flags  # noqa: E402
 from scenesort.kernels.render import default_distance  # noqa: E402

@@ -56,7 +56,7 @@ from cycles_reference import (  # noqa: E402
     exr_channels,
     render_cycles_ao,
 )
-from scenesort.backend.scenes import shared_scenes_dir  # noqa: E402
+from scenesort.backend.render.scenes import shared_scenes_dir  # noqa: E402
 
 import addon  # noqa: E402
 from addon import export, prefs, service  # noqa: E402

@@ -47,8 +47,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
-from scenesort.backend.peers import samples_each, timeit_each  # noqa: E402
-from scenesort.backend.scenes import shared_scene  # noqa: E402
+from scenesort.backend.render.scenes import shared_scene  # noqa: E402
+from scenesort.backend.tools.peers import samples_each, timeit_each  # noqa: E402
 from scenesort.kernels import dacrt_trace  # noqa: E402
 
 from scenesort import kernels  # noqa: E402

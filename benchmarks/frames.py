@@ -31,10 +31,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from scenesort.backend.bundle import BundleWriter  # noqa: E402
-from scenesort.backend.cluster import connect, import_ray, render_frames_ray  # noqa: E402
-from scenesort.backend.frames import render_frames  # noqa: E402
-from scenesort.backend.scenes import load_mesh, shared_scenes_dir  # noqa: E402
+from scenesort.backend.render.bundle import BundleWriter  # noqa: E402
+from scenesort.backend.render.cluster import connect, import_ray, render_frames_ray  # noqa: E402
+from scenesort.backend.render.frames import render_frames  # noqa: E402
+from scenesort.backend.render.scenes import load_mesh, shared_scenes_dir  # noqa: E402
 
 from benchmarks.docs_section import write_section  # noqa: E402
 

@@ -42,7 +42,7 @@ import warp as wp  # noqa: E402
 
 wp.config.quiet = True
 
-from scenesort.backend.scenes import shared_scene  # noqa: E402
+from scenesort.backend.render.scenes import shared_scene  # noqa: E402
 
 from scenesort import kernels  # noqa: E402
 

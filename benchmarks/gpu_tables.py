@@ -45,8 +45,8 @@ sys.path[:0] = [str(REPO), str(REPO / "benchmarks")]
 wp.config.quiet = True
 
 from dacrt import TUNINGS, scene_rays  # noqa: E402
-from scenesort.backend.peers import _mesh_closest, _mesh_occluded, ao_rays, random_rays  # noqa: E402
-from scenesort.backend.scenes import shared_scene  # noqa: E402
+from scenesort.backend.render.scenes import shared_scene  # noqa: E402
+from scenesort.backend.tools.peers import _mesh_closest, _mesh_occluded, ao_rays, random_rays  # noqa: E402
 from scenesort.kernels.bvh.build_data import PHASE_NAMES  # noqa: E402
 from scenesort.kernels.bvh.traversal import trace_kernel  # noqa: E402
 

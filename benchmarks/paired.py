@@ -48,14 +48,18 @@ def measure(args: argparse.Namespace) -> None:
     import warp as wp
 
     wp.config.quiet = True
-    # The engine by its import name; a checkout from before the one import name (an --old
-    # one) installs it as the top-level packages `kernels` and `backend`.
-    try:
-        kernels = importlib.import_module("scenesort.kernels")
-        scenes = importlib.import_module("scenesort.backend.scenes")
-    except ImportError:
-        kernels = importlib.import_module("kernels")
-        scenes = importlib.import_module("backend.scenes")
+    # The engine by its import name; an --old checkout may keep the scenes in a flat
+    # backend/, or predate the one import name (top-level packages `kernels`, `backend`).
+    for engine, where in (("scenesort.kernels", "scenesort.backend.render.scenes"),
+                          ("scenesort.kernels", "scenesort.backend.scenes"),
+                          ("kernels", "backend.scenes")):
+        try:
+            kernels, scenes = importlib.import_module(engine), importlib.import_module(where)
+            break
+        except ImportError:
+            continue
+    else:
+        raise ImportError("no scenesort engine importable from " + os.getcwd())
 
     scene = scenes.shared_scene(args.scene)
     v, f = scene.vertices, scene.indices

@@ -29,7 +29,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from scenesort.backend.scenes import load_mesh, shared_scenes_dir  # noqa: E402
+from scenesort.backend.render.scenes import load_mesh, shared_scenes_dir  # noqa: E402
 from scenesort.kernels import Camera  # noqa: E402
 
 from scenesort import kernels  # noqa: E402
@@ -67,7 +67,7 @@ def start_service(*extra: str) -> tuple[subprocess.Popen, str, dict[str, str]]:
         [
             sys.executable,
             "-m",
-            "scenesort.backend.cli",
+            "scenesort.backend.commands",
             "serve",
             "--port",
             "0",

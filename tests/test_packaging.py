@@ -65,7 +65,7 @@ def test_the_command_line_is_scenesorts(wheel: Path) -> None:
     with zipfile.ZipFile(wheel) as zf:
         (entry,) = [n for n in zf.namelist() if n.endswith("entry_points.txt")]
         text = zf.read(entry).decode()
-    assert "scenesort = scenesort.backend.cli:main" in text
+    assert "scenesort = scenesort.backend.commands:main" in text
 
 
 def test_no_code_imports_kernels_or_backend_by_the_folder_name() -> None:

@@ -1,4 +1,4 @@
-"""File > Export > scenesort animation in real bpy, read back with backend/bundle.py: the
+"""File > Export > scenesort animation in real bpy, read back with backend/render/bundle.py: the
 same meshes, transforms and cameras as Blender has at each frame, instanced meshes once,
 a deformed mesh only in the frames where it changed, and the user's frame set back."""
 
@@ -10,7 +10,7 @@ import bpy
 import numpy as np
 import pytest
 from blender_scenes import FRAMES, add_object, animated_scene, box_mesh
-from scenesort.backend.bundle import BundleError, read_bundle
+from scenesort.backend.render.bundle import BundleError, read_bundle
 
 from addon import animation, camera, export
 

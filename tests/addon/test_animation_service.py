@@ -11,7 +11,7 @@ import bpy
 import numpy as np
 import pytest
 from blender_scenes import FRAMES, animated_scene, read_image
-from scenesort.backend.cli import main
+from scenesort.backend.commands import main
 
 import addon
 from addon import connection, export, pipeline, prefs, service

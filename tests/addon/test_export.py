@@ -110,13 +110,14 @@ def test_export_leaves_the_scene_alone(mixed_scene) -> None:
 
 def test_body_layout_and_scene_id_match_the_service(mixed_scene) -> None:
     """The upload body is V*3 float32 then T*3 int32, and the add-on's id is the service's."""
-    from scenesort.backend import wire
+    from scenesort.backend.render.engine import count_degenerate
+    from scenesort.backend.wire import binary as wire
 
     mesh = export.export_scene(_depsgraph())
     body = mesh.body()
     v, t = len(mesh.vertices), mesh.triangles
     assert len(body) == 12 * v + 12 * t
-    decoded = wire.decode_scene(body, v, t)
+    decoded = wire.decode_scene(body, v, t, count_degenerate=count_degenerate)
     np.testing.assert_array_equal(decoded.vertices, mesh.vertices)
     np.testing.assert_array_equal(decoded.indices, mesh.indices)
     assert client.scene_id(v, t, body) == decoded.scene_id == wire.scene_hash(v, t, body)

@@ -49,7 +49,7 @@ def _run(argv: list, timeout: float, **kwargs) -> subprocess.CompletedProcess:
 def platform_zips(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """`scenesort addon-zip --platform all`: one zip per platform, sizes printed."""
     out = tmp_path_factory.mktemp("zips")
-    argv = [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--platform", "all",
+    argv = [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--platform", "all",
             "-o", out]
     lines = _run(argv, INSTALL_TIMEOUT_S, cwd=REPO).stdout.strip().splitlines()
     zips = {}
@@ -102,6 +102,11 @@ def test_manifest_lists_the_platform_and_every_wheel(extension_zip: Path) -> Non
     names = {re.split(r"-\d", Path(w).name, maxsplit=1)[0].lower() for w in wheels}
     assert {"scenesort", "warp_lang", "fastapi", "uvicorn", "pydantic_core"} <= names
     assert "numpy" not in names  # Blender ships it
+    (engine,) = [w for w in wheels if Path(w).name.startswith("scenesort-")]
+    with zipfile.ZipFile(extension_zip) as zf, zf.open(engine) as raw, \
+            zipfile.ZipFile(raw) as wheel:
+        tools = [n for n in wheel.namelist() if n.startswith("scenesort/backend/tools/")]
+    assert not tools  # a packager's tools (addon-zip, bench, peers): not for Blender
     # Compiled packages come for Blender 4.2-5.0's Python 3.11 and 5.1+'s 3.13.
     core = sorted(w for w in wheels if "pydantic_core" in w)
     assert [re.search(r"-(cp3\d+)-", w).group(1) for w in core] == ["cp311", "cp313"]
@@ -145,7 +150,7 @@ def test_install_from_zip_then_render_with_no_other_step(
     info = json.loads((tmp_path / "render.json").read_text())
     site = user / "extensions" / ".local" / "lib" / "python3.11" / "site-packages"
     assert Path(info["site_packages"]) == site  # the engine came from the zip's wheel
-    assert info["argv"][:4] == [str(bpy_only_python), "-s", "-m", "scenesort.backend.cli"]
+    assert info["argv"][:4] == [str(bpy_only_python), "-s", "-m", "scenesort.backend.commands"]
     assert info["service_exit"] is not None  # disabling the add-on stopped it
 
     from scenesort.kernels import Camera

@@ -1,8 +1,13 @@
-"""The extension manifest, `scenesort addon-zip`, and the zip installing as a package."""
+"""The extension manifest, `scenesort addon-zip`, the zip installing as a package, and the
+scenesort wheel the platform zips bundle (without the packaging tools)."""
 
 from __future__ import annotations
 
+import base64
+import csv
+import hashlib
 import importlib
+import io
 import re
 import subprocess
 import sys
@@ -13,7 +18,7 @@ from pathlib import Path
 import bpy
 import pytest
 from blender_scenes import BLENDER_EXT, REPO
-from scenesort.backend import addon_zip
+from scenesort.backend.tools import addon_zip
 
 ADDON = REPO / "addon"
 
@@ -48,7 +53,7 @@ def test_no_bl_info_and_relative_imports_only() -> None:
 def built_zip(tmp_path_factory: pytest.TempPathFactory) -> Path:
     out = tmp_path_factory.mktemp("zip") / "scenesort.zip"
     proc = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--output", str(out)],
+        [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--output", str(out)],
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr
@@ -99,7 +104,8 @@ def test_zip_registers_as_its_own_package(built_zip: Path, tmp_path: Path) -> No
 
 def test_missing_source_fails_with_a_message(tmp_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--source", str(tmp_path)],
+        [sys.executable, "-m", "scenesort.backend.commands", "addon-zip",
+         "--source", str(tmp_path)],
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 1 and "no blender_manifest.toml" in proc.stderr
@@ -121,9 +127,59 @@ def test_platform_zip_refuses_versions_that_differ(tmp_path: Path) -> None:
     (source / "blender_manifest.toml").write_text(newer)
     (tmp_path / "pyproject.toml").write_text('[project]\nversion = "0.1.0"\n')
     proc = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "addon-zip", "--platform", "linux-x64",
+        [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--platform", "linux-x64",
          "--source", str(source), "-o", str(tmp_path / "x.zip")],
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 1 and "the add-on is version 9" in proc.stderr
     assert not (tmp_path / "x.zip").exists()
+
+
+@pytest.fixture(scope="module")
+def engine_wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The scenesort wheel every platform zip bundles, as `addon-zip --platform` builds it."""
+    return addon_zip.engine_wheel(REPO, tmp_path_factory.mktemp("engine"))
+
+
+def test_the_bundled_wheel_leaves_the_packaging_tools_out(engine_wheel: Path) -> None:
+    """addon-zip, bench and the peer tracers are a packager's: Blender gets the service."""
+    with zipfile.ZipFile(engine_wheel) as wheel:
+        names = wheel.namelist()
+    packages = {n.rsplit("/", 1)[0] for n in names if n.endswith("/__init__.py")}
+    assert {"scenesort/backend/commands", "scenesort/backend/api", "scenesort/kernels"} <= packages
+    assert not [n for n in names if n.startswith(addon_zip.TOOLS_IN_WHEEL)]
+    assert addon_zip.TOOLS_IN_WHEEL.rstrip("/") == "scenesort/backend/tools"
+
+
+def test_the_bundled_wheels_record_lists_exactly_its_files(engine_wheel: Path) -> None:
+    """PEP 376/427: RECORD names every file of the wheel with its sha256 and size."""
+    with zipfile.ZipFile(engine_wheel) as wheel:
+        (record,) = [n for n in wheel.namelist() if n.endswith(".dist-info/RECORD")]
+        rows = list(csv.reader(io.StringIO(wheel.read(record).decode())))
+        assert {row[0] for row in rows} == set(wheel.namelist())
+        for path, digest, size in rows:
+            if path == record:
+                assert digest == size == ""
+                continue
+            data = wheel.read(path)
+            expected = base64.urlsafe_b64encode(hashlib.sha256(data).digest()).rstrip(b"=")
+            assert (digest, size) == (f"sha256={expected.decode()}", str(len(data))), path
+
+
+def test_the_bundled_wheel_installs_and_says_where_the_tools_are(
+    engine_wheel: Path, tmp_path: Path
+) -> None:
+    target = tmp_path / "site"
+    subprocess.run([sys.executable, "-m", "pip", "install", "--quiet", "--no-deps",
+                    "--no-index", "--target", str(target), str(engine_wheel)],
+                   check=True, timeout=300)
+    assert not (target / "scenesort" / "backend" / "tools").exists()
+    # -S: no site-packages, so the scenesort found is the one just installed.
+    code = ("import sys; sys.path.insert(0, sys.argv[1]); "
+            "from scenesort.backend.commands import main; sys.exit(main(sys.argv[2:]))")
+    for command in ("bench", "addon-zip"):
+        proc = subprocess.run([sys.executable, "-S", "-c", code, str(target), command],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=60)
+        assert proc.returncode == 2, proc.stderr
+        assert f"scenesort {command}: this install has no packaging tools" in proc.stderr
+        assert "run it from a scenesort checkout" in proc.stderr

@@ -142,7 +142,7 @@ def test_a_missing_windows_program_is_named_in_full() -> None:
 def test_default_launch_is_this_python_running_the_engine_on_its_path() -> None:
     """No command: Blender's own interpreter, the engine's folder as the whole path."""
     argv = service.command_line("", "127.0.0.1", 0, "cpu")
-    assert argv[:4] == [sys.executable, "-s", "-m", "scenesort.backend.cli"]
+    assert argv[:4] == [sys.executable, "-s", "-m", "scenesort.backend.commands"]
     assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--device", "cpu"]
     assert service.engine_root() == REPO  # here the checkout; in Blender the wheels' folder
     env = service.child_env("", "secret")
@@ -159,7 +159,8 @@ def test_a_folder_named_backend_where_blender_runs_is_not_the_engine(tmp_path) -
     for name in ("backend", "kernels"):
         (tmp_path / name).mkdir()
         (tmp_path / name / "__init__.py").write_text("raise ImportError('not the engine')\n")
-        (tmp_path / name / "cli.py").write_text("")
+        (tmp_path / name / "commands").mkdir()
+        (tmp_path / name / "commands" / "__main__.py").write_text("")
     code = ("import sys; sys.path.insert(0, ''); sys.path.append(sys.argv[1]);"
             "from addon import service; print(service.engine_root())")
     out = subprocess.run([sys.executable, "-c", code, str(REPO)], cwd=tmp_path,

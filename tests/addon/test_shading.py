@@ -24,7 +24,8 @@ from blender_scenes import (
     shading,
 )
 from cycles_reference import clean_pixels, render_cycles_ao
-from scenesort.backend import wire
+from scenesort.backend.render.engine import count_degenerate
+from scenesort.backend.wire import binary as wire
 
 import addon
 from addon import camera, client, export, prefs
@@ -125,7 +126,8 @@ def test_export_sends_corner_normals_of_smooth_faces_only(scene) -> None:
     body = mesh.body()
     v, t = len(mesh.vertices), mesh.triangles
     assert len(body) == 12 * v + 48 * t
-    decoded = wire.decode_scene(body, v, t, normals=True)  # the service reads it back
+    decoded = wire.decode_scene(body, v, t, normals=True,
+                                count_degenerate=count_degenerate)  # the service reads it back
     np.testing.assert_array_equal(decoded.normals, mesh.normals)
     assert client.scene_id(v, t, body) == decoded.scene_id
 

@@ -9,7 +9,7 @@ from addon.props import HISTORY_LENGTH
 
 
 def _answer(method: str, leaf: int, total: float, cached: bool = False) -> dict:
-    """The shape of `BvhInfo` in backend/app.py."""
+    """The shape of `BvhInfo` in backend/wire/models.py."""
     return {
         "scene_id": "0" * 32,
         "method": method,

@@ -1,10 +1,10 @@
 """A real `scenesort serve` process on 127.0.0.1 with an ephemeral port, and a thin client.
 
-`launch(args, log_path, env)` starts `python -m scenesort.backend.cli serve --port 0 ...` with a
-fresh token in $SCENESORT_TOKEN (the way the add-on starts it), reads the port it bound from its
-first stdout line and waits for /v1/health (bounded); `stop` ends it. Helpers live here, not
-in conftest.py, so that test modules import them by a name no other test folder uses; the
-fixtures `start_service`, `service` and `api` too (tests/backend/conftest.py and
+`launch(args, log_path, env)` starts `python -m scenesort.backend.commands serve --port 0 ...`
+with a fresh token in $SCENESORT_TOKEN (the way the add-on starts it), reads the port it bound
+from its first stdout line and waits for /v1/health (bounded); `stop` ends it. Helpers live
+here, not in conftest.py, so that test modules import them by a name no other test folder uses;
+the fixtures `start_service`, `service` and `api` too (tests/backend/conftest.py and
 tests/stability/conftest.py take them from here).
 """
 
@@ -57,7 +57,7 @@ def launch(
         env.pop("SCENESORT_TOKEN")
     log_file = log_path.open("wb")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "scenesort.backend.cli", "serve", "--port", "0", *args],
+        [sys.executable, "-m", "scenesort.backend.commands", "serve", "--port", "0", *args],
         cwd=REPO,
         stdout=subprocess.PIPE,
         stderr=log_file,

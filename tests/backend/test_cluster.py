@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 import ray
 from bundles import look_at_camera
-from scenesort.backend.bundle import BundleWriter
-from scenesort.backend.cli import main
-from scenesort.backend.cluster import render_frames_ray
-from scenesort.backend.frames import frame_paths, render_frames
+from scenesort.backend.commands import main
+from scenesort.backend.render.bundle import BundleWriter
+from scenesort.backend.render.cluster import render_frames_ray
+from scenesort.backend.render.frames import frame_paths, render_frames
 
 
 def grid(n: int, size: float, lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

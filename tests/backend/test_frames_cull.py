@@ -11,8 +11,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bundles import look_at_camera
-from scenesort.backend.bundle import BundleWriter, mesh_id
-from scenesort.backend.frames import FrameRenderer, FrameResult
+from scenesort.backend.render.bundle import BundleWriter, mesh_id
+from scenesort.backend.render.frames import FrameRenderer, FrameResult
 from test_render_frames import at, box, grid, service_frame, upload_meshes
 
 

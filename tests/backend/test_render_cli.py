@@ -10,8 +10,8 @@ import sys
 import numpy as np
 import pytest
 from PIL import Image
-from scenesort.backend.cli import main
-from scenesort.backend.scenes import shared_scene, shared_scenes_dir
+from scenesort.backend.commands import main
+from scenesort.backend.render.scenes import shared_scene, shared_scenes_dir
 from scenesort.kernels import Camera
 
 from scenesort import kernels
@@ -112,7 +112,7 @@ def test_ply_path_with_camera_file_and_target_error(tmp_path, scenes_dir, capsys
 
 
 def _bunny(folder):
-    from scenesort.backend.scenes import load_mesh
+    from scenesort.backend.render.scenes import load_mesh
 
     return load_mesh(folder / "bunny.ply")
 

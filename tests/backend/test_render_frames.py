@@ -1,4 +1,4 @@
-"""`scenesort render-frames` and backend/frames.py: the skip rules by the build reports,
+"""`scenesort render-frames` and backend/render/: the skip rules by the build reports,
 the frames against the flattened scene and against the service's jobs for the same frames,
 resume, and bad bundles named by file and field."""
 
@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 from bundles import look_at_camera
-from scenesort.backend import frames as frames_module
-from scenesort.backend.bundle import (
+from scenesort.backend.commands import main
+from scenesort.backend.render import frames as frames_module
+from scenesort.backend.render.bundle import (
     BundleError,
     BundleWriter,
     instance_body,
@@ -19,8 +20,7 @@ from scenesort.backend.bundle import (
     mesh_id,
     read_bundle,
 )
-from scenesort.backend.cli import main
-from scenesort.backend.frames import FrameRenderer, render_frames
+from scenesort.backend.render.frames import FrameRenderer, render_frames
 from service_client import OCTET
 
 
@@ -123,18 +123,18 @@ def test_frames_match_the_flattened_scene(bundle, rendered) -> None:
     """Each frame's coverage, depth and AO are those of its flattened triangles traced with
     one BVH (the same camera rays and samples; a path through the engine without the
     instance levels, bit for bit for the AO)."""
-    from scenesort.backend import jobs
+    from scenesort.backend.render import camera_render
 
     from scenesort import kernels
 
     for number, result in rendered.items():
         bvh = kernels.build_bvh(*_flattened(number))
-        camera = jobs.job_camera(read_bundle(bundle).frame(number).request)
+        camera = camera_render.job_camera(read_bundle(bundle).frame(number).request)
         o, d, tmin, tmax = camera.rays()
         hits = kernels.trace(bvh, o, d, tmin, tmax)
         np.testing.assert_array_equal(result.coverage.ravel() > 0, hits.hit)
         z = hits.t.astype(np.float64) * (d.astype(np.float64) @ camera.forward)
-        flat_depth = np.where(hits.hit, z, jobs.BACKGROUND_DEPTH).astype(np.float32)
+        flat_depth = np.where(hits.hit, z, camera_render.BACKGROUND_DEPTH).astype(np.float32)
         np.testing.assert_allclose(result.depth.ravel(), flat_depth, rtol=1e-5)  # t in float32
         flat = kernels.render_ao(bvh, o, d, spp=4, seed=1, distance=1.0, tmin=tmin, tmax=tmax)
         np.testing.assert_array_equal(result.ao.ravel(), flat.ao)  # the same samples

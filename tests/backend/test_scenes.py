@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import warp as wp
-from scenesort.backend import scenes
-from scenesort.backend.scenes import (
+from scenesort.backend.render import scenes
+from scenesort.backend.render.scenes import (
     Scene,
     default_scene,
     load_mesh,

@@ -7,8 +7,8 @@ from __future__ import annotations
 import httpx
 import numpy as np
 import pytest
-from scenesort.backend import wire
-from scenesort.backend.bundle import instance_body, mesh_id
+from scenesort.backend.render.bundle import instance_body, mesh_id
+from scenesort.backend.wire import binary as wire
 from service_client import OCTET, floor_and_box, rays_towards_floor, scene_body
 
 

@@ -14,8 +14,9 @@ import time
 import httpx
 import pytest
 import uvicorn
-from scenesort.backend.app import Settings, create_app
-from scenesort.backend.serve import _listen
+from scenesort.backend.api.app import create_app
+from scenesort.backend.api.service import Settings
+from scenesort.backend.commands.serve import _listen
 
 
 @pytest.fixture

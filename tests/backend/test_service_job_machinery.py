@@ -1,4 +1,4 @@
-"""The device worker and job records (backend/jobs.py) with plain work functions."""
+"""The device worker and job records (backend/work/) with plain work functions."""
 
 from __future__ import annotations
 
@@ -8,7 +8,8 @@ import threading
 
 import numpy as np
 import pytest
-from scenesort.backend.jobs import DeviceWorker, Job, JobManager, QueueFull, job_events
+from scenesort.backend.work.jobs import Job, JobManager, job_events
+from scenesort.backend.work.worker import DeviceWorker, QueueFull
 
 WAIT_S = 30.0  # bound on every wait below; none should come close
 
@@ -166,9 +167,10 @@ def test_events_end_with_the_final_state(worker) -> None:
 
 def test_explicit_ray_ao_stops_between_the_engines_rounds() -> None:
     """The signal reaches the engine's progress calls: stopped (the client hung up) or past
-    its deadline, `jobs.ambient_occlusion` raises Stopped instead of rendering on."""
-    from scenesort.backend.jobs import AoParams, Stopped, StopSignal, ambient_occlusion
-    from scenesort.backend.wire import SceneArrays
+    its deadline, `render.ao.ambient_occlusion` raises Stopped instead of rendering on."""
+    from scenesort.backend.render.ao import AoParams, ambient_occlusion
+    from scenesort.backend.wire.binary import SceneArrays
+    from scenesort.backend.work.stop import Stopped, StopSignal
 
     from scenesort import kernels
 

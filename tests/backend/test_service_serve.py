@@ -9,14 +9,14 @@ import subprocess
 import sys
 
 import httpx
-from scenesort.backend.serve import is_loopback
+from scenesort.backend.commands.serve import is_loopback
 
 REPO = __import__("pathlib").Path(__file__).resolve().parents[2]
 
 
 def serve(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "serve", *args],
+        [sys.executable, "-m", "scenesort.backend.commands", "serve", *args],
         cwd=REPO,
         capture_output=True,
         text=True,
@@ -32,7 +32,7 @@ def test_refuses_no_token_off_loopback() -> None:
 
 def test_refuses_a_short_env_token() -> None:
     result = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "serve", "--port", "0"], cwd=REPO,
+        [sys.executable, "-m", "scenesort.backend.commands", "serve", "--port", "0"], cwd=REPO,
         capture_output=True, text=True, timeout=60, env={**os.environ, "SCENESORT_TOKEN": "abc"},
     )
     assert result.returncode == 2 and "at least 16" in result.stderr
@@ -78,8 +78,8 @@ def test_generated_token_is_stored_for_the_user_only(start_service, tmp_path) ->
     assert stat.S_IMODE(path.stat().st_mode) == 0o600
     assert stat.S_IMODE(path.parent.stat().st_mode) == 0o700
     printed = subprocess.run(
-        [sys.executable, "-m", "scenesort.backend.cli", "token"], cwd=REPO, capture_output=True,
-        text=True, timeout=60,
+        [sys.executable, "-m", "scenesort.backend.commands", "token"], cwd=REPO,
+        capture_output=True, text=True, timeout=60,
         env={k: v for k, v in {**os.environ, **env}.items() if v is not None},
     ).stdout.strip()
     assert printed == path.read_text().strip() and len(printed) >= 32
@@ -91,7 +91,7 @@ def test_generated_token_is_stored_for_the_user_only(start_service, tmp_path) ->
 
 def test_a_readable_token_file_is_replaced(tmp_path, monkeypatch) -> None:
     """A token file others could read may have leaked: a new token replaces it."""
-    from scenesort.backend import token_file
+    from scenesort.backend.api import token_file
 
     monkeypatch.setenv("XDG_RUNTIME_DIR", str(tmp_path))
     monkeypatch.delenv("SCENESORT_TOKEN", raising=False)
@@ -113,7 +113,7 @@ def test_listening_socket_lets_asyncio_turn_nagle_off() -> None:
     answer waited ~40 ms for a delayed ACK (a regression seen with socket.create_server)."""
     import socket
 
-    from scenesort.backend.serve import _listen
+    from scenesort.backend.commands.serve import _listen
 
     server = _listen(socket.AF_INET, "127.0.0.1", 0)
     with server, socket.create_connection(server.getsockname()) as client:

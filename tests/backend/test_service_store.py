@@ -1,9 +1,9 @@
-"""The byte-bounded LRU store (backend/store.py)."""
+"""The byte-bounded LRU store (backend/work/store.py)."""
 
 from __future__ import annotations
 
 import pytest
-from scenesort.backend.store import Store, bvh_key
+from scenesort.backend.work.store import Store, bvh_key
 
 
 def test_least_recently_used_is_evicted_first() -> None:
@@ -58,7 +58,7 @@ def test_budget_must_be_positive() -> None:
 
 def test_a_real_bvh_is_charged_for_its_device_arrays(box_scene) -> None:
     """The cache budget counts the BVH's nodes and triangle copies, not just its inputs."""
-    from scenesort.backend.store import bvh_nbytes
+    from scenesort.backend.work.store import bvh_nbytes
 
     from scenesort import kernels
 

@@ -1,13 +1,19 @@
-"""The wire format's decoding and validation rules (backend/wire.py), without a server."""
+"""The wire format's decoding and validation rules (backend/wire/binary.py), without a
+server."""
 
 from __future__ import annotations
 
 import hashlib
+from functools import partial
 
 import numpy as np
 import pytest
-from scenesort.backend import wire
-from scenesort.backend.problems import ApiError
+from scenesort.backend.render.ao import shading
+from scenesort.backend.render.engine import count_degenerate
+from scenesort.backend.wire import binary as wire
+from scenesort.backend.wire.problems import ApiError
+
+decode = partial(wire.decode_scene, count_degenerate=count_degenerate)  # as the service does
 
 V = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0]], np.float32)
 IDX = np.array([[0, 1, 2], [0, 1, 3]], np.int32)  # the second is collinear: zero area
@@ -18,7 +24,7 @@ def body(v: np.ndarray = V, i: np.ndarray = IDX) -> bytes:
 
 
 def test_scene_round_trips_and_counts_degenerate_triangles() -> None:
-    scene = wire.decode_scene(body(), 4, 2)
+    scene = decode(body(), 4, 2)
     np.testing.assert_array_equal(scene.vertices, V)
     np.testing.assert_array_equal(scene.indices, IDX)
     assert scene.vertices.dtype == np.float32 and scene.indices.dtype == np.int32
@@ -29,7 +35,7 @@ def test_scene_round_trips_and_counts_degenerate_triangles() -> None:
 def test_scene_hash_is_the_documented_formula() -> None:
     """docs/api.md: sha256(b"scenesort-scene-v1 V T\\n" + body), first 32 hex characters."""
     expected = hashlib.sha256(b"scenesort-scene-v1 4 2\n" + body()).hexdigest()[:32]
-    assert wire.decode_scene(body(), 4, 2).scene_id == expected
+    assert decode(body(), 4, 2).scene_id == expected
 
 
 def test_same_bytes_with_other_counts_are_another_scene() -> None:
@@ -50,14 +56,14 @@ def test_same_bytes_with_other_counts_are_another_scene() -> None:
 )
 def test_bad_scenes_name_the_part(data, vertices, triangles, parameter, code) -> None:
     with pytest.raises(ApiError) as info:
-        wire.decode_scene(data, vertices, triangles)
+        decode(data, vertices, triangles)
     assert (info.value.parameter, info.value.code) == (parameter, code)
     assert 400 <= info.value.status < 500 and info.value.fix
 
 
 def test_index_error_names_the_triangle() -> None:
     with pytest.raises(ApiError, match="triangle 1 has index 7"):
-        wire.decode_scene(body(V, np.array([[0, 1, 2], [0, 7, 3]], np.int32)), 4, 2)
+        decode(body(V, np.array([[0, 1, 2], [0, 7, 3]], np.int32)), 4, 2)
 
 
 NORMALS = np.arange(18, dtype=np.float32).reshape(2, 3, 3) / 17  # any finite numbers
@@ -67,18 +73,18 @@ OFFSETS = np.array([0.1, 0.5], np.float32)
 def test_normal_and_terminator_blocks_follow_the_indices() -> None:
     """docs/api.md: T*9 float32 normals, then T float32 offsets; the id covers them."""
     data = body() + NORMALS.astype("<f4").tobytes() + OFFSETS.astype("<f4").tobytes()
-    scene = wire.decode_scene(data, 4, 2, normals=True, terminator_offsets=True)
+    scene = decode(data, 4, 2, normals=True, terminator_offsets=True)
     np.testing.assert_array_equal(scene.normals, NORMALS)
     np.testing.assert_array_equal(scene.terminator_offsets, OFFSETS)
     assert scene.nbytes == len(data)
-    assert scene.shading().keys() == {"normals", "terminator_offset"}
+    assert shading(scene).keys() == {"normals", "terminator_offset"}
     assert scene.scene_id == hashlib.sha256(b"scenesort-scene-v1 4 2\n" + data).hexdigest()[:32]
     other = NORMALS.copy()
     other[1, 2, 0] += 1e-3
     changed = body() + other.astype("<f4").tobytes() + OFFSETS.astype("<f4").tobytes()
     assert wire.scene_hash(4, 2, changed) != scene.scene_id
-    plain = wire.decode_scene(body(), 4, 2)
-    assert plain.normals is None and plain.shading() == {}
+    plain = decode(body(), 4, 2)
+    assert plain.normals is None and shading(plain) == {}
     assert plain.scene_id != wire.scene_hash(4, 2, body() + NORMALS.tobytes())
 
 
@@ -100,7 +106,7 @@ def test_normal_and_terminator_blocks_follow_the_indices() -> None:
 )
 def test_bad_shading_blocks_name_the_part(blocks, flags, parameter, code) -> None:
     with pytest.raises(ApiError) as info:
-        wire.decode_scene(body() + blocks, 4, 2, **flags)
+        decode(body() + blocks, 4, 2, **flags)
     assert (info.value.parameter, info.value.code) == (parameter, code)
     assert 400 <= info.value.status < 500 and info.value.fix
 
@@ -160,4 +166,4 @@ def test_degenerate_count_agrees_with_the_engine() -> None:
     vertices[:5] *= np.float32(1e-20)  # tiny triangles whose float32 cross would underflow
     indices = rng.integers(0, 50, (20000, 3)).astype(np.int32)
     expected = int(np.count_nonzero(degenerate_triangles(vertices, indices)))
-    assert 0 < wire.count_degenerate(vertices, indices) == expected < len(indices)
+    assert 0 < count_degenerate(vertices, indices) == expected < len(indices)

@@ -1,8 +1,8 @@
 from __future__ import annotations
 
 import pytest
-from scenesort.backend.scenes import shared_scene as load_shared_scene
-from scenesort.backend.scenes import shared_scenes_dir
+from scenesort.backend.render.scenes import shared_scene as load_shared_scene
+from scenesort.backend.render.scenes import shared_scenes_dir
 
 from tests.devices import device, pytest_configure, pytest_generate_tests  # noqa: F401
 

@@ -169,7 +169,7 @@ def test_compile_time_is_reported_apart_from_build_time(tmp_path):
     71 ms build). Run in a child process with a cache of its own."""
     code = textwrap.dedent("""
         import json, numpy as np, kernels
-        from scenesort.backend.scenes import default_scene
+        from scenesort.backend.render.scenes import default_scene
         scene = default_scene(64, 48)
         first = kernels.build_bvh(scene.vertices, scene.indices, device="cpu").stats
         again = kernels.build_bvh(scene.vertices, scene.indices, device="cpu").stats

@@ -8,7 +8,7 @@ import math
 
 import numpy as np
 import pytest
-from scenesort.backend.scenes import shared_scene
+from scenesort.backend.render.scenes import shared_scene
 from scenesort.kernels.render import ao
 from scenesort.kernels.render.ao import half_width
 

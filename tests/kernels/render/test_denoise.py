@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from scenesort.backend.scenes import shared_scene
+from scenesort.backend.render.scenes import shared_scene
 from scenesort.kernels.render.denoise import DenoiserMissing
 
 from scenesort import kernels

@@ -1,9 +1,9 @@
-"""`scenesort serve`: run the HTTP service (backend/app.py) under uvicorn.
+"""`scenesort serve`: run the HTTP service (api/app.py) under uvicorn (api/server.py).
 
 Binds the socket itself so that `--port 0` works: the first line on stdout is
 `scenesort serving on http://HOST:PORT (device D, token ...)` with the port actually bound
 (tests and the add-on read it) and where the token came from. There is always a token
-(backend/token_file.py) unless `--no-token`, which only loopback allows. SIGTERM and SIGINT
+(api/token_file.py) unless `--no-token`, which only loopback allows. SIGTERM and SIGINT
 cancel the running and queued work first, so the process exits within seconds even with
 a long render in flight.
 """
@@ -19,7 +19,9 @@ import socket
 import sys
 from typing import Any
 
-from scenesort.backend.token_file import TOKEN_ENV, service_token
+from scenesort.backend.api.server import HEAD_TIMEOUT_S, server
+from scenesort.backend.api.token_file import TOKEN_ENV, service_token
+from scenesort.backend.render import engine
 
 log = logging.getLogger("scenesort.serve")
 
@@ -51,9 +53,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-seconds", type=float, default=1800.0,
                         help="deadline of a request's or a job's work, in seconds")
     parser.add_argument("--max-connections", type=int, default=64,
-                        help="requests in flight (more get 503); twice this many connections")
+                        help="requests in flight with the token (more get 503), and as many "
+                        "without it")
     parser.add_argument("--body-timeout", type=float, default=30.0,
                         help="seconds allowed for any body, plus 1 s per MiB of it (else 408)")
+    parser.add_argument("--head-timeout", type=float, default=HEAD_TIMEOUT_S,
+                        help="seconds a connection has to send a whole request head (request "
+                        f"line and headers) before it is closed (default {HEAD_TIMEOUT_S:g})")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning"])
 
 
@@ -78,7 +84,7 @@ def _problem(args: argparse.Namespace) -> str | None:
     if not 0 <= args.port <= 65535:
         return f"--port must be in 0..65535, got {args.port}"
     positive = ("max_body_mb", "uploads_mb", "cache_mb", "results_mb", "max_work", "max_seconds",
-                "max_connections", "body_timeout")
+                "max_connections", "body_timeout", "head_timeout")
     bad = [f"--{name.replace('_', '-')}" for name in positive if not getattr(args, name) > 0]
     if bad:
         return f"{', '.join(bad)} must be > 0"
@@ -91,20 +97,6 @@ def _token(args: argparse.Namespace) -> tuple[str | None, str]:
         return None, "no token"
     token, source = service_token()
     return token, f"token {'from' if source.startswith('$') else 'in'} {source}"
-
-
-def _check_device(device: str) -> str | None:
-    """None if Warp has `device`, else a message listing the devices it has."""
-    import warp as wp
-
-    wp.config.log_level = wp.LOG_WARNING  # no greeting: stdout is for the 'serving on' line
-    wp.init()
-    try:
-        wp.get_device(device)
-    except (RuntimeError, ValueError):
-        names = [str(d) for d in wp.get_devices()]
-        return f"--device {device!r} is not available here; this machine has {names}"
-    return None
 
 
 def _listen(family: socket.AddressFamily, host: str, port: int) -> socket.socket:
@@ -124,7 +116,7 @@ def _listen(family: socket.AddressFamily, host: str, port: int) -> socket.socket
 
 def run(args: argparse.Namespace) -> int:
     """Start uvicorn; return its exit status (2 for refused options)."""
-    problem = _problem(args) or _check_device(args.device)
+    problem = _problem(args) or engine.device_problem(args.device)
     token, described = None, ""
     if problem is None:
         try:
@@ -151,8 +143,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"scenesort serving on http://{shown}:{port} (device {args.device}, {described})",
           flush=True)
     with contextlib.suppress(KeyboardInterrupt):  # uvicorn re-raises the SIGINT it handled
-        _server(app, args).run(sockets=[sock])
-    if not app.state.worker.stop(0.0):  # a launch that ignored the cancel: do not wait on it
+        server(app, args.log_level, args.head_timeout).run(sockets=[sock])
+    # A launch that ignored the cancel: do not wait on it.
+    if not app.state.service.worker.stop(0.0):
         log.warning("the device worker is still in a kernel launch; exiting without it")
         logging.shutdown()
         os._exit(0)
@@ -160,8 +153,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _app(args: argparse.Namespace, token: str | None, port: int, shown: str) -> Any:
-    from scenesort.backend.app import Settings, create_app
-    from scenesort.backend.security import Policy
+    from scenesort.backend.api.app import create_app
+    from scenesort.backend.api.security import Policy
+    from scenesort.backend.api.service import Settings
 
     hosts = {name.lower() for name in args.allow_host}
     if not is_loopback(args.host) and not ipaddress.ip_address(shown.strip("[]")).is_unspecified:
@@ -184,23 +178,3 @@ def _app(args: argparse.Namespace, token: str | None, port: int, shown: str) -> 
         max_seconds=args.max_seconds,
         policy=policy,
     ))
-
-
-def _server(app: Any, args: argparse.Namespace) -> Any:
-    """uvicorn's server, told to stop the work before it waits for connections to close."""
-    import uvicorn
-    from scenesort.backend.app import stop_work
-
-    class Server(uvicorn.Server):
-        def handle_exit(self, sig: int, frame: Any) -> None:
-            stop_work(app)  # in-flight renders end at their next round, answering 503
-            super().handle_exit(sig, frame)
-
-    config = uvicorn.Config(
-        app,
-        log_level=args.log_level,
-        access_log=False,  # Guard logs one line per request with its duration
-        timeout_graceful_shutdown=3,
-        limit_concurrency=2 * args.max_connections,  # idle keep-alive connections too
-    )
-    return Server(config)

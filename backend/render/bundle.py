@@ -28,9 +28,10 @@ from typing import Any
 
 import numpy as np
 from pydantic import ValidationError
-from scenesort.backend import wire
-from scenesort.backend.models import JobRequest
-from scenesort.backend.problems import ApiError
+from scenesort.backend.render.engine import count_degenerate
+from scenesort.backend.wire import binary as wire
+from scenesort.backend.wire.models import JobRequest
+from scenesort.backend.wire.problems import ApiError
 
 FORMAT = "scenesort-frame-bundle"
 VERSION = 1
@@ -128,7 +129,8 @@ class Bundle:
         if found != mesh_id:
             raise BundleError(f"{path}: its content hashes to {found}, not its name {mesh_id}")
         try:
-            return wire.decode_scene(body, vertices, triangles, mesh_id, **blocks)
+            return wire.decode_scene(body, vertices, triangles, mesh_id, **blocks,
+                                     count_degenerate=count_degenerate)
         except ApiError as exc:
             raise _api(path, exc) from None
 

@@ -4,7 +4,7 @@ The driver reads the bundle, puts each mesh into Ray's object store once (a node
 object once and every worker on it reads the same shared memory) and submits one task per
 frame carrying only that frame's view and instance list. Each worker process keeps one
 `FrameRenderer` per run, so the BVHs it built stay between the frames it renders (the skip
-rules of backend/frames.py, per worker). Images come back to the driver, which writes them
+rules of render/bvhs.py, per worker). Images come back to the driver, which writes them
 in frame order. A frame whose worker dies or raises is retried by Ray (`max_retries`); one
 that keeps failing is reported by number and the others are still written. docs/cluster.md
 has the set-up, what moves per frame and the cost model.
@@ -20,14 +20,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from scenesort.backend.bundle import Frame, read_bundle
-from scenesort.backend.frames import (
-    BuildReport,
-    FrameRenderer,
-    FrameResult,
-    frame_done,
-    write_frame,
-)
+from scenesort.backend.render.bundle import Frame, read_bundle
+from scenesort.backend.render.bvhs import BuildReport
+from scenesort.backend.render.frames import FrameRenderer, FrameResult, frame_done, write_frame
 
 EXTRA_HINT = 'pip install "scenesort[cluster]"'
 DEFAULT_RETRIES = 3

@@ -7,7 +7,10 @@ In order, for every HTTP request (docs/security.md says what each check stops):
 2. Origin, when present, must be the service's own (its /docs page) or on the allowlist
    (empty by default): browsers send it with every cross-site fetch, `no-cors` ones
    included (403).
-3. A cap on requests in flight (503 with Retry-After); /v1/health is exempt.
+3. A cap on requests in flight (503 with Retry-After), counted apart for requests with the
+   token and without it, so that strangers cannot take the token holder's places;
+   /v1/health is exempt. (Connections still sending their head are not requests yet:
+   server.py gives them a deadline.)
 4. The bearer token on every route but /v1/health and the schema pages (401): scheme
    case-insensitive, compared in constant time.
 5. POST and PUT bodies: the declared Content-Type of the route (415); JSON bodies at most
@@ -31,8 +34,8 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from scenesort.backend.models import OCTET
-from scenesort.backend.problems import ApiError, busy
+from scenesort.backend.wire.models import OCTET
+from scenesort.backend.wire.problems import ApiError, busy
 
 log = logging.getLogger("scenesort.app")
 
@@ -65,7 +68,8 @@ class Policy:
     upload_bytes: int = 1024 * 2**20  # binary bytes in flight over all uploads at once
     body_timeout_s: float = 30.0  # allowance to send any body ...
     min_body_rate: float = 2**20  # ... plus its length at this many bytes per second
-    max_requests: int = 64  # requests in flight, /v1/health not counted
+    max_requests: int = 64  # requests in flight with the token, and as many without it;
+    # /v1/health not counted
 
 
 def escape(text: str) -> str:
@@ -95,7 +99,8 @@ class Guard:
 
     app: Any
     policy: Policy = field(default_factory=Policy)
-    requests: int = 0
+    requests: int = 0  # in flight with the token (or with none needed)
+    strangers: int = 0  # in flight without it
     upload_bytes: int = 0
 
     async def __call__(self, scope: dict, receive: Receive, send: Send) -> None:
@@ -110,11 +115,11 @@ class Guard:
                 status[0] = message["status"]
             await send(message)
 
+        scope[AUTHORIZED] = authorized = self._authorized(scope)
         counted = scope["path"] != OPEN_PATH
         reserved = [0]
         try:
-            if counted:
-                self.requests += 1
+            self._count(counted, authorized, +1)
             problem = self._refusal(scope)
             if problem is None:
                 receive, problem = await self._body(scope, receive, reserved)
@@ -126,7 +131,7 @@ class Guard:
             status[0] = status[0] or 500  # ServerErrorMiddleware, outside us, answers 500
             raise
         finally:
-            self.requests -= counted
+            self._count(counted, authorized, -1)
             self.upload_bytes -= reserved[0]
             query = scope.get("query_string", b"").decode("latin-1")
             path = escape(scope["path"] + (f"?{query}" if query else ""))
@@ -154,10 +159,10 @@ class Guard:
                 "call the service from a program, or start it with --allow-origin ORIGIN",
                 "foreign_origin",
             )
-        if scope["path"] != OPEN_PATH and self.requests > self.policy.max_requests:
-            return busy("request", f"{self.policy.max_requests} requests are in flight",
-                        "retry after the Retry-After seconds")
-        scope[AUTHORIZED] = self._authorized(scope)
+        if scope["path"] != OPEN_PATH:
+            problem = self._over_cap(scope[AUTHORIZED])
+            if problem is not None:
+                return problem
         if scope["path"] not in PUBLIC_PATHS and not scope[AUTHORIZED]:
             return ApiError(
                 401, "Authorization", "missing or wrong bearer token",
@@ -167,6 +172,23 @@ class Guard:
             )
         if scope["method"] in BODY_METHODS:
             return self._content_problem(scope)
+        return None
+
+    def _count(self, counted: bool, authorized: bool, step: int) -> None:
+        if counted and authorized:
+            self.requests += step
+        elif counted:
+            self.strangers += step
+
+    def _over_cap(self, authorized: bool) -> ApiError | None:
+        """503 past the cap of the request's own pool: with the token, or without it."""
+        cap = self.policy.max_requests
+        if authorized and self.requests > cap:
+            return busy("request", f"{cap} requests are in flight",
+                        "retry after the Retry-After seconds")
+        if not authorized and self.strangers > cap:
+            return busy("request", f"{cap} requests without the token are in flight",
+                        "retry after the Retry-After seconds")
         return None
 
     def _host_allowed(self, host: str | None) -> bool:

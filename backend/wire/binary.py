@@ -1,6 +1,6 @@
 """Binary wire format of the service: decode, validate and encode little-endian arrays.
 
-Everything here is plain numpy and raises `ApiError` (backend/problems.py: a 4xx naming
+Everything here is plain numpy and raises `ApiError` (wire/problems.py: a 4xx naming
 the parameter and the fix) for client mistakes, so the routes stay thin and the rules are
 testable without a server. Layouts (also in docs/api.md):
 
@@ -17,11 +17,12 @@ testable without a server. Layouts (also in docs/api.md):
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
 
 import numpy as np
-from scenesort.backend.problems import ApiError
+from scenesort.backend.wire.problems import ApiError
 
 F32 = np.dtype("<f4")
 I32 = np.dtype("<i4")
@@ -47,15 +48,6 @@ class SceneArrays:
         return int(self.vertices.nbytes + self.indices.nbytes
                    + sum(a.nbytes for a in extra if a is not None))
 
-    def shading(self) -> dict[str, np.ndarray]:
-        """The engine's keyword arguments for the scene's normals (none: flat shading)."""
-        out = {}
-        if self.normals is not None:
-            out["normals"] = self.normals
-        if self.terminator_offsets is not None:
-            out["terminator_offset"] = self.terminator_offsets
-        return out
-
     @cached_property
     def bounds(self) -> list[list[float]]:
         """[[xmin, ymin, zmin], [xmax, ymax, zmax]] (per column: 15x faster than axis=0)."""
@@ -72,7 +64,7 @@ class SceneArrays:
         return digest.hexdigest()[:SCENE_HASH_CHARS]
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)  # by identity: render/ao.py keeps per list what it made
 class InstanceScene:
     """A decoded instance list with its meshes resolved: instance i is `meshes[mesh_index[i]]`
     under the 3x4 object-to-world `transforms[i]` (float32, row-major)."""
@@ -90,27 +82,6 @@ class InstanceScene:
     @property
     def instances(self) -> int:
         return len(self.mesh_index)
-
-    def shading(self) -> dict[str, object]:
-        """The engine's keyword arguments for the meshes' normals (one entry per mesh, in
-        object space) and the instances' terminator offsets (none: all flat)."""
-        return self._shading
-
-    @cached_property
-    def _shading(self) -> dict[str, object]:
-        # Made once per list: the engine keeps its device copy for the same objects.
-        from scenesort.kernels.render.ao import DEFAULT_TERMINATOR_OFFSET
-
-        normals = [m.normals for m in self.meshes]
-        if all(n is None for n in normals):
-            return {}
-        out: dict[str, object] = {"normals": normals}
-        offsets = [m.terminator_offsets for m in self.meshes]
-        if any(o is not None for o in offsets):
-            per_mesh = np.array([DEFAULT_TERMINATOR_OFFSET if o is None else o[0]
-                                 for o in offsets], np.float32)
-            out["terminator_offset"] = per_mesh[self.mesh_index]
-        return out
 
     @property
     def triangles(self) -> int:
@@ -191,15 +162,6 @@ def _check_finite(parameter: str, values: np.ndarray, what: str) -> None:
         )
 
 
-def count_degenerate(vertices: np.ndarray, indices: np.ndarray) -> int:
-    """Zero-area triangles (kept, never hit), counted by the engine on every core."""
-    from scenesort.kernels.core import (
-        count_degenerate as engine_count,  # Warp only where it is needed
-    )
-
-    return engine_count(vertices, indices, device="cpu")
-
-
 def scene_body_length(vertex_count: int, triangle_count: int, normals: bool = False,
                       terminator_offsets: bool = False) -> int:
     """Bytes of a scene upload with these counts and optional blocks."""
@@ -220,11 +182,14 @@ def check_blocks(normals: bool, terminator_offsets: bool) -> None:
 def decode_scene(
     body: bytes, vertex_count: int, triangle_count: int, scene_id: str | None = None, *,
     normals: bool = False, terminator_offsets: bool = False,
+    count_degenerate: Callable[[np.ndarray, np.ndarray], int],
 ) -> SceneArrays:
     """Decode and validate a scene upload; raise `ApiError` naming the bad part.
 
     `scene_id` is `scene_hash(...)` of the same body when the caller has it already;
-    `normals`, `terminator_offsets`: whether the body holds those blocks."""
+    `normals`, `terminator_offsets`: whether the body holds those blocks. Zero-area
+    triangles are the engine's to count (render.engine.count_degenerate): this module
+    imports no engine."""
     check_blocks(normals, terminator_offsets)
     layout = f"{vertex_count}*3 float32 + {triangle_count}*3 int32"
     layout += f" + {triangle_count}*9 float32 normals" if normals else ""
@@ -346,6 +311,26 @@ def decode_instances(body: bytes, mesh_count: int, instance_count: int) -> Insta
         )
     return InstanceList(instances_hash(mesh_count, instance_count, body), tuple(ids),
                         mesh_index, transforms)
+
+
+def resolve(listing: InstanceList,
+            mesh: Callable[[str], SceneArrays | None]) -> InstanceScene:
+    """The instance list with its meshes looked up by id (`mesh` returns None for one it
+    lacks: KeyError naming the first such id). ValueError for a mesh whose terminator
+    offsets vary over its triangles: an instance has one (Blender's is per object)."""
+    meshes = []
+    for k, mesh_id in enumerate(listing.mesh_ids):
+        found = mesh(mesh_id)
+        if found is None:
+            raise KeyError(mesh_id)
+        offsets = found.terminator_offsets
+        if offsets is not None and np.any(offsets != offsets[0]):
+            raise ValueError(f"mesh {k} ({mesh_id}) has terminator offsets that vary over "
+                             "its triangles; in an instance list each mesh has one (send it "
+                             "repeated, as the object's value)")
+        meshes.append(found)
+    return InstanceScene(listing.scene_id, tuple(meshes), listing.mesh_index,
+                              listing.transforms)
 
 
 def decode_rays(body: bytes, ray_count: int) -> tuple[np.ndarray, np.ndarray]:

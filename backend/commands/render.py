@@ -13,12 +13,12 @@ Cycles' AO pass); `--npy` also writes the float32 (height, width) image.
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+from scenesort.backend.commands import check_at_least
 
 SAMPLERS = ("sobol", "random")
 
@@ -78,83 +78,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
-def load_scene(scene: str | None, width: int | None, height: int | None) -> Any:
-    """The built-in scene, a shared scene by name, or a mesh file with a framing camera."""
-    from scenesort.backend import scenes
-
-    w = width or scenes.DEFAULT_WIDTH
-    h = height or scenes.DEFAULT_HEIGHT
-    if scene is None:
-        return scenes.default_scene(w, h)
-    path = Path(scene)
-    if path.suffix or path.exists():
-        vertices, indices = scenes.load_mesh(path)
-        return scenes.Scene(path.stem, vertices, indices, framing_camera(vertices, w, h))
-    return scenes.shared_scene(scene, w, h)
-
-
-def framing_camera(vertices: np.ndarray, width: int, height: int) -> Any:
-    """A 35-degree pinhole camera on the +Y+Z diagonal that fits the mesh's bounding
-    sphere with a 10% margin (like the shared scenes' object cameras)."""
-    from scenesort.kernels import Camera
-
-    lo, hi = vertices.min(axis=0).astype(float), vertices.max(axis=0).astype(float)
-    centre = 0.5 * (lo + hi)
-    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
-    fov = 35.0
-    dist = 1.1 * radius / np.sin(np.radians(fov) / 2.0)
-    view = np.array([0.5, 0.4, 1.0]) / np.linalg.norm([0.5, 0.4, 1.0])
-    return Camera.look_at(
-        centre + dist * view, centre, (0, 1, 0), fov, width, height, clip_start=0.0, clip_end=1e10
-    )
-
-
-def load_camera(path: Path, width: int, height: int) -> Any:
-    """A camera from JSON: the Camera wire form, or a scenes.json look-at description."""
-    from scenesort.kernels import Camera
-
-    try:
-        data = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ValueError(f"--camera {str(path)!r} is not a readable JSON file: {exc}") from exc
-    if isinstance(data, dict) and "matrix_world" in data:
-        return Camera.from_dict(data)
-    keys = ("position", "look_at", "up", "fov_y_deg")
-    if not isinstance(data, dict) or any(k not in data for k in keys):
-        raise ValueError(f"--camera must hold a Camera (matrix_world, ...) or the keys {keys}")
-    return Camera.look_at(
-        data["position"], data["look_at"], data["up"], data["fov_y_deg"], width, height
-    )
-
-
-def write_png(ao: np.ndarray, path: Path) -> None:
-    """8-bit grey PNG, row 0 at the top, AO 0..1 -> 0..255 (linear, rounded)."""
-    from PIL import Image
-
-    pixels = np.clip(np.rint(ao * 255.0), 0, 255).astype(np.uint8)
-    Image.fromarray(pixels, mode="L").save(path)
-
-
 def _check(args: argparse.Namespace) -> None:
-    for name in ("width", "height"):
-        value = getattr(args, name)
-        if value is not None and value < 1:
-            raise ValueError(f"--{name} must be >= 1, got {value}")
-    if args.spp < 1:
-        raise ValueError(f"--spp must be >= 1, got {args.spp}")
+    check_at_least(args, 1, "width", "height", "spp")
     if args.distance is not None and not args.distance > 0:
         raise ValueError(f"--distance must be > 0, got {args.distance}")
     for name in ("target_error", "max_pixel_error"):
         value = getattr(args, name)
         if value is not None and not 0 < value < 1:
             raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {value}")
-    if args.denoise:
-        from scenesort.kernels.render.denoise import DenoiserMissing, require_denoiser
+    from scenesort.backend.render import engine
 
-        try:
-            require_denoiser()
-        except DenoiserMissing as exc:
-            raise ValueError(f"--denoise: {exc}") from None
+    problem = engine.denoiser_problem() if args.denoise else None
+    if problem is not None:
+        raise ValueError(f"--denoise: {problem}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -172,7 +108,10 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _render(args: argparse.Namespace, console: Any) -> int:
-    from scenesort import kernels
+    # The engine is imported here, not with the module: `scenesort render --help` stays quick.
+    from scenesort.backend.render import image
+    from scenesort.backend.render.scenes import load_camera, load_scene
+    from scenesort.backend.wire.binary import encode_png
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -180,37 +119,29 @@ def _render(args: argparse.Namespace, console: Any) -> int:
     camera = scene.camera
     if args.camera is not None:
         camera = load_camera(args.camera, camera.width, camera.height)
-    origins, directions, tmin, tmax = camera.rays()
+    rays = camera.rays()
     timings["load"] = (time.perf_counter() - t0) * 1e3
 
-    t0 = time.perf_counter()
-    bvh = kernels.build_bvh(scene.vertices, scene.indices)
-    timings["compile"] = float(bvh.stats.get("compile_ms", 0.0))  # Warp's first use: apart
-    timings["build"] = (time.perf_counter() - t0) * 1e3 - timings["compile"]
-
-    kwargs = dict(
+    bvh, timings["compile"], timings["build"] = image.build(scene.vertices, scene.indices)
+    settings = dict(
         spp=args.spp,
         distance=args.distance,
         seed=args.seed,
         target_error=args.target_error,
         max_pixel_error=args.max_pixel_error,
         engine=args.engine,
-        tmin=tmin,
-        tmax=tmax,
         threads=args.threads,
         max_spp=args.max_spp,
         sampler=args.sampler,
         denoise=args.denoise,
         image_shape=(camera.height, camera.width),
     )
-    result = _with_progress(
-        kernels, bvh, origins, directions, kwargs, console, not args.no_progress
-    )
+    result = _with_progress(bvh, rays, settings, console, not args.no_progress)
     ao = result.ao.reshape(camera.height, camera.width)
 
     t0 = time.perf_counter()
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_png(ao, args.out)
+    args.out.write_bytes(encode_png(ao))  # the service's PNG: 8-bit grey, 0..1 -> 0..255
     if args.npy is not None:
         args.npy.parent.mkdir(parents=True, exist_ok=True)
         np.save(args.npy, ao.astype(np.float32))
@@ -222,13 +153,12 @@ def _render(args: argparse.Namespace, console: Any) -> int:
     return 0
 
 
-def _with_progress(
-    kernels: Any, bvh: Any, origins, directions, kwargs: dict, console: Any, show: bool
-) -> Any:
+def _with_progress(bvh: Any, rays: tuple, settings: dict, console: Any, show: bool) -> Any:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+    from scenesort.backend.render import image
 
     if not show:
-        return kernels.render_ao(bvh, origins, directions, **kwargs)
+        return image.render_ao(bvh, rays, **settings)
     columns = (
         TextColumn("{task.description:<10}"),
         BarColumn(),
@@ -241,7 +171,7 @@ def _with_progress(
         def progress(fraction: float, phase: str) -> None:
             bar.update(task, completed=fraction, description=phase)
 
-        return kernels.render_ao(bvh, origins, directions, progress=progress, **kwargs)
+        return image.render_ao(bvh, rays, progress=progress, **settings)
 
 
 def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, float]) -> Any:

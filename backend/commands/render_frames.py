@@ -5,9 +5,9 @@
 
 Writes `DIR/<frame>.png` (8-bit AO, the service's PNG) and `DIR/<frame>.npy` (float32 AO,
 row 0 at the top) per frame with a progress bar, then a table of what the frames built:
-meshes built, refit or reused, top levels built (backend/frames.py's skip rules), and what
+meshes built, refit or reused, top levels built (render/bvhs.py's skip rules), and what
 culling left out (instances out of view, meshes none of the instances in view uses).
-With `--ray` the frames are Ray tasks on a cluster (backend/cluster.py, docs/cluster.md).
+With `--ray` the frames are Ray tasks on a cluster (render/cluster.py, docs/cluster.md).
 """
 
 from __future__ import annotations
@@ -16,6 +16,8 @@ import argparse
 import time
 from pathlib import Path
 from typing import Any
+
+from scenesort.backend.commands import check_at_least
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,20 +63,16 @@ def parse_frames(spec: str) -> list[int]:
 
 def run(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from scenesort.backend.cluster import ClusterError
+    from scenesort.backend.render.cluster import ClusterError
 
     console = Console()
     try:
-        for name in ("threads", "ray_workers"):
-            value = getattr(args, name)
-            if value is not None and value < 1:
-                raise ValueError(f"--{name.replace('_', '-')} must be >= 1, got {value}")
-        if args.retries < 0:
-            raise ValueError(f"--retries must be >= 0, got {args.retries}")
+        check_at_least(args, 1, "threads", "ray_workers")
+        check_at_least(args, 0, "retries")
         frames = None if args.frames is None else parse_frames(args.frames)
         start = time.perf_counter()
         if args.ray is None:
-            from scenesort.backend.frames import render_frames
+            from scenesort.backend.render.frames import render_frames
 
             done = render_frames(args.bundle, args.out, frames=frames, resume=args.resume,
                                  threads=args.threads, progress=not args.no_progress,
@@ -101,9 +99,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _on_ray(args: argparse.Namespace, frames: list[int] | None,
             console: Any) -> tuple[list[tuple[int, Any]], dict[int, str]]:
-    from scenesort.backend.bundle import read_bundle
-    from scenesort.backend.cluster import import_ray, render_frames_ray
-    from scenesort.backend.frames import frame_progress
+    from scenesort.backend.render.bundle import read_bundle
+    from scenesort.backend.render.cluster import import_ray, render_frames_ray
+    from scenesort.backend.render.frames import frame_progress
 
     import_ray()  # the missing extra, named before any work
     total = len(read_bundle(args.bundle).frames) if frames is None else len(frames)

@@ -68,7 +68,7 @@ class InstanceSceneInfo(Strict):
 
 
 class BuildReport(Strict):
-    """What a job did to have its BVHs (backend/frames.py's skip rules)."""
+    """What a job did to have its BVHs (render/bvhs.py's skip rules)."""
 
     built: list[str] = Field(description="mesh ids whose BVH was built from scratch")
     refit: list[str] = Field(description="mesh ids refit from an earlier mesh of the same "

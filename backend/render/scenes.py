@@ -77,7 +77,7 @@ def shared_scenes_dir() -> Path | None:
         if not (path / "scenes.json").is_file():
             raise ValueError(f"${SCENES_ENV}={env!r} must be a folder holding scenes.json")
         return path
-    path = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
+    path = Path(__file__).resolve().parents[3] / "shared" / "scenes"  # beside the checkout
     return path if (path / "scenes.json").is_file() else None
 
 
@@ -107,6 +107,52 @@ def shared_scene(name: str, width: int = DEFAULT_WIDTH, height: int = DEFAULT_HE
         cam["position"], cam["look_at"], cam["up"], cam["fov_y_deg"], width, height
     )
     return Scene(name, vertices, indices, camera)
+
+
+# --- what `scenesort render` and `scenesort bench` take: a file, a name or nothing ------
+
+
+def load_scene(scene: str | None, width: int | None, height: int | None) -> Scene:
+    """The built-in scene, a shared scene by name, or a mesh file with a framing camera."""
+    w = width or DEFAULT_WIDTH
+    h = height or DEFAULT_HEIGHT
+    if scene is None:
+        return default_scene(w, h)
+    path = Path(scene)
+    if path.suffix or path.exists():
+        vertices, indices = load_mesh(path)
+        return Scene(path.stem, vertices, indices, framing_camera(vertices, w, h))
+    return shared_scene(scene, w, h)
+
+
+def framing_camera(vertices: np.ndarray, width: int, height: int) -> Camera:
+    """A 35-degree pinhole camera on the +Y+Z diagonal that fits the mesh's bounding
+    sphere with a 10% margin (like the shared scenes' object cameras)."""
+    lo, hi = vertices.min(axis=0).astype(float), vertices.max(axis=0).astype(float)
+    centre = 0.5 * (lo + hi)
+    radius = max(0.5 * float(np.linalg.norm(hi - lo)), 1e-6)
+    fov = 35.0
+    dist = 1.1 * radius / np.sin(np.radians(fov) / 2.0)
+    view = np.array([0.5, 0.4, 1.0]) / np.linalg.norm([0.5, 0.4, 1.0])
+    return Camera.look_at(
+        centre + dist * view, centre, (0, 1, 0), fov, width, height, clip_start=0.0, clip_end=1e10
+    )
+
+
+def load_camera(path: Path, width: int, height: int) -> Camera:
+    """A camera from JSON: the Camera wire form, or a scenes.json look-at description."""
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"--camera {str(path)!r} is not a readable JSON file: {exc}") from exc
+    if isinstance(data, dict) and "matrix_world" in data:
+        return Camera.from_dict(data)
+    keys = ("position", "look_at", "up", "fov_y_deg")
+    if not isinstance(data, dict) or any(k not in data for k in keys):
+        raise ValueError(f"--camera must hold a Camera (matrix_world, ...) or the keys {keys}")
+    return Camera.look_at(
+        data["position"], data["look_at"], data["up"], data["fov_y_deg"], width, height
+    )
 
 
 # --- the built-in default scene ----------------------------------------------------------

@@ -24,8 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import numpy as np
-    from scenesort.backend import peers
-    from scenesort.backend.render import load_scene
+    from scenesort.backend.render.scenes import load_scene
+    from scenesort.backend.tools import peers
     from scenesort.kernels.core import cpu_cores
     from scenesort.kernels.render import default_distance
 

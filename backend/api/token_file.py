@@ -10,11 +10,9 @@ goes on a command line, where `ps` shows it to everyone.
 
 from __future__ import annotations
 
-import argparse
 import os
 import secrets
 import stat
-import sys
 from pathlib import Path
 
 TOKEN_ENV = "SCENESORT_TOKEN"
@@ -76,26 +74,3 @@ def service_token() -> tuple[str, str]:
             )
         return env, f"${TOKEN_ENV}"
     return stored_token(), str(token_path())
-
-
-# --- `scenesort token` -----------------------------------------------------------------
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--path", action="store_true", help="print where the token file is, not the token"
-    )
-
-
-def run(args: argparse.Namespace) -> int:
-    """Print the token a client should send (the one `scenesort serve` uses)."""
-    if args.path:
-        print(token_path())
-        return 0
-    try:
-        token, _ = service_token()
-    except ValueError as exc:
-        print(f"scenesort token: {exc}", file=sys.stderr)
-        return 2
-    print(token)
-    return 0

@@ -10,17 +10,27 @@ import sys
 # `add_arguments(parser)` and `run(args) -> int`; importing is lazy so that
 # `scenesort --help` does not pay for Warp or FastAPI.
 COMMANDS: dict[str, tuple[str, str]] = {
-    "render": ("scenesort.backend.render",
+    "render": ("scenesort.backend.commands.render",
                "render a scene (default: the built-in scene) and print timings"),
-    "render-frames": ("scenesort.backend.render_frames",
+    "render-frames": ("scenesort.backend.commands.render_frames",
                       "render a frame bundle (File > Export > scenesort animation)"),
-    "bench": ("scenesort.backend.bench",
+    "bench": ("scenesort.backend.tools.bench",
               "build and trace a scene with every engine and peer, print a table"),
-    "serve": ("scenesort.backend.serve", "run the local HTTP service (FastAPI + uvicorn)"),
-    "addon-zip": ("scenesort.backend.addon_zip", "build the installable Blender extension zip"),
-    "token": ("scenesort.backend.token_file",
+    "serve": ("scenesort.backend.commands.serve", "run the local HTTP service (FastAPI + uvicorn)"),
+    "addon-zip": ("scenesort.backend.tools.addon_zip",
+                  "build the installable Blender extension zip"),
+    "token": ("scenesort.backend.commands.token",
               "print the token `scenesort serve` uses (clients send it)"),
 }
+TOOLS = "scenesort.backend.tools"  # left out of the wheel the Blender extension bundles
+
+
+def check_at_least(args: argparse.Namespace, minimum: int, *names: str) -> None:
+    """ValueError naming the first option among `names` that is set and below `minimum`."""
+    for name in names:
+        value = getattr(args, name)
+        if value is not None and value < minimum:
+            raise ValueError(f"--{name.replace('_', '-')} must be >= {minimum}, got {value}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -34,12 +44,16 @@ def main(argv: list[str] | None = None) -> int:
     if name not in COMMANDS:
         parser.print_help() if name is None else parser.error(f"unknown command {name!r}")
         return 0 if name is None else 2
-    module = importlib.import_module(COMMANDS[name][0])
+    try:
+        module = importlib.import_module(COMMANDS[name][0])
+    except ModuleNotFoundError as exc:
+        if exc.name is None or not exc.name.startswith(TOOLS):
+            raise
+        print(f"scenesort {name}: this install has no packaging tools (the Blender "
+              "extension's wheel leaves them out); run it from a scenesort checkout "
+              "(pip install -e .)", file=sys.stderr)
+        return 2
     cmd_parser = argparse.ArgumentParser(prog=f"scenesort {name}", description=COMMANDS[name][1])
     module.add_arguments(cmd_parser)
     args = cmd_parser.parse_args(argv[argv.index(name) + 1 :])
     return int(module.run(args) or 0)
-
-
-if __name__ == "__main__":
-    sys.exit(main())

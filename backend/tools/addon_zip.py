@@ -1,11 +1,12 @@
 """`scenesort addon-zip`: build the installable Blender extension zip(s) from addon/.
 
 With `--platform` each zip is self-contained: the add-on, a wheel of scenesort built
-at zip time (the engine and the service) and the unmodified wheels of every runtime
-dependency Blender does not ship, for the Python of Blender 4.2-5.0 (3.11) and of
-5.1+ (3.13), listed under `wheels` with the manifest's `platforms`. Blender unpacks
-them into its extensions' site-packages when it installs the zip. Without
-`--platform` the zip holds the add-on alone (for a service of your own install).
+at zip time (the engine and the service, without these packaging tools) and the
+unmodified wheels of every runtime dependency Blender does not ship, for the Python of
+Blender 4.2-5.0 (3.11) and of 5.1+ (3.13), listed under `wheels` with the manifest's
+`platforms`. Blender unpacks them into its extensions' site-packages when it installs
+the zip. Without `--platform` the zip holds the add-on alone (for a service of your own
+install).
 
 The zip holds the extension's files at its root (blender_manifest.toml beside
 __init__.py), as `blender --command extension build` lays it out. Entries carry a
@@ -28,7 +29,7 @@ import tomllib
 import zipfile
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ADDON_DIR = ROOT / "addon"
 CACHE_DIR = ROOT / ".cache" / "addon-wheels"
 MANIFEST = "blender_manifest.toml"
@@ -60,6 +61,9 @@ MARKER_ENV: dict[str, dict[str, str]] = {
 # (the bpy 5.0 wheel requires numpy>=1.26,<2), so the 3.11 closure is resolved against
 # exactly that version: every bundled wheel then accepts Blender's numpy.
 BLENDER_SHIPS = {"numpy"}
+# This package (addon-zip, bench and the peer tracers) in the scenesort wheel: only a packager
+# runs it, so the wheel bundled for Blender leaves it out.
+TOOLS_IN_WHEEL = "scenesort/backend/tools/"
 BLENDER_NUMPY = {"3.11": "numpy==1.26.4"}
 
 
@@ -223,7 +227,8 @@ def fetch_wheels(platform: str, python: str, names: list[str], cache: Path) -> l
 
 
 def engine_wheel(project: Path, out_dir: Path) -> Path:
-    """A wheel of scenesort (kernels + backend) built from the checkout, without deps."""
+    """A wheel of scenesort (kernels + backend) built from the checkout, without deps, and
+    without the packaging tools (`without_tools`): what Blender installs."""
     _pip(
         ["wheel", "--no-deps", "--quiet", "--wheel-dir", str(out_dir), str(project)],
         "build the scenesort wheel",
@@ -231,7 +236,25 @@ def engine_wheel(project: Path, out_dir: Path) -> Path:
     wheels = sorted(out_dir.glob("scenesort-*.whl"))
     if len(wheels) != 1:
         raise ValueError(f"building the scenesort wheel gave {len(wheels)} wheels in {out_dir}")
-    return wheels[0]
+    return without_tools(wheels[0])
+
+
+def without_tools(wheel: Path) -> Path:
+    """Rewrite `wheel` in place without the package of these tools (TOOLS_IN_WHEEL): its
+    files and their lines in RECORD go, every other entry is copied as it was."""
+    prefix = TOOLS_IN_WHEEL.encode()
+    rewritten = wheel.with_name(wheel.name + ".part")
+    with zipfile.ZipFile(wheel) as source, zipfile.ZipFile(rewritten, "w") as target:
+        for info in source.infolist():
+            if info.filename.startswith(TOOLS_IN_WHEEL):
+                continue
+            data = source.read(info)
+            if info.filename.endswith(".dist-info/RECORD"):  # lines: path,hash,size
+                lines = data.splitlines(keepends=True)
+                data = b"".join(line for line in lines if not line.startswith(prefix))
+            target.writestr(info, data)
+    rewritten.replace(wheel)
+    return wheel
 
 
 def platform_wheels(platform: str, project: Path, cache: Path) -> list[Path]:

@@ -1,0 +1,169 @@
+"""Camera renders as jobs: POST /v1/jobs queues one, GET polls it, DELETE cancels it,
+/result fetches its image (AO, coverage, depth or PNG) and /events streams its progress as
+server-sent events."""
+
+from __future__ import annotations
+
+from collections.abc import AsyncIterator
+from typing import Literal
+
+from fastapi import APIRouter, Request, Response
+from fastapi.responses import StreamingResponse
+from scenesort.backend.api import errors, limits
+from scenesort.backend.api.openapi import COMMON_ERRORS
+from scenesort.backend.api.params import JobId
+from scenesort.backend.api.requests import server_timing
+from scenesort.backend.api.service import Shared
+from scenesort.backend.render.ao import ao_params
+from scenesort.backend.render.camera_render import job_camera, render_camera
+from scenesort.backend.wire import binary as wire
+from scenesort.backend.wire.models import OCTET, JobRequest, JobStatus, error_responses
+from scenesort.backend.wire.problems import ApiError, busy
+from scenesort.backend.work.jobs import Job
+from scenesort.backend.work.jobs import job_events as progress_events
+from scenesort.backend.work.worker import QueueFull
+from starlette.background import BackgroundTask
+from starlette.concurrency import run_in_threadpool
+
+router = APIRouter()
+
+
+@router.post(
+    "/v1/jobs", response_model=JobStatus, status_code=202,
+    responses=error_responses(404, *COMMON_ERRORS),
+)
+async def create_job(request: JobRequest, response: Response, service: Shared) -> JobStatus:
+    """Queue an AO render of `camera`'s pixels; poll it, stream its events, fetch it."""
+    try:
+        camera = job_camera(request)
+    except ValueError as exc:
+        raise ApiError(
+            422,
+            "camera",
+            str(exc),
+            "correct the camera field named in the message (see kernels/render/camera.py)",
+            "invalid_camera",
+        ) from None
+    limits.check_pixels(camera.width, camera.height)
+    params = ao_params(request)
+    limits.check_ao(params)
+    limits.check_work(service.settings.max_work, camera.width * camera.height,
+                      "camera.width x camera.height", params)
+    scene = service.scene(request.scene_id)
+    limits.check_engine(scene, params)
+
+    def work(job: Job) -> None:
+        render_camera(job, service.store, scene, camera, params, request.method,
+                      request.leaf_size, service.settings.device)
+
+    try:
+        job = service.jobs.create(request.scene_id, camera.width, camera.height, work)
+    except QueueFull as exc:
+        raise errors.queue_full(exc) from None
+    response.headers["Location"] = f"/v1/jobs/{job.job_id}"
+    return JobStatus(**job.snapshot())
+
+
+@router.get("/v1/jobs/{job_id}", response_model=JobStatus, responses=error_responses(404, 422))
+async def job_status(job_id: JobId, service: Shared) -> JobStatus:
+    """State, phase, progress (0..1) and per-phase timings of a job."""
+    return JobStatus(**service.job(job_id).snapshot())
+
+
+@router.delete("/v1/jobs/{job_id}", response_model=JobStatus,
+               responses=error_responses(404, 422))
+async def cancel_job(job_id: JobId, service: Shared) -> JobStatus:
+    """Cancel a job: a queued one never starts (and frees its place in the queue), a
+    running one stops at its next step."""
+    job = service.job(job_id)
+    service.jobs.cancel(job_id)
+    return JobStatus(**job.snapshot())
+
+
+@router.get(
+    "/v1/jobs/{job_id}/result",
+    response_class=Response,
+    responses={
+        200: {
+            "content": {
+                OCTET: {"schema": {"type": "string", "format": "binary"}},
+                "image/png": {"schema": {"type": "string", "format": "binary"}},
+            },
+            "description": "format=f32: height*width little-endian float32 AO, row 0 "
+            "at the top; format=coverage: the same layout, 1.0 where the camera ray "
+            "hit and 0.0 where it missed; format=depth: the same layout, the hit's "
+            "camera-space depth (Cycles' Z pass), 1e10 where it missed; format=png: "
+            "8-bit grayscale PNG of the AO. X-Width/X-Height headers.",
+        },
+        **error_responses(404, 409, 422),
+    },
+)
+async def job_result(
+    job_id: JobId, service: Shared, format: Literal["f32", "coverage", "depth", "png"] = "f32"
+) -> Response:
+    """The finished image (AO, coverage or depth); 409 while the job is not done."""
+    job = service.job(job_id)
+    # One read: the manager may forget the job meanwhile.
+    layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth}.get(format)
+    png = job.png
+    if job.state != "done" or png is None or (format != "png" and layer is None):
+        detail = f" ({job.error})" if job.error else ""
+        raise ApiError(
+            409,
+            "job_id",
+            f"job {job_id} is {job.state}{detail}, not done",
+            "poll GET /v1/jobs/{job_id} until state is done",
+            "not_done",
+        )
+    headers = {
+        "X-Width": str(job.width),
+        "X-Height": str(job.height),
+        "Server-Timing": server_timing(job.snapshot()["timings_ms"]),
+    }
+    if format == "png":
+        return Response(png, media_type="image/png", headers=headers)
+    payload = await run_in_threadpool(wire.encode_f32, layer)
+    return Response(payload, media_type=OCTET, headers=headers)
+
+
+@router.get(
+    "/v1/jobs/{job_id}/events",
+    response_class=StreamingResponse,
+    responses={
+        200: {
+            "content": {"text/event-stream": {"schema": {"type": "string"}}},
+            "description": "server-sent events: `progress` on each change (data "
+            "is a JobStatus), then one `end`",
+        },
+        **error_responses(404, 422, 429),
+    },
+)
+async def job_events(job_id: JobId, request: Request, service: Shared) -> StreamingResponse:
+    """Progress as server-sent events until the job ends or the client leaves."""
+    job = service.job(job_id)
+    if job.streams >= service.settings.max_streams_per_job:
+        raise busy(
+            "job_id", f"{job.streams} event streams are already open on job {job_id}",
+            "share one stream, or poll GET /v1/jobs/{job_id}", 2, status=429,
+        )
+    job.streams += 1
+    released = [False]
+
+    def release() -> None:  # once, from whichever of the two ends runs
+        if not released[0]:
+            released[0] = True
+            job.streams -= 1
+
+    async def events() -> AsyncIterator[str]:
+        try:
+            async for event in progress_events(job, request.is_disconnected):
+                yield event
+        finally:
+            release()
+
+    return StreamingResponse(
+        events(),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache"},
+        background=BackgroundTask(release),
+    )
