@@ -1,5 +1,5 @@
-"""Scenes that change (issue 18): refit against rebuild, and instances against the flattened
-scene, with the issue's floors.
+"""Scenes that change: refit against rebuild, and instances against the flattened scene,
+with the dynamic-scene floors (docs/benchmarks.md, "Dynamic scenes").
 
     python benchmarks/animation.py [--part refit|instances|frames|cull|all] [--repeat 3]
         [--no-docs] [--subdivide 2] [--instances 1000] [--flat-instances 256] [--size 384]
@@ -14,8 +14,8 @@ refit: the bunny subdivided `--subdivide` times (4x triangles each: 2 -> 1.1 M) 
 instances: `--instances` bunnies (rotated, scaled, on a grid): the scene's device bytes
   against one bunny's plus the top level's; trace speed (camera rays closest hit, and AO)
   of the two-level scene against the flattened one at `--flat-instances` (256 by default:
-  flattening 1,000 bunnies, 69 M triangles, does not fit this machine's memory beside the
-  others' work; 512 was not tried, to leave the others room).
+  flattening 1,000 bunnies, 69 M triangles, does not fit this machine's memory beside
+  other work).
 frames: `--frames` frames of one deforming bunny (full resolution) among
   `--frame-instances` instances of the bunny, dragon and buddha (vertex-clustered to about
   `--frame-triangles` triangles each) and an orbiting camera, through a real `scenesort

@@ -17,12 +17,12 @@ primary closest-hit launch + their occlusion launch (ray generation not counted 
 floor is judged against this, the stronger peer); "wp.Mesh 1t" is one launch, as Warp runs
 it on CPU; embreex holds the GIL, so Embree runs on one thread.
 
-Floors (issue 19), on every scene, at target_error 0.05, 0.02 and 0.01:
+Floors (the AO error floors), on every scene, at target_error 0.05, 0.02 and 0.01:
 - calibration: the achieved RMSE lies in [0.7, 1.0] x target_error;
 - cost: the render takes <= 1.15x the time of the cheapest fixed spp (Sobol, same tracer,
   chosen in hindsight from the fixed sweep, a grid of ~1.5x steps: the fewest spp whose RMSE
   is at most the one achieved; timed again in alternation with the render), and >= 2x less
-  than `max_pixel_error` (the rule target_error had before issue 19) given the same number
+  than `max_pixel_error` (the per-pixel rule) given the same number
   (measured at 0.05 and 0.02, in the same alternation: at 0.01 that rule needs thousands of
   samples a pixel).
 With --denoise, every point of ours is also denoised (`render_ao(denoise=True)`, OIDN with
@@ -73,11 +73,11 @@ OLD_RULE_FLOOR = 2.0  # max_pixel_error's time over target_error's, same number
 PEER_CHUNK = 1 << 21  # occlusion rays per peer launch (bounds memory)
 ADAPTIVE_NOTE = (
     'Adaptive runs use `--min-spp` (default `MIN_ADAPTIVE_SPP`) as the minimum. '
-    '`target_error` (issue 19) is the image\'s RMSE over hit pixels: the render stops when '
+    '`target_error` is the image\'s RMSE over hit pixels: the render stops when '
     'its estimate (per-pixel posterior variances, the measured Sobol efficiency) is below '
     '`RMSE_AIM` x target, doubling in each round the pixels with the most variance '
-    'removed per ray (Neyman allocation). `max_pixel_error` is the per-pixel 95% '
-    'half-width rule `target_error` had before.'
+    'removed per ray (Neyman allocation). `max_pixel_error` is the per-pixel rule: every '
+    'pixel\'s 95% half-width below the number.'
 )
 
 
@@ -323,7 +323,7 @@ def table(rows: list[dict], args) -> str:
         f"Run: `{args.command_line}` on {os.cpu_count()} cores, CPU only (load average "
         f"{args.load}); each point is the median of {args.repeat} timed runs.",
         "",
-        "Floors (issue 19) per scene and target_error: achieved RMSE / target in "
+        "Floors per scene and target_error: achieved RMSE / target in "
         f"[{CALIBRATION[0]}, {CALIBRATION[1]}]; time over the fewest fixed Sobol spp whose "
         f"RMSE is at most the one achieved (the cheapest) <= {COST_FLOOR}; max_pixel_error's "
         f"time at the same number over target_error's >= {OLD_RULE_FLOOR}; the three timed "
@@ -417,7 +417,7 @@ def write_docs(results: list[tuple[dict, list[Curve]]], args) -> None:
     figure = REPO / "docs" / "figures" / "ao_error.png"
     plot(results, figure)
     body = "\n\n".join([
-        "## Ambient occlusion: run time against error (issues 4, 19)",
+        "## Ambient occlusion: run time against error",
         "Produced by `benchmarks/ao_error.py` (method, reference and timing rules in its "
         f"docstring). RMSE over hit pixels against an independent {args.ref_spp}-spp Embree "
         "reference (its own variance removed); same spawn points and Sobol directions for "

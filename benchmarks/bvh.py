@@ -1,5 +1,5 @@
 """The 2012 paper's Tables 6.1/6.2 on the shared scenes: BVH build and trace, against
-Warp's `wp.Mesh` and Embree in the same run; and the wide BVH (issue 17) against the binary
+Warp's `wp.Mesh` and Embree in the same run; and the wide BVH against the binary
 one and Embree side by side (`--part wide` runs only that).
 
     python benchmarks/bvh.py [--scenes bunny,sponza] [--repeat 5] [--width 1024 --height 768]
@@ -43,8 +43,8 @@ from scenesort import kernels  # noqa: E402
 
 LEAVES = (8, 16, 32)
 METHODS = ("sah", "median")
-WIDE_WIDTHS = (2, 4, 8)  # 2: the binary tree ("today's" traversal)
-AO_PER_HIT = 4  # issue 17's AO rays: 4 cosine rays per primary hit, tmax 0.1 x diagonal
+WIDE_WIDTHS = (2, 4, 8)  # 2: the binary tree
+AO_PER_HIT = 4  # the wide-BVH floors' AO rays: 4 cosine rays per hit, tmax 0.1 x diagonal
 
 
 def compile_seconds() -> dict[str, float]:
@@ -190,7 +190,7 @@ def trace_rows(name: str, scene, repeat: int, width: int, height: int) -> list[d
 
 
 def wide_rows(name: str, scene, repeat: int, width: int, height: int) -> dict:
-    """Issue 17, side by side and interleaved: build (SAH, leaf 8) of each width, the
+    """The wide BVH, side by side and interleaved: build (SAH, leaf 8) of each width, the
     collapse included, and MRays/s of each width on all cores against embreex on one
     thread, for primary rays and AO any-hit rays (AO_PER_HIT per hit, tmax 0.1 x the
     diagonal)."""
@@ -236,7 +236,7 @@ def wide_markdown(rows: list[dict], command: str, load: str) -> str:
         "interleaved runs (every width and Embree in turn, in alternating order). Ours on all "
         f"{cores} cores (host threads) against embreex (Embree 4) on ONE thread; width 2 is "
         "the binary tree, 4 and 8 the wide trees with the SIMD node test.",
-        "", "### Floors (issue 17)", "",
+        "", "### Floors", "",
         "Trace: ours / Embree 1t on primary rays and on AO any-hit rays "
         f"({AO_PER_HIT} per hit, tmax 0.1 x diagonal), floor 1.0, goal 1.5. Build: SAH leaf 8 "
         "with the collapse, over the binary build without it, floor 1.15.", "",
@@ -274,7 +274,7 @@ def wide_markdown(rows: list[dict], command: str, load: str) -> str:
 
 
 def floors(build: list[dict], peer_build: dict, traces: list[dict]) -> list[str]:
-    """Issue 2's floors, per scene: SAH build (ours, leaf_size 8, all cores) <= 1.5x
+    """The BVH floors, per scene: SAH build (ours, leaf_size 8, all cores) <= 1.5x
     `wp.Mesh(bvh_constructor="sah")` as users call it (its default leaf size 4) at equal or
     lower SAH cost; closest and any hit >= 1.0x wp.Mesh on one thread and >= 1.8x with all
     cores."""
@@ -365,7 +365,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=int, default=1024)
     parser.add_argument("--height", type=int, default=768)
     parser.add_argument("--part", choices=("all", "wide"), default="all",
-                        help="wide: only the wide-BVH tables (issue 17)")
+                        help="wide: only the wide-BVH tables")
     parser.add_argument("--no-docs", action="store_true", help="print only")
     parser.add_argument("--target-cpu", help="compile the engine for this clang target CPU, "
                         "not the host's (x86-64: no AVX2, the wide trees traversed lane by "
@@ -388,7 +388,7 @@ def main(argv: list[str] | None = None) -> int:
     Console(width=200).print(Markdown(wide_text))
     if not args.no_docs:
         write_section("bvh_wide", "## Wide BVH with SIMD node tests against Embree "
-                      "(`benchmarks/bvh.py`, issue 17)\n\n" + wide_text)
+                      "(`benchmarks/bvh.py`)\n\n" + wide_text)
         FIGURES.mkdir(parents=True, exist_ok=True)
         (FIGURES / "bvh_wide.json").write_text(json.dumps(wide, indent=1, default=str))
     if args.part == "wide":

@@ -6,7 +6,7 @@ parity of the images and the time of F12.
     .venv/bin/python benchmarks/cycles.py --rounds 5   # more interleaved speed rounds
     .venv/bin/python benchmarks/cycles.py --no-docs    # print only
 
-Parity (issue 14): a floor and a cube (flat-shaded), a low-poly UV sphere and a
+Parity: a floor and a cube (flat-shaded), a low-poly UV sphere and a
 subdivided cube (smooth-shaded), World AO distance 1.5, default terminator offset 0.1.
 On clean hit pixels (the pixel and its 8 neighbours hit the same kind of object in both
 renderers), the RMSE of scenesort at N spp against a Cycles reference at 16N spp must be at
@@ -15,7 +15,7 @@ and smooth objects separately; background alpha must be exactly 0 in both (on pi
 no object in or next to them: Cycles' 0.01-pixel filter still lets a silhouette crossing
 near a pixel's centre cover 1/N of it).
 
-Speed (issue 14): the shared Stanford dragon (100,000 triangles, smooth-shaded) on a floor,
+Speed: the shared Stanford dragon (100,000 triangles, smooth-shaded) on a floor,
 its scenes.json camera, World AO distance 2, 64 spp. The service is already running (a
 tiny warm-up render started it and loaded its kernels); the first F12 includes export,
 upload and BVH build; the second F12 of the unchanged scene reuses both. Floors: first F12
@@ -311,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     load = os.getloadavg()
     cores = os.cpu_count()
     body = "\n\n".join([
-        "## scenesort's F12 against Cycles' AO pass (issue 14)",
+        "## scenesort's F12 against Cycles' AO pass",
         "Produced by `benchmarks/cycles.py` (scenes and rules in its docstring). scenesort "
         "shades with Blender's corner normals and Cycles' shadow-terminator offset, so "
         "smooth-shaded objects are compared as well as flat ones. Cycles' settings: "

@@ -1,4 +1,4 @@
-"""Divide-and-conquer ray tracing against BVH build + trace, in the same run (issue 3).
+"""Divide-and-conquer ray tracing against BVH build + trace, in the same run.
 
     .venv/bin/python benchmarks/dacrt.py [--scenes bunny,sponza] [--sizes 512,1024]
         [--kinds primary,ao,random,shadow,specular] [--repeat 3] [--tuning paper|cpu]
@@ -335,7 +335,7 @@ def figure(scene, size: int, tuning: str, path: Path, rng) -> list[tuple]:
 
 
 NOTES = """\
-Notes (what the numbers mean and what was tried):
+Notes (what the numbers mean):
 
 - **Exactness.** Every DACRT row is compared with `kernels.trace` on the same rays: hit/miss
   must be identical ("mismatches"); the tests also check t to 1e-6 and the triangle (a
@@ -346,116 +346,31 @@ Notes (what the numbers mean and what was tried):
   C_SORT = 4 and 16 rays; breadth-first with alpha = 32, beta = 128. Both were picked from
   short sweeps on Sponza and the bunny at 512² and 1024² (e.g. Sponza 512² RDH: 1.31 s with
   C_SORT = 4 against 3.6 s with 80; breadth-first 1.6 s with 32/128 against 4.1 s with
-  256/256), in a loaded machine.
-- **Workers.** The pool runs one worker per core, like BVH build and trace. On a quiet
-  machine the second worker makes the pool 1.5x (bunny 1024², RDH: 0.84 s -> 0.52 s) to
-  2.1x (Sponza: 3.6 s -> 1.7 s) faster. (The first session's rows used one worker: the
-  machine was shared then and a second worker showed no gain.) With two workers the
-  constants barely matter: C_SORT 2/4/8 x min_rays 8/16/32 x min_tris 8/16 on the bunny at
-  1024² span 0.49-0.56 s, C_SORT = 4, 16 rays, 16 triangles the fastest.
-- **Ray records.** The box and plane tests read a 32-byte record per ray (origin, tmin, 1/d,
-  tmax) instead of five arrays, and PPS1 counts the straddling rays heading to -axis with one
-  atomic per chunk; neither moved the bunny's PPS1 time (178 ms of 452 ms) measurably, so
-  the gathers are not what costs there.
-- **Small tasks.** A task of at most `small_items` rays + triangles sorts in one worker:
-  classification, a counting sort into the seven children's interval layout and the
-  triangle boxes in one phase ("Sort") instead of PPS1, Swap1, PPS2, Swap2 and AABB with
-  their scans and steps. With a fixed 32768 (session 2): bunny 1024² 0.50 s -> 0.36 s. The
-  counting sort stays cheaper than the PPS rounds for much bigger tasks, as long as other
-  tasks keep the other worker busy: Sponza 1024² (three interleaved runs) 1.31 s with
-  32768, 1.22 s with 262144, 1.18 s with 524288, 1.22 s with everything in one worker
-  (the root then runs on one core); conference 0.77 / 0.72 / 0.72 / 0.72 s, bunny 0.33 /
-  0.31 / 0.31 / 0.32 s. So on CPU the default is a worker's share of all rays and triangles
-  (at least 32768): with two workers only the root runs the paper's phases, in parallel.
-  `small_items=0` gives the paper's phases in every task (the tests run both paths).
-- **Calls that copy.** `run_chunks` is the one function of the worker that is not
-  inlined (checked with `nm` on the kernel's object file), and Warp passes structs
-  by value: each call copied DacrtData (27 arrays) and the task. Called once per batch of
-  chunks instead of once per chunk: Swap1 and Swap2 on Sponza 1024² 80 -> 55 ms each,
-  intersection 420 -> 380 ms.
-- **Depth first.** Workers take chunks from the task published last (`pool_acquire`), not
-  from the first active slot below the one they last worked on: buddha's 1.8 M AO rays at
-  512² kept ~4000 tasks alive (the 4096-slot pool overflowed) and now ~230, in 0.59 s
-  instead of 0.72-0.79 s; 1024² primary: bunny 0.29 -> 0.26 s, Sponza 1.11 -> 1.08 s
-  (pool slots 450-2400 -> 110-190). BVH build times unchanged within noise.
-- **Intersection.** A batch of consecutive chunks sets each ray up once (box clip, hit so
-  far, Woop frame) instead of once per 32-pair chunk: bunny 1024² intersection 93 -> 82 ms.
-  Most rays an intersection task meets need no pair at all: its box clips them or they
-  already hit nearer (bunny 1024², RDH: 77% of 2.47 M ray visits, stats
-  `intersection_rays_skipped`); those now skip the Woop set-up as well: Intersect bunny
-  73 -> 64 ms, Sponza 254 -> 225 ms. Tried without gain: the Woop frame precomputed per ray
-  (the compiler already drops what the test does not read); an early exit after two of the
-  three edge functions (Sponza's intersection time doubled: a branch that no predictor
-  guesses).
-- **Plane test.** A ray's side of the plane is decided in t (the plane's crossings
-  (split -+ margin - o) / d against the span's ends) instead of by coordinates at the span's
-  ends, which needed a division by 1/d: Sponza PPS1 540 -> 508 ms.
-- **Prefetch.** The sort's classification loops prefetch the records of the rays (and the
-  boxes of the triangles) 16 items ahead (`__builtin_prefetch`, CPU only): the ids make
-  the reads a gather that misses the caches in big tasks. Sponza's Sort phase -6 to -12%.
+  256/256). `--tuning paper` runs the papers' values beside them.
+- **Workers and small tasks.** The pool runs one worker per core, like BVH build and trace.
+  A task of at most `small_items` rays + triangles sorts in one worker: classification, a
+  counting sort into the seven children's interval layout and the triangle boxes in one
+  phase ("Sort") instead of PPS1, Swap1, PPS2, Swap2 and AABB with their scans and steps.
+  On CPU `small_items` is a worker's share of all rays and triangles (at least 32768), so
+  with two workers only the root runs the paper's phases, in parallel. `small_items=0`
+  gives the paper's phases in every task (the tests run both paths).
 - **RDH.** Two sampling steps: sqrt(#tris) triangles give each candidate's two child boxes,
-  then sqrt(#rays) rays count the hits on those boxes; cost = pairs + C_SORT x (items of both
+  then sqrt(#rays) rays (one in each of sqrt(n) equal strata of the task's interval, at a
+  hashed place in it) count the hits on those boxes; cost = pairs + C_SORT x (items of both
   children). The spatial median is a 33rd candidate that a sampled candidate must beat by
-  40%, and tasks with fewer than `rdh_min_rays` rays take the median directly. A sampled
-  triangle lies in the left child of a suffix of each axis's planes and in the right child
-  of a prefix, and the children's boxes grow (left) or shrink (right) along the axis, so a
-  ray meets the left children of a suffix and the right children of a prefix: sampling
-  stores each triangle and ray once per axis and side (found by binary search: about 24 box
-  tests per sampled ray instead of 66, 6 atomics instead of up to 400 per triangle) and
-  sums the suffixes and prefixes when the step ends. The task trees are the same as with
-  the plane-by-plane loop (checked on bunny, Sponza and Conference at 256², every task
-  sampled: same tasks, rays and triangles sorted, pairs) and SplitPlane 2.0-2.7x faster.
-  That made sampling smaller tasks pay: `rdh_min_rays` 65536 -> 4096. RDH / median, 1024²,
-  medians of four interleaved runs, 65536 then 4096: bunny 1.06 / 1.00, dragon 1.01 / 1.00,
-  buddha 1.01 / 1.00, blade 1.03 / 0.97, sponza 0.71 / 0.68, sibenik 0.83 / 0.83,
-  conference 0.87 / 0.84; with 4096 RDH sorts 4-5% fewer rays than the median on the object
-  scenes, but the time saved there is about what sampling costs (at 1024, SplitPlane took
-  16 ms of the bunny's 305 ms). Rows within +-5% of 1.00 are ties: the 65536 bunny row
-  (1.06) had nearly the median's tree.
-- **RDH samples.** One sample in each of sqrt(n) equal strata of the task's interval, at a
-  hashed place in it. The paper's every-k-th sample aliased with the image: the root holds
-  the rays in row order, so at 1024² (and 512²) every one of its ray samples was a pixel of
-  the image's first column. Indoor scenes 1-3% faster with the fix, object scenes
-  unchanged (test `test_rdh_ray_samples_do_not_alias_with_image_rows`).
-- **RDH on the object scenes is a tie.** RDH keeps the median in two thirds to four fifths
-  of the tasks it samples there, and where it does not, its tree sorts 4-5% fewer rays but
-  tests about as many ray-triangle pairs (buddha: 4% more). With 16x the samples (nearly
-  exact counts) the bunny's tree sorts 13% fewer rays and tests as many pairs: about 6%
-  of the time if the samples were free, and they cost far more. The cost of two
-  hypothetical leaves (pairs + C_SORT x items) does not see the early termination that the
-  median's splits of the longest axis get from the near-first order (rays that hit in the
-  near child are clipped in the far one). Tried and measured against the median in paired
-  runs, none better on every scene: costs (R + T) log T, R log T, R T^0.5 or T^0.75, the far
-  child's straddling rays discounted by half (Sponza 0.59 instead of 0.65 of the median,
-  conference 0.92 instead of 0.88); median trust 0.5, 0.7, 0.8, 1.0 (1.0: indoor scenes up
-  to 10% faster, object scenes 3-10% slower); 4x and 16x the samples; `rdh_min_rays` 8192,
-  16384, 65536; sampling stopped below a task that kept the median (Sponza falls back to
-  the median's time: its root keeps the median); rays cut at their closest hit so far
-  (0.2% fewer rays sorted, 3-5% slower); for unsampled tasks the midplane of the axis the
-  rays straddle least (|d_k| / e_k smallest: fewer pairs, but intersection up to 20%
-  slower: the near-first order is lost); candidates on the longest axis only (indoor
-  scenes up to 15% slower than the median). So the floor's "no slower" is judged by paired
-  runs: each round runs the median and RDH back to back (in alternating order), and a row
-  counts as slower only when the sign-test interval of the paired ratios lies above 1.
+  40%, and tasks with fewer than `rdh_min_rays` (4096) rays take the median directly.
+- **RDH against the median.** The floor's "no slower" is judged by paired runs: each round
+  runs the median and RDH back to back (in alternating order), and a row counts as slower
+  only when the sign-test interval of the paired ratios lies above 1. On the object scenes
+  it is a tie: RDH keeps the median in two thirds to four fifths of the tasks it samples
+  there, and where it does not, its tree sorts 4-5% fewer rays but tests about as many
+  ray-triangle pairs. The cost of two hypothetical leaves (pairs + C_SORT x items) does not
+  see the early termination that the median's splits of the longest axis get from the
+  near-first order (rays that hit in the near child are clipped in the far one).
 - **Early termination.** A ray whose closest hit so far lies before its entry into a node's
   box is clipped there (in PPS1 and in intersection tasks); the seven-child order lets
   straddling rays meet near triangles before far ones. Breadth-first has no such cut
   (2013 paper, sec. 3.3).
-- **Compiled code.** Reading the kernel's machine code (`objdump` on the cached object) and
-  timing the classification loop alone (22 ns per ray even with the rays in order, ~90
-  instructions per ray box test) showed two costs no profile of the phases could: on CPU
-  `wp.isinf` compiles to a call into the C library (four per ray, every register spilled
-  around each), and `wp.min` / `wp.max` on floats to NaN-safe sequences of five
-  instructions. The box test now uses an absolute-value compare and selects
-  (`wp.where`, as the BVH traversal and `geometry.min3` already did): Sponza 1024²
-  1.06 -> 0.82 s, buddha 0.30 -> 0.26 s, the other scenes 10-20%. Inlining is pinned where
-  it matters: `intersect_triangle` always (a one-line change in the pool made clang keep
-  it out of line, passing the ray struct by value: intersection 2.2x slower, buddha 0.30 ->
-  0.41 s, unseen by the tests), `run_chunks` never (forced inline, the worker grows and PPS
-  and Swap run ~2x slower). Tried without gain: one 64-byte line per ray holding its
-  record, direction and closest-hit key (one cache line per gathered ray instead of three):
-  Sort unchanged, the root's PPS1 35% slower (twice the bytes in order); the sort is
-  bound by instructions, not by cache misses.
 - **Where the time goes** (Sponza 1024², RDH, cpu constants, two workers, 0.75 s of tracing):
   rays are sorted about 49 times each (51.2 M ray classifications, 2.6 M triangle ones);
   Sort 44%, intersection 33%, the root's PPS1 to Swap2 20%, SplitPlane 3%. A third of the
@@ -467,34 +382,26 @@ Notes (what the numbers mean and what was tried):
   the ray's axis permutation, which goes through the stack); a BVH ray visits a few dozen
   boxes and a handful of triangles, so on a CPU DACRT stays about 2x behind BVH build +
   trace.
-- **Set-up.** The scene box is a column-wise reduction over the vertices the triangles use:
-  numpy's `min(axis=0)` over the (3M, 3) triangle corners had taken 18 ms of a 260 ms
-  buddha call (10x slower than over contiguous columns); degenerate triangles are found by
-  the engine's multi-core kernel (as `build_bvh` counts them).
-- **Memory state.** On this VM the time of BVH build + trace depends on what ran before
-  it: right after a big free (a breadth-first run, or touching and freeing 0.5-1 GiB) it is
-  up to 30% faster than after a pause or after its own previous call (buddha 1024²:
-  0.10 s against 0.14 s), while DACRT gains nothing (and touching 1 GiB before it slowed it
-  by 5-10%). Likely causes: the kernel returns idle memory to the host (DAMON `pageout`,
-  free page reporting) and the huge pages a big free leaves behind (numpy asks for
-  transparent huge pages; BVH traversal is TLB-bound). It works the other way too: at 512²
-  the DACRT call right after a BVH call took 20% longer than one after another DACRT call
-  (bunny primary, either split: 138 against 113 ms; no such effect at 1024²). Rows up to
-  session 4's first run interleaved [BVH, median, RDH], so the median paid it and the 512²
-  RDH / median ratios of the object scenes (0.84-0.95 then) were flattered. Now the two
-  splits run interleaved with each other, the BVH and breadth-first each on their own, and
-  for 1024² primary rays the BVH is timed once more right after a 0.5 GiB free: the floor
-  takes the faster BVH time (conservative).
+- **Order of the timed calls.** On this VM the time of BVH build + trace depends on what
+  ran before it: right after a big free (a breadth-first run, or touching and freeing
+  0.5-1 GiB) it is up to 30% faster than after a pause or after its own previous call
+  (buddha 1024²: 0.10 s against 0.14 s), while DACRT gains nothing; and at 512² a DACRT call
+  right after a BVH call takes about 20% longer than one after another DACRT call. So the
+  two splits run interleaved with each other, the BVH and breadth-first each on their own,
+  and for 1024² primary rays the BVH is timed once more right after a 0.5 GiB free: the
+  floor takes the faster BVH time (conservative).
 - **Memory.** The pool variant holds per-slot arrays for 4096 slots (~11 MB) plus about 60 B
   per ray and 100 B per triangle; breadth-first holds the level lists (ray ids duplicated
   where rays straddle) and the terminal buffer (40 B per entry, at most 2 x (rays + tris)
   entries); the BVH column counts `build_bvh`'s temporaries and tree plus the rays and hits.
+- **Rerun.** The command in this section's first lines writes it (every scene and ray kind:
+  long); `--scenes`, `--sizes` and `--kinds` narrow it down, `--no-docs` only prints.
 """
 
 
 def write_docs(rows: list[dict], args, command: str) -> None:
     body = "\n\n".join([
-        "## Divide-and-conquer ray tracing (issue 3)",
+        "## Divide-and-conquer ray tracing",
         "Produced by `benchmarks/dacrt.py` (ray kinds, memory accounting and tuning in its "
         f"docstring). Run: `{command}` on 2 CPU cores of a VM: medians of interleaved runs, "
         "the splits paired in alternating order; rows still move by +-5-10% between runs.",

@@ -9,8 +9,8 @@ a simulation gives), and a camera orbiting the group. It is rendered three ways:
 process with one engine thread, one process with every core, and a local Ray cluster of two
 one-CPU workers (one engine thread per frame). Every way renders the same 2 warm-up frames
 first (Warp's kernels loaded, the cluster's workers started) and the cluster's start-up is
-timed apart. Floors (issue 20): the cluster at least 1.6x faster than one process on one
-thread, and within 1.15x of one process on both cores; bytes sent per frame after the first
+timed apart. Floors: the cluster at least 1.6x faster than one process on one thread,
+and within 1.15x of one process on both cores; bytes sent per frame after the first
 are the changed transforms and meshes only. Writes the frames section of docs/benchmarks.md
 unless --no-docs.
 """

@@ -5,7 +5,7 @@
                                            [--spp 8] [--repeat 1]
 
 The scene is the shared Happy Buddha (100k triangles) instanced `--copies` times in a row
-(10 copies: 1M triangles); the camera frames the whole row. Floor (issue 5): the HTTP path
+(10 copies: 1M triangles); the camera frames the whole row. Floor: the HTTP path
 adds no more than 10% plus the raw loopback transfer time of the same bytes.
 """
 

@@ -1,4 +1,4 @@
-"""The service under a mixed load: 32 clients for 60 s while renders run (issue 16).
+"""The service under a mixed load: 32 clients for 60 s while renders run (docs/security.md).
 
     .venv/bin/python benchmarks/service_load.py [--clients 32] [--seconds 60]
 
@@ -24,8 +24,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from benchmarks.service import start_service  # noqa: E402
-from tests.backend.conftest import floor_and_box, scene_body  # noqa: E402
 from tests.backend.load import OCTET, Load, rss_mb  # noqa: E402
+from tests.backend.service_client import floor_and_box, scene_body  # noqa: E402
 
 CACHE_MB, RESULTS_MB, UPLOADS_MB, WORKING_MB = 256, 64, 256, 256
 

@@ -9,8 +9,9 @@ tests/stability/cases.py judges) and the largest relative t error against the fl
 distance to the hit triangle's plane. The peers are judged on hits alone (neither refines
 t); scenesort also must keep t within 2 float32 ulps, and a t beyond that is a failure.
 `--quick` runs a small sweep (about a minute); the full run adds the 2-million-triangle
-and 10-million-ray cases and larger meshes. Writes the table into `--out` and the figures
-as JSON into docs/figures/stability.json.
+and 10-million-ray cases and larger meshes. Writes the table between the `stability` markers
+of `--out` (the rest of that doc is by hand) and the figures as JSON into `--json`
+(docs/figures/stability.json).
 """
 
 from __future__ import annotations
@@ -27,6 +28,8 @@ import warp as wp
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
 
 from scenesort import kernels  # noqa: E402
 from tests.stability import cases as C  # noqa: E402
@@ -257,17 +260,14 @@ def main() -> None:
 
 
 def write_doc(path: Path, text: str, meta: dict, rows: list[dict]) -> None:
+    """The `stability` section of `path` (docs/robustness.md): how to read the table, the
+    table, the failure kinds; the rest of that doc is written by hand."""
     kinds: dict[str, dict[str, int]] = {k: {} for k in TRACERS}
     for r in rows:
         for k in TRACERS:
             for kind, n in r[k]["kinds"].items():
                 kinds[k][kind] = kinds[k].get(kind, 0) + n
-    body = f"""# Numerical robustness
-
-What the stability suite (`tests/stability/`, issue 7) checks, and the same checks run on
-scenesort's BVH, Embree and Warp's `wp.Mesh` with identical float32 inputs.
-
-## How to read the table
+    body = f"""## How to read the table
 
 - Every reference quantity is float64 computed from the exact float32 inputs
   (`tests/stability/cases.py`). A ray that passes within 2^-14 of |vertex - origin| of a
@@ -293,18 +293,9 @@ Command: `{meta['command']}` (warp {meta['warp']}, Python {meta['python']},
 Failure kinds summed over all rows: scenesort {kinds['scenesort']}, Embree
 {kinds['embree']}, wp.Mesh {kinds['wp.Mesh']}.
 
-## Known engine problems found by the suite
-
-- `trace` can report a t slightly below tmin when the ray starts exactly on the
-  triangle: the float64 refinement of t gives e.g. -4.6e-22 for tmin = 0
-  (`test_scale_offset.py::test_reported_t_is_never_below_tmin_when_origin_is_on_the_triangle`).
-- `build_bvh(method="median")` corrupts the heap (process abort) on one 2e4-wide triangle
-  over 1200+ triangles of size 1e-5
-  (`test_degenerate.py::test_median_build_of_huge_and_tiny_triangles_does_not_corrupt_memory`).
-
 The full data, per case and failure kind, with timings, is in `docs/figures/stability.json`.
 """
-    path.write_text(body)
+    write_section("stability", body, path)
 
 
 if __name__ == "__main__":
