@@ -184,7 +184,8 @@ def test_median_build_of_huge_and_tiny_triangles_does_not_corrupt_memory(device)
     heap corruption) inside build_bvh(method="median"); 1000 tiny triangles, or no huge
     one, build fine. Run in a child process so a crash fails this test, not the suite."""
     script = textwrap.dedent("""
-        import numpy as np, kernels
+        import numpy as np
+        from scenesort import kernels
         from tests.kernels.reference import check_bvh
         rng = np.random.default_rng(9)
         centres = rng.uniform(-1, 1, (1200, 1, 3)) * [1, 0.01, 1] + [0, 0.02, 0]

@@ -168,7 +168,8 @@ def test_compile_time_is_reported_apart_from_build_time(tmp_path):
     `compile_ms`, not `build_ms` (a first `scenesort render` printed "build 7095 ms" for a
     71 ms build). Run in a child process with a cache of its own."""
     code = textwrap.dedent("""
-        import json, numpy as np, kernels
+        import json, numpy as np
+        from scenesort import kernels
         from scenesort.backend.render.scenes import default_scene
         scene = default_scene(64, 48)
         first = kernels.build_bvh(scene.vertices, scene.indices, device="cpu").stats
