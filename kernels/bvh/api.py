@@ -23,6 +23,7 @@ from ..core.validate import as_rays, as_triangle_mesh, ray_range
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
 from . import build as bb
+from .binary_traversal import STACK_SIZE
 from .build_data import (
     BINS,
     METHOD_MEDIAN,
@@ -33,7 +34,7 @@ from .build_data import (
     BuildTask,
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
-from .traversal import STACK_SIZE, trace_kernel
+from .traversal import trace_kernel
 from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
 from .wide_traversal import simd_support
 

@@ -39,6 +39,20 @@ class Hit:
 
 
 @wp.func
+def no_hit() -> Hit:
+    """A miss: t inf, triangle -1."""
+    h = Hit()
+    h.t = INF
+    h.triangle = -1
+    return h
+
+
+@wp.func
+def hit_distance(h: Hit) -> float:
+    return h.t
+
+
+@wp.func
 def make_ray(origin: wp.vec3, d: wp.vec3) -> Ray:
     r = Ray()
     r.origin = origin

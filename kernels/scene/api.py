@@ -12,8 +12,8 @@ import warp as wp
 
 from ..bvh.api import METHODS, Bvh, build_over_boxes, empty_bounds
 from ..bvh.api import trace as trace_bvh
+from ..bvh.binary_traversal import STACK_SIZE
 from ..bvh.node import empty_root
-from ..bvh.traversal import STACK_SIZE
 from ..core.hits import Hits
 from ..core.launch import (
     get_device,
