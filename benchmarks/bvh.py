@@ -203,9 +203,9 @@ def wide_rows(name: str, scene, repeat: int, width: int, height: int) -> dict:
                                  for w in WIDE_WIDTHS], repeat)
     row = {"scene": name, "tris": len(f), "build_ms": {w: 1e3 * t for w, t in
                                                       zip(WIDE_WIDTHS, build_s, strict=True)},
-           "collapse_ms": {w: bvhs[w].stats["phase_ms"]["collapse"] for w in WIDE_WIDTHS},
-           "wide_nodes": {w: bvhs[w].stats["wide_nodes"] for w in WIDE_WIDTHS},
-           "wide_stack": {w: bvhs[w].stats["wide_stack"] for w in WIDE_WIDTHS}}
+           "collapse_ms": {w: bvhs[w].stats.phase_ms["collapse"] for w in WIDE_WIDTHS},
+           "wide_nodes": {w: bvhs[w].stats.wide_nodes for w in WIDE_WIDTHS},
+           "wide_stack": {w: bvhs[w].stats.wide_stack for w in WIDE_WIDTHS}}
     hits = kernels.trace(bvhs[2], o, d)
     dist = default_distance(bvhs[2])
     ao_o, ao_d = peers.ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=AO_PER_HIT)

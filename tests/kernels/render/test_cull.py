@@ -61,7 +61,7 @@ def test_culled_instances_change_no_pixel(cam):
     keep = visible([(v, f)], ids, ts, camera, dist)
     assert 0 < keep.sum() < 0.5 * len(ts)
     culled = kernels.build_scene([bvh], ids, ts, visible=keep)
-    assert culled.stats["instances_built"] == keep.sum()
+    assert culled.stats.instances_built == keep.sum()
     o, d, tmin, tmax = camera.rays()
     normals = v[f] / np.linalg.norm(v[f], axis=2, keepdims=True)
     a = kernels.render_ao(full, o, d, 16, dist, tmin=tmin, tmax=tmax, normals=[normals])
@@ -108,7 +108,7 @@ def test_unbuilt_meshes_change_no_pixel():
     placed = place_instances(boxes, ids, ts)
     culled = kernels.build_scene([bvhs[0], None], ids, ts, visible=keep, placed=placed)
     assert np.array_equal(culled.bounds, full.bounds)
-    assert culled.stats["meshes_built"] == 1 and culled.nbytes < full.nbytes
+    assert culled.stats.meshes_built == 1 and culled.nbytes < full.nbytes
     o, d, tmin, tmax = camera.rays()
     a = kernels.render_ao(full, o, d, 8, tmin=tmin, tmax=tmax)  # the default distance
     b = kernels.render_ao(culled, o, d, 8, tmin=tmin, tmax=tmax)

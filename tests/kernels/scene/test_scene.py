@@ -230,7 +230,7 @@ def test_instances_share_their_mesh():
     scene = kernels.build_scene([bvh], np.zeros(100, np.int32), ts)
     top = scene.nbytes - bvh_nbytes(bvh)
     assert 0 < top < 100 * 400 + 2 * 100 * 32 + 4096
-    assert scene.stats["instances_built"] == 100
+    assert scene.stats.instances_built == 100
 
 
 def test_bad_input_names_the_field():
