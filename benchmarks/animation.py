@@ -148,7 +148,7 @@ def part_refit(args) -> tuple[list[str], dict]:
             kernels.trace(t, o, d, tmin, tmax)
 
         def render(t, dist=dist):
-            kernels.render_ao(t, o, d, 4, dist, tmin=tmin, tmax=tmax)
+            kernels.render_ao(t, o, d, spp=4, distance=dist, tmin=tmin, tmax=tmax)
 
         row = {"amount": amount, "sah_ratio": refit_tree.stats.sah_ratio,
                "fresh_ratio": fresh.stats.sah_cost / refit_tree.stats.build_sah_cost,
@@ -222,13 +222,14 @@ def trace_pair(label: str, scene: kernels.Scene, flat: kernels.Bvh | None, args)
     tracers = {"scene": scene} | ({"flat": flat} if flat is not None else {})
     for t in tracers.values():  # warm-up
         kernels.trace(t, o, d, tmin, tmax)
-        kernels.render_ao(t, o, d, 1, dist, tmin=tmin, tmax=tmax)
+        kernels.render_ao(t, o, d, spp=1, distance=dist, tmin=tmin, tmax=tmax)
     out: dict[str, list[float]] = {f"{k} {w}": [] for k in tracers for w in ("trace", "ao")}
     for _ in range(args.repeat):
         for k, t in tracers.items():
             out[f"{k} trace"].append(median_ms(lambda t=t: kernels.trace(t, o, d, tmin, tmax), 1))
             out[f"{k} ao"].append(median_ms(
-                lambda t=t: kernels.render_ao(t, o, d, 4, dist, tmin=tmin, tmax=tmax), 1))
+                lambda t=t: kernels.render_ao(t, o, d, spp=4, distance=dist, tmin=tmin,
+                                              tmax=tmax), 1))
     res = {k: float(np.median(x)) for k, x in out.items()}
     res["rays"] = len(o)
     res["hit"] = float(kernels.trace(scene, o, d, tmin, tmax).hit.mean())

@@ -126,8 +126,8 @@ def build_rows(name: str, v: np.ndarray, f: np.ndarray, repeat: int) -> tuple[li
             s = built["bvh"].stats
             rows.append({"scene": name, "method": method, "leaf": leaf, "ms_all": ms_all,
                          "ms_one": ms_one, "mtris_s": len(f) / ms_all / 1e3,
-                         "sah": s["sah_cost"], "nodes": s["nodes"], "depth": s["depth"],
-                         "phase_ms": s["phase_ms"], "wp_mesh_ms": peer_ms,
+                         "sah": s.sah_cost, "nodes": s.nodes, "depth": s.depth,
+                         "phase_ms": s.phase_ms, "wp_mesh_ms": peer_ms,
                          "wp_mesh_default_ms": peer_default_ms})
     peer_build = {}
     for c in peers.MESH_CONSTRUCTORS:  # as users call it: default leaf size (4)

@@ -163,11 +163,11 @@ def part_build(args, device, clock: Clock, rows: list[dict]) -> None:
                 st = bvh.stats
                 rows.append({"part": "build", "scene": name, "tris": len(f), "who": "ours",
                              "method": method, "leaf": leaf, "wall_ms": ms,
-                             "build_ms": st["build_ms"],
-                             "pool_ms": sum(st["phase_ms"].get(p, 0.0) for p in PHASE_NAMES),
-                             "phase_ms": st["phase_ms"], "sah_cost": st["sah_cost"],
-                             "nodes": st["nodes"], "depth": st["depth"],
-                             "workers": st["workers"]})
+                             "build_ms": st.build_ms,
+                             "pool_ms": sum(st.phase_ms.get(p, 0.0) for p in PHASE_NAMES),
+                             "phase_ms": st.phase_ms, "sah_cost": st.sah_cost,
+                             "nodes": st.nodes, "depth": st.depth,
+                             "workers": st.workers})
         for ctor in mesh_constructors(device):
             if not clock.ok(f"build {name} wp.Mesh {ctor}"):
                 continue
