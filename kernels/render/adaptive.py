@@ -217,8 +217,6 @@ class SampleCounts:
         return float(np.mean(self.contribution()))
 
 
-
-
 def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float | None,
                 max_spp: int) -> np.ndarray:
     """The hit pixels whose samples the next round doubles (empty: done).
@@ -292,7 +290,6 @@ def allocation_key(gain: np.ndarray, under: np.ndarray) -> np.ndarray:
 def _first(condition: np.ndarray) -> int:
     """Index of the first True (the last index when there is none)."""
     return int(np.argmax(condition)) if condition.any() else len(condition) - 1
-
 
 
 def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,

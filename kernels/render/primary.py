@@ -68,14 +68,12 @@ def box_candidates(bounds: np.ndarray, origins: wp.array, directions: wp.array,
     return np.flatnonzero(touches.numpy()).astype(np.int32)
 
 
-
 def scene_shading(bvh: Bvh | Scene, normals, terminator_offset) -> Shading | SceneShading:
     """The device shading inputs of a mesh (`DeviceMesh.shading`) or a scene
     (`Scene.shading`: normals per mesh, offsets per instance), validated and kept."""
     if isinstance(bvh, Scene):
         return bvh.shading(normals, terminator_offset)
     return scene_mesh(bvh).shading(normals, terminator_offset)
-
 
 
 def trace_primary(bvh: Bvh | Scene, origins: np.ndarray, directions: np.ndarray, tmin=0.0,
@@ -122,7 +120,6 @@ def trace_primary(bvh: Bvh | Scene, origins: np.ndarray, directions: np.ndarray,
                      [surfaces, hit], device, nthreads)
     keep = np.flatnonzero(hit.numpy())
     return PrimaryHits(pixels=cand[keep], surfaces=gather_surfaces(surfaces, keep), traced=m)
-
 
 
 WARP_MODULES = (box_candidates_kernel.module,)  # this module's kernels (load_modules)
