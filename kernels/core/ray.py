@@ -39,12 +39,10 @@ class Hit:
 
 
 @wp.func
-def no_hit() -> Hit:
-    """A miss: t inf, triangle -1."""
-    h = Hit()
+def no_hit(h: wp.ref[Hit]):
+    """Make h a miss: t inf, triangle -1."""
     h.t = INF
     h.triangle = -1
-    return h
 
 
 @wp.func

@@ -191,12 +191,10 @@ def enter_top(q: TopRay, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: float) -> 
 
 
 @wp.func
-def no_instance_hit() -> InstanceHit:
-    out = InstanceHit()
+def no_instance_hit(out: wp.ref[InstanceHit]):
     out.hit.t = INF
     out.hit.triangle = -1
     out.instance = -1
-    return out
 
 
 @wp.func
