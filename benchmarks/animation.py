@@ -135,7 +135,7 @@ def part_refit(args) -> tuple[list[str], dict]:
         kernels.build_bvh(frame, f)
         rebuild.append((time.perf_counter() - t0) * 1e3)
     refit_ms, rebuild_ms = float(np.median(refit)), float(np.median(rebuild))
-    phases = out.stats["phase_ms"]
+    phases = out.stats.phase_ms
     rows = []
     for amount in WAVES:
         frame = deform(v, amount, 1.0)
@@ -148,10 +148,10 @@ def part_refit(args) -> tuple[list[str], dict]:
             kernels.trace(t, o, d, tmin, tmax)
 
         def render(t, dist=dist):
-            kernels.render_ao(t, o, d, 4, dist, tmin=tmin, tmax=tmax)
+            kernels.render_ao(t, o, d, spp=4, distance=dist, tmin=tmin, tmax=tmax)
 
-        row = {"amount": amount, "sah_ratio": refit_tree.stats["sah_ratio"],
-               "fresh_ratio": fresh.stats["sah_cost"] / refit_tree.stats["build_sah_cost"],
+        row = {"amount": amount, "sah_ratio": refit_tree.stats.sah_ratio,
+               "fresh_ratio": fresh.stats.sah_cost / refit_tree.stats.build_sah_cost,
                "trace": time_ratio(trace_rays, refit_tree, fresh, args.repeat),
                "ao": time_ratio(render, refit_tree, fresh, args.repeat)}
         rows.append(row)
@@ -163,7 +163,7 @@ def part_refit(args) -> tuple[list[str], dict]:
         "other work: indicative figures; the ratios are of the same run).",
         "",
         f"Refit of the bunny subdivided {args.subdivide}x ({len(f):,} triangles, width "
-        f"{bvh.stats['width']}) under a smooth wave (1% of the diagonal), frame after frame, "
+        f"{bvh.stats.width}) under a smooth wave (1% of the diagonal), frame after frame, "
         f"medians of {args.repeat} interleaved runs:",
         "",
         "| | ms |",
@@ -222,13 +222,14 @@ def trace_pair(label: str, scene: kernels.Scene, flat: kernels.Bvh | None, args)
     tracers = {"scene": scene} | ({"flat": flat} if flat is not None else {})
     for t in tracers.values():  # warm-up
         kernels.trace(t, o, d, tmin, tmax)
-        kernels.render_ao(t, o, d, 1, dist, tmin=tmin, tmax=tmax)
+        kernels.render_ao(t, o, d, spp=1, distance=dist, tmin=tmin, tmax=tmax)
     out: dict[str, list[float]] = {f"{k} {w}": [] for k in tracers for w in ("trace", "ao")}
     for _ in range(args.repeat):
         for k, t in tracers.items():
             out[f"{k} trace"].append(median_ms(lambda t=t: kernels.trace(t, o, d, tmin, tmax), 1))
             out[f"{k} ao"].append(median_ms(
-                lambda t=t: kernels.render_ao(t, o, d, 4, dist, tmin=tmin, tmax=tmax), 1))
+                lambda t=t: kernels.render_ao(t, o, d, spp=4, distance=dist, tmin=tmin,
+                                              tmax=tmax), 1))
     res = {k: float(np.median(x)) for k, x in out.items()}
     res["rays"] = len(o)
     res["hit"] = float(kernels.trace(scene, o, d, tmin, tmax).hit.mean())
@@ -275,7 +276,7 @@ def part_instances(args) -> tuple[list[str], dict]:
         "",
         "| | MiB |",
         "|---|---:|",
-        f"| one bunny (BVH width {bvh.stats['width']} and mesh) | {one / 2**20:.2f} |",
+        f"| one bunny (BVH width {bvh.stats.width} and mesh) | {one / 2**20:.2f} |",
         f"| top level and instance records | {top / 2**20:.3f} |",
         f"| two-level scene | {scene.nbytes / 2**20:.2f} |",
         f"| flattened, extrapolated ({n_flat} bunnies measured) | "

@@ -56,7 +56,7 @@ from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.pat
 from scenesort.backend.render.scenes import shared_scene, shared_scene_infos  # noqa: E402
 from scenesort.backend.tools import peers  # noqa: E402
 from scenesort.kernels.core import host_threads  # noqa: E402
-from scenesort.kernels.render import ao  # noqa: E402
+from scenesort.kernels.render import ao, options, primary, surface, tracers  # noqa: E402
 
 from scenesort import kernels  # noqa: E402
 
@@ -99,7 +99,7 @@ class Curve:
 # --- peers: the same primary hits and occlusion directions, traced by someone else ---------
 
 
-def peer_ao(peer, o, d, hits: ao.PrimaryHits, spp: int, dist: float, sampler: str,
+def peer_ao(peer, o, d, hits: surface.PrimaryHits, spp: int, dist: float, sampler: str,
             seed: int, progress: Callable[[int], None] | None = None) -> tuple[np.ndarray, float]:
     """Fixed-spp AO of the hit pixels with our spawn points and directions, traced by
     `peer` (a `backend.peers` tracer; `peer.threads` host threads): (AO per hit pixel, peer
@@ -112,7 +112,7 @@ def peer_ao(peer, o, d, hits: ao.PrimaryHits, spp: int, dist: float, sampler: st
     step = max(1, min(spp, PEER_CHUNK // max(h, 1)))
     for first in range(0, spp, step):
         count = min(step, spp - first)
-        origins, dirs = ao.occlusion_rays(hits, first, count, seed, sampler)
+        origins, dirs = tracers.occlusion_rays(hits, first, count, seed, sampler)
         start = time.perf_counter()
         blocked = peer.occluded(origins, dirs, dist, peer.threads)
         seconds += time.perf_counter() - start
@@ -136,7 +136,7 @@ def reference(name: str, scene, bvh, o, d, tmin, tmax, dist: float, spp: int,
         z = np.load(path)
         return z["ao"], z["var"], z["hit"]
     t = time.perf_counter()
-    hits = ao.trace_primary(bvh, o, d, tmin, tmax)
+    hits = primary.trace_primary(bvh, o, d, tmin, tmax)
     peer = peers.Embree(scene.vertices, scene.indices)
     peer.threads = 1
     values, _ = peer_ao(peer, o, d, hits, spp, dist, "random", seed=987_654)
@@ -154,7 +154,7 @@ def reference(name: str, scene, bvh, o, d, tmin, tmax, dist: float, spp: int,
 
 def raw_seconds(runs: list[ao.AoResult]) -> float:
     """Median seconds of renders, less the denoise where there was one."""
-    return statistics.median(r.timings_ms["total"] - r.timings_ms.get("denoise", 0.0)
+    return statistics.median(r.timings_ms.total - (r.timings_ms.denoise or 0.0)
                              for r in runs) / 1e3
 
 
@@ -193,7 +193,7 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
         res = kernels.render_ao(bvh, o, d, tmin=tmin, tmax=tmax, distance=dist,
                                 threads=args.threads, **kw)
         last["result"] = res
-        return res.ao, res.timings_ms["total"] / 1e3
+        return res.ao, res.timings_ms.total / 1e3
 
     def render(**kw) -> ao.AoResult:
         ours(**kw)
@@ -204,9 +204,9 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
         --denoise the same renders' denoised point goes on `curve`."""
         first = runs[0]
         if not args.denoise:
-            return statistics.median(r.timings_ms["total"] for r in runs) / 1e3, rmse(
+            return statistics.median(r.timings_ms.total for r in runs) / 1e3, rmse(
                 first.ao, ref, var, hit)
-        curve.points.append((knob, statistics.median(r.timings_ms["total"] for r in runs)
+        curve.points.append((knob, statistics.median(r.timings_ms.total for r in runs)
                              / 1e3, rmse(first.ao, ref, var, hit)))
         return raw_seconds(runs), rmse(first.raw_ao, ref, var, hit)
 
@@ -228,7 +228,7 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
     if args.peers:
         curves += [Curve("wp.Mesh"), Curve("wp.Mesh 1t"), Curve("Embree")]
     denoised = [Curve("ours sobol denoised"), Curve("ours target_error denoised")]
-    hits = ao.trace_primary(bvh, o, d, tmin, tmax)
+    hits = primary.trace_primary(bvh, o, d, tmin, tmax)
     t = time.perf_counter()
     tracers = []
     if args.peers:
@@ -283,7 +283,7 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
         stats = runs["target"][0].stats()
         den = denoised[1].points[-1] if args.denoise else (None, None, None)
         print(f"  target {target:.4f}: {s:.3f}s rmse {e:.4f} ({e / target:.2f}x) "
-              f"est {stats['rmse_estimate']:.4f} spp {stats['spp_mean']:.1f}")
+              f"est {stats.rmse_estimate:.4f} spp {stats.spp_mean:.1f}")
         spp_fixed = kws["fixed"]["spp"] if reaching else None
         s_fixed = raw_seconds(runs["fixed"]) if reaching else None
         s_old = None
@@ -292,8 +292,8 @@ def run_scene(name: str, args) -> tuple[dict, list[Curve]]:
             e_old = rmse(runs["old"][0].ao, ref, var, hit)
             curves[3].points.append((target, s_old, e_old))
             print(f"  max_pixel_error {target:.4f}: {s_old:.3f}s rmse {e_old:.4f}")
-        floors.append({"target": target, "s": s, "rmse": e, "estimate": stats["rmse_estimate"],
-                       "spp_mean": stats["spp_mean"], "spp_fixed": spp_fixed,
+        floors.append({"target": target, "s": s, "rmse": e, "estimate": stats.rmse_estimate,
+                       "spp_mean": stats.spp_mean, "spp_fixed": spp_fixed,
                        "s_fixed": s_fixed, "s_old": s_old, "s_denoised": den[1],
                        "rmse_denoised": den[2]})
     row = {"scene": name, "triangles": scene.triangles, "size": f"{width}x{height}",
@@ -440,8 +440,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=int, default=None, help="default: width * 3/4")
     parser.add_argument("--ref-spp", type=int, default=None, help="default 4096 (quick: 1024)")
     parser.add_argument("--max-spp", type=int, default=4096, help="adaptive cap")
-    parser.add_argument("--min-spp", type=int, default=ao.MIN_ADAPTIVE_SPP,
-                        help=f"adaptive minimum (the spp argument; default {ao.MIN_ADAPTIVE_SPP})")
+    parser.add_argument("--min-spp", type=int, default=options.MIN_ADAPTIVE_SPP,
+                        help="adaptive minimum (the spp argument; default "
+                             f"{options.MIN_ADAPTIVE_SPP})")
     parser.add_argument("--repeat", type=int, default=1, help="timed runs per point (median)")
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--quick", action="store_true",

@@ -126,8 +126,8 @@ def build_rows(name: str, v: np.ndarray, f: np.ndarray, repeat: int) -> tuple[li
             s = built["bvh"].stats
             rows.append({"scene": name, "method": method, "leaf": leaf, "ms_all": ms_all,
                          "ms_one": ms_one, "mtris_s": len(f) / ms_all / 1e3,
-                         "sah": s["sah_cost"], "nodes": s["nodes"], "depth": s["depth"],
-                         "phase_ms": s["phase_ms"], "wp_mesh_ms": peer_ms,
+                         "sah": s.sah_cost, "nodes": s.nodes, "depth": s.depth,
+                         "phase_ms": s.phase_ms, "wp_mesh_ms": peer_ms,
                          "wp_mesh_default_ms": peer_default_ms})
     peer_build = {}
     for c in peers.MESH_CONSTRUCTORS:  # as users call it: default leaf size (4)
@@ -203,9 +203,9 @@ def wide_rows(name: str, scene, repeat: int, width: int, height: int) -> dict:
                                  for w in WIDE_WIDTHS], repeat)
     row = {"scene": name, "tris": len(f), "build_ms": {w: 1e3 * t for w, t in
                                                       zip(WIDE_WIDTHS, build_s, strict=True)},
-           "collapse_ms": {w: bvhs[w].stats["phase_ms"]["collapse"] for w in WIDE_WIDTHS},
-           "wide_nodes": {w: bvhs[w].stats["wide_nodes"] for w in WIDE_WIDTHS},
-           "wide_stack": {w: bvhs[w].stats["wide_stack"] for w in WIDE_WIDTHS}}
+           "collapse_ms": {w: bvhs[w].stats.phase_ms["collapse"] for w in WIDE_WIDTHS},
+           "wide_nodes": {w: bvhs[w].stats.wide_nodes for w in WIDE_WIDTHS},
+           "wide_stack": {w: bvhs[w].stats.wide_stack for w in WIDE_WIDTHS}}
     hits = kernels.trace(bvhs[2], o, d)
     dist = default_distance(bvhs[2])
     ao_o, ao_d = peers.ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=AO_PER_HIT)

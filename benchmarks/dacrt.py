@@ -127,8 +127,8 @@ def _f32(a) -> np.ndarray:
 
 def bvh_peak_bytes(bvh, rays: int) -> int:
     """`build_bvh`'s allocations (inputs, temporaries, tree) plus `trace`'s rays and hits."""
-    m = bvh.stats["triangles"]
-    n = m - bvh.stats["degenerate"]
+    m = bvh.stats.triangles
+    n = m - bvh.stats.degenerate
     capacity = 256
     build = (len(bvh.vertices) * 12 + m * 12 + 3 * m * 12 + n * (4 + 3 * 4 + 1 + 4 * 12)
              + capacity * 96 * 28 + capacity * 256 + (2 * n - 1) * 32 + 9 * n * 4)
@@ -163,7 +163,7 @@ def measure(scene, size: int, kind: str, methods: list[str], tuning: str, repeat
     row = {"scene": scene.name, "tris": scene.triangles, "size": size, "kind": kind,
            "rays": len(o), "tuning": tuning}
     last: dict = {}  # each method's latest result
-    stats = {m: {} for m in methods}
+    stats = {m: kernels.DacrtStats() for m in methods}
 
     def bvh_run():
         bvh = kernels.build_bvh(scene.vertices, scene.indices)
@@ -191,12 +191,12 @@ def measure(scene, size: int, kind: str, methods: list[str], tuning: str, repeat
         row["bvh_warm_s"] = timeit_each([bvh_run], repeat, before=free_big)[0]
     bvh, ref = last["bvh"]
     row["bvh_s"] = times[0]
-    row["bvh_build_ms"] = bvh.stats["build_ms"]
+    row["bvh_build_ms"] = bvh.stats.build_ms
     row["bvh_peak_mb"] = bvh_peak_bytes(bvh, len(o)) / 2**20
     for method, t in zip(pool + [m for m in methods if m == "bf"], times[1:], strict=True):
         row[f"{method}_s"] = t
         row[f"{method}_mismatch"] = mismatches(last[method], ref)
-        row[f"{method}_peak_mb"] = stats[method]["peak_bytes"] / 2**20
+        row[f"{method}_peak_mb"] = stats[method].peak_bytes / 2**20
     print(json.dumps({k: round(v, 4) if isinstance(v, float) else v for k, v in row.items()}),
           flush=True)
     return row

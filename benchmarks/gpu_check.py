@@ -105,7 +105,7 @@ def scene_rows(name: str, size: int, device: str, repeat: int, deadline: float) 
         return bvhs[dev]
 
     row("BVH build (SAH)", 0, lambda: build(device), lambda: build("cpu"),
-        lambda a, b: f"nodes {a.stats['nodes']:,} / {b.stats['nodes']:,}")
+        lambda a, b: f"nodes {a.stats.nodes:,} / {b.stats.nodes:,}")
     if device not in bvhs or "cpu" not in bvhs:
         return rows
     ref = kernels.trace(bvhs["cpu"], o, d, tmin, tmax)

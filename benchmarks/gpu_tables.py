@@ -163,11 +163,11 @@ def part_build(args, device, clock: Clock, rows: list[dict]) -> None:
                 st = bvh.stats
                 rows.append({"part": "build", "scene": name, "tris": len(f), "who": "ours",
                              "method": method, "leaf": leaf, "wall_ms": ms,
-                             "build_ms": st["build_ms"],
-                             "pool_ms": sum(st["phase_ms"].get(p, 0.0) for p in PHASE_NAMES),
-                             "phase_ms": st["phase_ms"], "sah_cost": st["sah_cost"],
-                             "nodes": st["nodes"], "depth": st["depth"],
-                             "workers": st["workers"]})
+                             "build_ms": st.build_ms,
+                             "pool_ms": sum(st.phase_ms.get(p, 0.0) for p in PHASE_NAMES),
+                             "phase_ms": st.phase_ms, "sah_cost": st.sah_cost,
+                             "nodes": st.nodes, "depth": st.depth,
+                             "workers": st.workers})
         for ctor in mesh_constructors(device):
             if not clock.ok(f"build {name} wp.Mesh {ctor}"):
                 continue
@@ -299,16 +299,16 @@ def part_dacrt(args, device, clock: Clock, rows: list[dict]) -> None:
                         continue
                     variant, split = ("breadth_first", "rdh") if method == "bf" else \
                         ("pool", method)
-                    stats: dict = {}
+                    stats = kernels.DacrtStats()
                     ms, hits = wall_ms(partial(kernels.dacrt_trace, v, f, o, d, tmin, tmax,
                                                variant=variant, split=split, device=device,
                                                stats=stats, **TUNINGS["paper"][variant]),
                                        device, max(1, args.repeat // 2))
                     rows.append({"part": "dacrt", "scene": name, "tris": len(f), "size": size,
                                  "kind": kind, "method": method, "rays": len(o),
-                                 "wall_ms": ms, "trace_ms": stats.get("trace_ms"),
-                                 "mrays_s": len(o) / stats["trace_ms"] / 1e3,
-                                 "peak_mb": stats.get("peak_bytes", 0) / 2**20,
+                                 "wall_ms": ms, "trace_ms": stats.trace_ms,
+                                 "mrays_s": len(o) / stats.trace_ms / 1e3,
+                                 "peak_mb": stats.peak_bytes / 2**20,
                                  "hitmiss_vs_bvh": hitmiss(hits, ref),
                                  "stats": {k: x for k, x in stats.items()
                                            if isinstance(x, int | float | str | dict)}})
@@ -333,9 +333,9 @@ def part_sweep(args, device, clock: Clock, rows: list[dict]) -> None:
                                   device, max(1, args.repeat // 2))
                 rows.append({"part": "sweep", "what": "build sah 8", "scene": scene_name,
                              "workers": workers, "k": k, "wall_ms": ms,
-                             "build_ms": bvh.stats["build_ms"], "nodes": bvh.stats["nodes"],
-                             "sah_cost": bvh.stats["sah_cost"],
-                             "pool_ms": sum(bvh.stats["phase_ms"].get(p, 0.0)
+                             "build_ms": bvh.stats.build_ms, "nodes": bvh.stats.nodes,
+                             "sah_cost": bvh.stats.sah_cost,
+                             "pool_ms": sum(bvh.stats.phase_ms.get(p, 0.0)
                                             for p in PHASE_NAMES)})
     small = scene_of(args.dacrt_scenes[1], args.size // 2)
     o, d, tmin, tmax = small.camera.rays()
@@ -345,14 +345,14 @@ def part_sweep(args, device, clock: Clock, rows: list[dict]) -> None:
         for workers in sorted({sms * k for k in (8, 32, 128, 256)}):
             if not clock.ok(f"sweep dacrt {workers} {c_sort}"):
                 continue
-            stats: dict = {}
+            stats = kernels.DacrtStats()
             ms, hits = wall_ms(partial(kernels.dacrt_trace, small.vertices, small.indices, o, d,
                                     tmin, tmax, device=device, workers=workers, c_sort=c_sort,
                                     min_rays=16 if c_sort < 80 else 32, stats=stats),
                             device, 1)
             rows.append({"part": "sweep", "what": f"dacrt pool rdh c_sort {c_sort:g}",
                          "scene": f"{small.name} {args.size // 2}", "workers": workers,
-                         "wall_ms": ms, "trace_ms": stats.get("trace_ms"),
+                         "wall_ms": ms, "trace_ms": stats.trace_ms,
                          "hitmiss_vs_bvh": hitmiss(hits, ref),
                          "stats": {k: x for k, x in stats.items()
                                    if isinstance(x, int | float | str | dict)}})
@@ -363,13 +363,13 @@ def part_sweep(args, device, clock: Clock, rows: list[dict]) -> None:
     for alpha, beta in ((32, 128), (256, 256), (64, 1024), (1024, 1024), (4096, 4096)):
         if not clock.ok(f"sweep bf {alpha} {beta}"):
             continue
-        stats = {}
+        stats = kernels.DacrtStats()
         ms, hits = wall_ms(partial(kernels.dacrt_trace, s.vertices, s.indices, o, d, tmin, tmax,
                                 variant="breadth_first", device=device, alpha=alpha, beta=beta,
                                 stats=stats), device, args.repeat)
         rows.append({"part": "sweep", "what": f"dacrt bf alpha {alpha} beta {beta}",
                      "scene": f"{s.name} {args.size}", "wall_ms": ms,
-                     "trace_ms": stats.get("trace_ms"), "hitmiss_vs_bvh": hitmiss(hits, ref),
+                     "trace_ms": stats.trace_ms, "hitmiss_vs_bvh": hitmiss(hits, ref),
                      "stats": {k: x for k, x in stats.items()
                                if isinstance(x, int | float | str | dict)}})
     name = s.name

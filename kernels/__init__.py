@@ -9,9 +9,10 @@ culling). This module is the public API.
 
 from .bvh import REBUILD_RATIO, Bvh, build_bvh, refit_bvh
 from .core import Hits
-from .dacrt import dacrt_trace
+from .dacrt import DacrtStats, dacrt_trace
 from .pool import PoolError
 from .render import (
+    AoOptions,
     AoResult,
     Camera,
     ambient_occlusion,
@@ -23,8 +24,8 @@ from .render import (
 from .scene import Scene, build_scene, place_instances, trace
 
 __all__ = [
-    "REBUILD_RATIO", "AoResult", "Bvh", "Camera", "Hits", "PoolError", "Scene",
-    "ambient_occlusion", "build_bvh", "build_scene", "dacrt_trace", "mesh_box",
-    "place_instances", "refit_bvh", "render_ao", "trace", "visible_instances",
+    "REBUILD_RATIO", "AoOptions", "AoResult", "Bvh", "Camera", "DacrtStats", "Hits",
+    "PoolError", "Scene", "ambient_occlusion", "build_bvh", "build_scene", "dacrt_trace",
+    "mesh_box", "place_instances", "refit_bvh", "render_ao", "trace", "visible_instances",
     "visible_triangles",
 ]

@@ -23,6 +23,7 @@ from ..core.validate import as_rays, as_triangle_mesh, ray_range
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
 from . import build as bb
+from .binary_traversal import STACK_SIZE
 from .build_data import (
     BINS,
     METHOD_MEDIAN,
@@ -33,7 +34,8 @@ from .build_data import (
     BuildTask,
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
-from .traversal import STACK_SIZE, trace_kernel
+from .stats import BvhStats
+from .traversal import trace_kernel
 from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
 from .wide_traversal import simd_support
 
@@ -66,7 +68,7 @@ class Bvh:
     device: wp.context.Device
     arrays: BvhArrays  # device-side view for kernels (the wide nodes too, if any)
     bounds: np.ndarray  # (2, 3) float32
-    stats: dict = field(default_factory=dict)
+    stats: BvhStats
     mesh: DeviceMesh | None = None  # the mesh on the device, reused by AO and DACRT
     refit_plan: dict | None = field(default=None, repr=False)  # bvh.refit: levels, once
 
@@ -163,34 +165,19 @@ def build_bvh(
     phase_ms["collapse"] = sync_ms(device, t0 + phase_ms["reorder"] / 1e3)  # after it
     total_ms = (time.perf_counter() - t_total) * 1e3
 
-    bvh = Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
-              leaf_size=int(leaf_size), device=device, arrays=arrays, bounds=box[:2].copy(),
-              mesh=mesh)
     node_count = node_count if n > 0 else 1
-    nodes = bvh.nodes()[:node_count]
-    bvh.arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
-    leaves = int(np.count_nonzero(nodes["count"]))
-    bvh.stats = {
-        "action": "build",  # refit_bvh: "refit" or "rebuild"
-        "build_ms": total_ms,
-        "compile_ms": compile_ms,  # Warp's, apart: seconds on first use, then ~ms
-        "phase_ms": phase_ms,
-        "nodes": node_count,
-        "leaves": leaves if n > 0 else 0,
-        "depth": depth,
-        "sah_cost": sah_cost(nodes) if n > 0 else 0.0,
-        "triangles": m,
-        "degenerate": int(m - n),
-        "pool_slots_used": int(tree.pool_state[2]),
-        "pool_steps_published": int(tree.pool_state[3]),
-        "workers": tree.workers,
-        "method": method,
-        "leaf_size": int(leaf_size),
-        "width": width,
-        **wide_stats,  # wide nodes, and the most stack entries a wide traversal holds
-        "device": str(device),
-    }
-    return bvh
+    nodes = arrays.nodes.numpy()[:node_count]
+    arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
+    stats = BvhStats(
+        action="build", build_ms=total_ms, compile_ms=compile_ms, phase_ms=phase_ms,
+        nodes=node_count, leaves=int(np.count_nonzero(nodes["count"])) if n > 0 else 0,
+        depth=depth, sah_cost=sah_cost(nodes) if n > 0 else 0.0, triangles=m,
+        degenerate=int(m - n), pool_slots_used=int(tree.pool_state[2]),
+        pool_steps_published=int(tree.pool_state[3]), workers=tree.workers, method=method,
+        leaf_size=int(leaf_size), width=width, **wide_stats, device=str(device))
+    return Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
+               leaf_size=int(leaf_size), device=device, arrays=arrays, bounds=box[:2].copy(),
+               stats=stats, mesh=mesh)
 
 
 def empty_bounds(device) -> wp.array:

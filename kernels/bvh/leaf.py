@@ -47,3 +47,14 @@ def finish_hit(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, hit: Hit) -> Hi
         hit.v = exact[2]
         hit.triangle = bvh.tri_ids[i]
     return hit
+
+
+@wp.func
+def finish_traversal(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, hit: Hit,
+                     stopped: bool) -> Hit:
+    """What a traversal returns: an any hit (`stopped`) as found, with the caller's triangle
+    index; else `finish_hit`."""
+    if stopped:
+        hit.triangle = bvh.tri_ids[hit.triangle]
+        return hit
+    return finish_hit(bvh, r, tmin, tmax, hit)

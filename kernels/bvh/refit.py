@@ -22,6 +22,7 @@ rebuilt; docs/architecture.md gives the measurement behind the threshold.
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 
 import numpy as np
 import warp as wp
@@ -172,7 +173,7 @@ def _plan(bvh: Bvh) -> dict:
         bvh.refit_plan = {
             "positions": wp.array(np.arange(triangles, dtype=np.int32), dtype=int,
                                   device=device),
-            "blocks": wp.array(np.arange(bvh.stats.get("leaf_blocks", 0) if w > 2 else 0,
+            "blocks": wp.array(np.arange(bvh.stats.leaf_blocks if w > 2 else 0,
                                          dtype=np.int32), dtype=int, device=device),
             "nodes": bvh.arrays.nodes.shape[0] if triangles else 0,
             "wide": bvh.arrays.wide.shape[0] // (int(WORDS_PER_LANE) * w)
@@ -187,9 +188,10 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
     its boxes refitted in place (the same object is returned, its arrays updated: scenes
     that hold it see the move), or, where the refit tree's SAH cost exceeds `rebuild_ratio`
     times the last build's or a triangle that had no area at the build has one now, a new
-    BVH built with the same options. `stats` then says what was done: "action" ("refit" or
-    "rebuild"), "sah_ratio" (the refit tree's cost over the build's), "sah_cost",
-    "build_sah_cost" (the last build's), "refit_ms" and the refit's "phase_ms"."""
+    BVH built with the same options. `stats` (BvhStats) then says what was done: `action`
+    ("refit" or "rebuild"), `sah_ratio` (the refit tree's cost over the build's),
+    `sah_cost`, `build_sah_cost` (the last build's), `refit_ms` and the refit's
+    `phase_ms`."""
     if not rebuild_ratio > 0:
         raise ValueError(f"rebuild_ratio must be > 0, got {rebuild_ratio!r}")
     device = bvh.device
@@ -200,9 +202,10 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
         raise ValueError(f"vertices must have the build's shape {bvh.vertices.shape} (same "
                          f"mesh, moved), got {np.shape(vertices)}: build a new BVH instead")
     vertices, indices = as_triangle_mesh(vertices, bvh.indices)
-    build_cost = float(bvh.stats.get("build_sah_cost", bvh.stats.get("sah_cost", 0.0)))
+    last = bvh.stats
+    build_cost = last.sah_cost if last.build_sah_cost is None else last.build_sah_cost
     gained_area = False
-    if bvh.stats.get("degenerate", 0):
+    if last.degenerate:
         was_flat = np.ones(len(indices), bool)
         was_flat[bvh.permutation()] = False
         gained_area = bool(np.any(was_flat & ~degenerate_mask(vertices, indices, device)))
@@ -239,10 +242,11 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
     refit_ms = (time.perf_counter() - t_total) * 1e3
     if ratio > rebuild_ratio or gained_area:
         new = build_bvh(vertices, indices, bvh.method, bvh.leaf_size, device=device,
-                        width=bvh.stats.get("width", arrays.width))
-        new.stats.update(action="rebuild", sah_ratio=ratio, refit_ms=refit_ms,
-                         rebuild_reason="area" if gained_area else "sah")
+                        width=last.width)
+        new.stats = replace(new.stats, action="rebuild", sah_ratio=ratio, refit_ms=refit_ms,
+                            rebuild_reason="area" if gained_area else "sah")
         return new
-    bvh.stats.update(action="refit", sah_ratio=ratio, sah_cost=cost, build_sah_cost=build_cost,
-                     refit_ms=refit_ms, phase_ms=phase_ms, compile_ms=compile_ms)
+    bvh.stats = replace(last, action="refit", sah_ratio=ratio, sah_cost=cost,
+                        build_sah_cost=build_cost, refit_ms=refit_ms, phase_ms=phase_ms,
+                        compile_ms=compile_ms)
     return bvh

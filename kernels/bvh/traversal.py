@@ -1,19 +1,19 @@
-"""Closest-hit and any-hit traversal of a built BVH (near child first, explicit stack):
-the binary tree here, the wide tree in wide_traversal; `traverse` picks by the tree.
+"""Closest-hit and any-hit traversal of a built BVH: the binary tree (binary_traversal's
+loop with the slab test and the watertight leaf test), or the wide tree (wide_traversal);
+`traverse` picks by the tree.
 
-The binary stack holds STACK_SIZE entries, as many as the deepest tree `build_bvh` makes
-(`max_depth` <= STACK_SIZE), so it cannot overflow. Popped nodes whose entry distance is
-beyond the closest hit found so far are skipped.
+The binary stack holds binary_traversal.STACK_SIZE entries, as many as the deepest tree
+`build_bvh` makes, so it cannot overflow.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-from ..core.box import INF
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.ray import Hit, Ray, intersect_box, make_ray, per_ray
-from .leaf import finish_hit, intersect_leaf
+from ..core.ray import Hit, Ray, hit_distance, intersect_box, make_ray, no_hit, per_ray
+from .binary_traversal import BinaryTree, make_binary_traversal
+from .leaf import finish_traversal, intersect_leaf
 from .node import BvhArrays
 from .wide_traversal import traverse_wide
 
@@ -21,61 +21,17 @@ from .wide_traversal import traverse_wide
 # against 1.07 with 256 (32: 1.21, 128: 1.19, 512: 0.87); a CPU launch ignores it
 wp.set_module_options({**MODULE_OPTIONS, "block_dim": 64})
 
-STACK_SIZE = 64
-NodeStack = wp.types.vector(length=STACK_SIZE, dtype=wp.int32)
-DistStack = wp.types.vector(length=STACK_SIZE, dtype=wp.float32)
+# the binary tree's traversal, from its box test and its leaf
+traverse_binary_tree = make_binary_traversal(BinaryTree(
+    tree=BvhArrays, query=Ray, result=Hit, miss=no_hit, enter=intersect_box,
+    leaf=intersect_leaf, distance=hit_distance, finish=finish_traversal, module=__name__,
+    name="traverse_binary_tree"))
 
 
 @wp.func
 def traverse_binary(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
     """`traverse` on the binary tree (bvh.nodes)."""
-    hit = Hit()
-    hit.t = INF
-    hit.triangle = -1
-    best = tmax
-    root = bvh.nodes[0]
-    if intersect_box(r, root.lo, root.hi, tmin, best) == INF:
-        return hit
-    nodes = NodeStack()
-    dists = DistStack()
-    sp = int(0)
-    node = int(0)
-    while True:
-        n = bvh.nodes[node]
-        if n.count > 0:
-            if intersect_leaf(bvh, r, n.first, n.count, tmin, tmax, hit, any_hit):
-                hit.triangle = bvh.tri_ids[hit.triangle]
-                return hit
-            best = wp.min(hit.t, tmax)
-            node = -1
-        else:
-            left = bvh.nodes[n.first]
-            right = bvh.nodes[n.first + 1]
-            tl = intersect_box(r, left.lo, left.hi, tmin, best)
-            tr = intersect_box(r, right.lo, right.hi, tmin, best)
-            if tl == INF and tr == INF:
-                node = -1
-            elif tr == INF:
-                node = n.first
-            elif tl == INF:
-                node = n.first + 1
-            elif tl <= tr:
-                node = n.first
-                nodes[sp] = n.first + 1
-                dists[sp] = tr
-                sp += 1
-            else:
-                node = n.first + 1
-                nodes[sp] = n.first
-                dists[sp] = tl
-                sp += 1
-        while node < 0 and sp > 0:
-            sp -= 1
-            if dists[sp] <= best:
-                node = nodes[sp]
-        if node < 0:
-            break
-    return finish_hit(bvh, r, tmin, tmax, hit)
+    return traverse_binary_tree(bvh, bvh.nodes, r, tmin, tmax, any_hit)
 
 
 @wp.func_native(

@@ -39,6 +39,18 @@ class Hit:
 
 
 @wp.func
+def no_hit(h: wp.ref[Hit]):
+    """Make h a miss: t inf, triangle -1."""
+    h.t = INF
+    h.triangle = -1
+
+
+@wp.func
+def hit_distance(h: Hit) -> float:
+    return h.t
+
+
+@wp.func
 def make_ray(origin: wp.vec3, d: wp.vec3) -> Ray:
     r = Ray()
     r.origin = origin

@@ -4,5 +4,6 @@ breadth-first variant of the 2013 paper, over shared ray and triangle records.""
 
 from .api import VARIANTS, dacrt_trace, dacrt_trace_mesh
 from .options import DacrtOptions
+from .stats import DacrtStats
 
-__all__ = ["VARIANTS", "DacrtOptions", "dacrt_trace", "dacrt_trace_mesh"]
+__all__ = ["VARIANTS", "DacrtOptions", "DacrtStats", "dacrt_trace", "dacrt_trace_mesh"]

@@ -15,6 +15,7 @@ from . import breadth_first, task_pool
 from .breadth_first import breadth_first_trace
 from .options import DacrtOptions
 from .records import margin_for
+from .stats import DacrtStats
 from .task_pool import SPLITS, pool_trace
 
 Variant = Literal["pool", "breadth_first"]
@@ -35,7 +36,7 @@ def dacrt_trace(
     split: Split = "rdh",
     device=None,
     *,
-    stats: dict | None = None,
+    stats: DacrtStats | None = None,
     options: DacrtOptions | None = None,
     **tuning: Any,
 ) -> Hits:
@@ -48,8 +49,9 @@ def dacrt_trace(
         keywords (`c_sort=4.0`, `alpha=32`, ...) set single fields of it. Fields left None
         take the device's default: the constants calibrated on CPUs there, the papers' GPU
         constants on CUDA.
-    A dict passed as `stats` receives timings (ms, Warp's compile time apart as
-    "compile_ms"), the bytes of device memory held at the peak, and task or level counts."""
+    A `DacrtStats` passed as `stats` is filled with timings (ms, Warp's compile time apart
+    as `compile_ms`), the bytes of device memory held at the peak, and task or level
+    counts."""
     opts = (options or DacrtOptions()).with_(**tuning)
     mesh = DeviceMesh(vertices, indices, device)
     return dacrt_trace_mesh(mesh, origins, directions, tmin, tmax, variant, split,
@@ -65,7 +67,7 @@ def dacrt_trace_mesh(
     variant: Variant = "pool",
     split: Split = "rdh",
     *,
-    stats: dict | None = None,
+    stats: DacrtStats | None = None,
     options: DacrtOptions | None = None,
 ) -> Hits:
     """`dacrt_trace` on a mesh already on the device (a `Bvh`'s `mesh`, say): its triangle
@@ -78,12 +80,12 @@ def dacrt_trace_mesh(
     tmin_a, tmax_a = ray_range(tmin, tmax, len(origins))
     device = mesh.device
     opts = (options or DacrtOptions()).for_device(device)
-    info = stats if stats is not None else {}
+    info = stats if stats is not None else DacrtStats()
     compile_ms = load_modules(device, *dacrt_warp_modules(variant))
     margin = margin_for(mesh.vertices, origins)
     if variant == "breadth_first":
         hits = breadth_first_trace(mesh, origins, directions, tmin_a, tmax_a, margin, info, opts)
-        info["compile_ms"] = compile_ms
+        info.compile_ms = compile_ms
         return hits
     capacity = POOL_SLOTS if opts.pool_capacity is None else int(opts.pool_capacity)
     retries = 0
@@ -97,7 +99,7 @@ def dacrt_trace_mesh(
             capacity *= 4  # the run stopped at the overflow: start again, bigger
             retries += 1
             continue
-        info.update(pool_capacity=capacity, pool_retries=retries, compile_ms=compile_ms)
+        info.fill(pool_capacity=capacity, pool_retries=retries, compile_ms=compile_ms)
         return hits
 
 

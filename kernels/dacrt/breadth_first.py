@@ -43,6 +43,7 @@ from .records import (
     scene_box,
     unpack_hits,
 )
+from .stats import DacrtStats
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -355,7 +356,7 @@ def _scan_total(a: wp.array, out: wp.array) -> int:
 
 
 def breadth_first_trace(mesh: DeviceMesh, origins, directions, tmin, tmax, margin: float,
-                        info: dict, opts: DacrtOptions) -> Hits:
+                        info: DacrtStats, opts: DacrtOptions) -> Hits:
     """The level loop of Algorithm 1 (sec. 2) on validated rays (`opts` resolved for the
     mesh's device); fills `info` with its statistics."""
     device = mesh.device
@@ -464,16 +465,10 @@ def breadth_first_trace(mesh: DeviceMesh, origins, directions, tmin, tmax, margi
     wp.synchronize_device(device)
     trace_ms = (time.perf_counter() - t_start) * 1e3
     hits = unpack_hits(mem, d, r)
-    info.update({
-        "variant": "breadth_first",
-        "total_ms": (time.perf_counter() - t_start) * 1e3,
-        "trace_ms": trace_ms,
-        "phase_ms": {k: s * 1e3 for k, s in phase_s.items()},
-        "peak_bytes": int(mem.peak),
-        "levels": levels,
-        "peak_nodes": peak_nodes,
-        "degenerate": int(m - n),
-    })
+    info.fill(variant="breadth_first", total_ms=(time.perf_counter() - t_start) * 1e3,
+              trace_ms=trace_ms, phase_ms={k: s * 1e3 for k, s in phase_s.items()},
+              peak_bytes=int(mem.peak), levels=levels, peak_nodes=peak_nodes,
+              degenerate=int(m - n))
     return hits
 
 

@@ -90,6 +90,7 @@ from .records import (
     shared_min_u64,
     unpack_hits,
 )
+from .stats import DacrtStats
 from .task import (
     C_KPAIRS,
     C_LEAVES,
@@ -841,7 +842,7 @@ def start_trace(d: DacrtData, pool: Pool, lo: wp.vec3, hi: wp.vec3, rays: int, t
 
 
 def pool_trace(mesh: DeviceMesh, origins, directions, tmin, tmax, margin: float, split: str,
-               info: dict, opts: DacrtOptions, capacity: int) -> Hits:
+               info: DacrtStats, opts: DacrtOptions, capacity: int) -> Hits:
     """The task-pool trace of validated rays with `capacity` pool slots (`opts` resolved for
     the mesh's device); fills `info` with its statistics."""
     device = mesh.device
@@ -908,28 +909,16 @@ def pool_trace(mesh: DeviceMesh, origins, directions, tmin, tmax, margin: float,
     spent = d.phase_cycles.numpy().reshape(workers, CYCLE_ROW)[:, : len(PHASE_NAMES)]
     spent = spent.sum(axis=0).astype(np.float64)
     share = spent / spent.sum() if spent.sum() > 0 else np.zeros_like(spent)
-    info.update({
-        "variant": "pool",
-        "split": split,
-        "total_ms": (time.perf_counter() - t_start) * 1e3,
-        "prepare_ms": prepare_ms,
-        "trace_ms": trace_ms,
-        "phase_ms": {name: float(trace_ms * s) for name, s in zip(PHASE_NAMES, share,
-                                                                   strict=True)},
-        "peak_bytes": int(mem.peak),
-        "tasks": int(counters[C_TASKS]) + 1,
-        "intersection_tasks": int(counters[C_LEAVES]),
-        "depth": int(counters[C_MAX_DEPTH]),
-        "rays_sorted": int(counters[C_RAYS_SORTED]),
-        "tris_sorted": int(counters[C_TRIS_SORTED]),
-        "pairs": 1000 * int(counters[C_KPAIRS]),
-        "intersection_rays": int(counters[C_VISITS]),
-        "intersection_rays_skipped": int(counters[C_SKIPPED]),
-        "pool_slots_used": int(state[2]),
-        "workers": workers,
-        "small_items": small_items,
-        "degenerate": int(m - n),
-    })
+    info.fill(
+        variant="pool", split=split, total_ms=(time.perf_counter() - t_start) * 1e3,
+        prepare_ms=prepare_ms, trace_ms=trace_ms,
+        phase_ms={name: float(trace_ms * s) for name, s in zip(PHASE_NAMES, share, strict=True)},
+        peak_bytes=int(mem.peak), tasks=int(counters[C_TASKS]) + 1,
+        intersection_tasks=int(counters[C_LEAVES]), depth=int(counters[C_MAX_DEPTH]),
+        rays_sorted=int(counters[C_RAYS_SORTED]), tris_sorted=int(counters[C_TRIS_SORTED]),
+        pairs=1000 * int(counters[C_KPAIRS]), intersection_rays=int(counters[C_VISITS]),
+        intersection_rays_skipped=int(counters[C_SKIPPED]), pool_slots_used=int(state[2]),
+        workers=workers, small_items=small_items, degenerate=int(m - n))
     return hits
 
 

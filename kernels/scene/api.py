@@ -12,8 +12,8 @@ import warp as wp
 
 from ..bvh.api import METHODS, Bvh, build_over_boxes, empty_bounds
 from ..bvh.api import trace as trace_bvh
+from ..bvh.binary_traversal import STACK_SIZE
 from ..bvh.node import empty_root
-from ..bvh.traversal import STACK_SIZE
 from ..core.hits import Hits
 from ..core.launch import (
     get_device,
@@ -25,6 +25,7 @@ from ..core.launch import (
 )
 from ..core.validate import as_rays, as_shading, as_terminator_offsets, ray_range
 from . import instances as inst
+from .stats import SceneStats
 from .top import (
     WARP_MODULES,
     InstanceRecord,
@@ -52,7 +53,7 @@ class Scene:
     bounds: np.ndarray  # (2, 3) float32
     instance_boxes: np.ndarray  # (I, 2, 3) float32 world boxes, padded (instances.py)
     frames: dict  # instances.instance_frames: float64 M, A, T, C per instance
-    stats: dict = field(default_factory=dict)
+    stats: SceneStats | None = None  # build_scene's
     shading_cache: dict = field(default_factory=dict, repr=False)  # render.ao's, by inputs
 
     def shading(self, normals, terminator_offset) -> SceneShading:
@@ -261,19 +262,11 @@ def build_scene(meshes: Sequence[Bvh | None], mesh_ids, transforms, *,
     scene = Scene(meshes=list(meshes), mesh_ids=ids, transforms=placed.transforms,
                   device=device, arrays=arrays, bounds=placed.bounds,
                   instance_boxes=np.stack([lo, hi], axis=1), frames=frames)
-    scene.stats = {
-        "build_ms": (time.perf_counter() - t_total) * 1e3,
-        "compile_ms": compile_ms,
-        "phase_ms": phase_ms,
-        "instances": n,
-        "instances_built": int(keep.sum()),
-        "meshes": len(meshes),
-        "meshes_built": len(built),
-        "top_nodes": tree.node_count if tree.count else 1,
-        "top_depth": tree.depth,
-        "nbytes": scene.nbytes,
-        "device": str(device),
-    }
+    scene.stats = SceneStats(
+        build_ms=(time.perf_counter() - t_total) * 1e3, compile_ms=compile_ms,
+        phase_ms=phase_ms, instances=n, instances_built=int(keep.sum()), meshes=len(meshes),
+        meshes_built=len(built), top_nodes=tree.node_count if tree.count else 1,
+        top_depth=tree.depth, nbytes=scene.nbytes, device=str(device))
     return scene
 
 

@@ -9,27 +9,26 @@ share one copy of its data, and a refit (kernels.bvh.refit, in place) is seen by
 scene that holds the mesh.
 
 Top level: a binary tree (`bvh.api.build_over_boxes`, the pool build over the instances'
-padded world boxes) of one instance per leaf. Its boxes are tested in float64 with walls
-that move out with t (`enter_padded_box`, instances.py's bound); a leaf's instance gets the
-ray in object space (`object_ray`) and the bottom-level traversal of its mesh, with the
-closest hit so far as tmax, so t is the world ray's own parameter in every instance.
+padded world boxes) of one instance per leaf, traversed by the mesh BVH's own loop
+(`bvh.binary_traversal`) with this level's box test and leaves. Its boxes are tested in
+float64 with walls that move out with t (`enter_padded_box`, instances.py's bound); a
+leaf's instance gets the ray in object space (`object_ray`) and the bottom-level traversal
+of its mesh, with the closest hit so far as tmax, so t is the world ray's own parameter in
+every instance.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
+from ..bvh.binary_traversal import BinaryTree, make_binary_traversal
 from ..bvh.node import BvhArrays, BvhNode
-from ..bvh.traversal import STACK_SIZE, traverse
+from ..bvh.traversal import traverse
 from ..core.box import INF
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import Hit, Ray, make_ray, per_ray
 
 wp.set_module_options(MODULE_OPTIONS)
-
-TopStack = wp.types.vector(length=STACK_SIZE, dtype=wp.int32)
-TopDists = wp.types.vector(length=STACK_SIZE, dtype=wp.float32)
-
 
 @wp.struct
 class MeshRecord:
@@ -174,6 +173,35 @@ def enter_padded_box(o: wp.vec3d, d: wp.vec3d, s: wp.float64, lo: wp.vec3, hi: w
     return INF
 
 
+@wp.struct
+class TopRay:
+    """A world ray as the top level takes it: float64 for the padded box test, float32 for
+    the instances' object-space rays."""
+
+    origin: wp.vec3
+    direction: wp.vec3
+    o: wp.vec3d
+    d: wp.vec3d
+    slope: wp.float64  # the walls' widening per unit t: SceneArrays.slope times max |d|
+
+
+@wp.func
+def enter_top(q: TopRay, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: float) -> float:
+    return enter_padded_box(q.o, q.d, q.slope, lo, hi, tmin, tmax)
+
+
+@wp.func
+def no_instance_hit(out: wp.ref[InstanceHit]):
+    out.hit.t = INF
+    out.hit.triangle = -1
+    out.instance = -1
+
+
+@wp.func
+def instance_hit_distance(h: InstanceHit) -> float:
+    return h.hit.t
+
+
 @wp.func
 def trace_instance(s: SceneArrays, inst: int, origin: wp.vec3, direction: wp.vec3,
                    tmin: float, tmax: float, any_hit: bool) -> Hit:
@@ -184,62 +212,49 @@ def trace_instance(s: SceneArrays, inst: int, origin: wp.vec3, direction: wp.vec
 
 
 @wp.func
+def trace_instances(s: SceneArrays, q: TopRay, first: int, count: int, tmin: float,
+                    tmax: float, out: wp.ref[InstanceHit], any_hit: bool) -> bool:
+    """A top-level leaf: each instance's own BVH with the closest hit so far as tmax; True
+    at the first hit of an any-hit query."""
+    for k in range(first, first + count):
+        inst = s.top_ids[k]
+        h = trace_instance(s, inst, q.origin, q.direction, tmin, wp.min(out.hit.t, tmax),
+                           any_hit)
+        if h.triangle >= 0 and h.t < out.hit.t:
+            out.hit = h
+            out.instance = inst
+            if any_hit:
+                return True
+    return False
+
+
+@wp.func
+def top_result(s: SceneArrays, q: TopRay, tmin: float, tmax: float, out: InstanceHit,
+               stopped: bool) -> InstanceHit:
+    return out  # the instances' hits are final (their traversals refined them)
+
+
+# the top level's traversal, from its padded box test and its instance leaves
+traverse_top = make_binary_traversal(BinaryTree(
+    tree=SceneArrays, query=TopRay, result=InstanceHit, miss=no_instance_hit,
+    enter=enter_top, leaf=trace_instances, distance=instance_hit_distance, finish=top_result,
+    module=__name__, name="traverse_top"))
+
+
+@wp.func
 def traverse_scene(s: SceneArrays, origin: wp.vec3, direction: wp.vec3, tmin: float,
                    tmax: float, any_hit: bool) -> InstanceHit:
     """Closest hit over all instances in [tmin, tmax] (or with `any_hit` the first found):
-    the top level near child first with an explicit stack (its depth is at most the build's
-    max_depth = STACK_SIZE), each instance's own BVH at its leaves."""
-    out = InstanceHit()
-    out.hit.t = INF
-    out.hit.triangle = -1
-    out.instance = -1
-    o = wp.vec3d(origin)
-    d = wp.vec3d(direction)
-    ad = wp.max(wp.max(wp.abs(d[0]), wp.abs(d[1])), wp.abs(d[2]))
-    sl = wp.float64(s.slope) * ad
-    best = tmax
-    root = s.top[0]
-    if enter_padded_box(o, d, sl, root.lo, root.hi, tmin, best) == INF:
-        return out
-    nodes = TopStack()
-    dists = TopDists()
-    sp = int(0)
-    node = int(0)
-    while True:
-        n = s.top[node]
-        if n.count > 0:
-            for k in range(n.first, n.first + n.count):
-                inst = s.top_ids[k]
-                h = trace_instance(s, inst, origin, direction, tmin, best, any_hit)
-                if h.triangle >= 0 and h.t < out.hit.t:
-                    out.hit = h
-                    out.instance = inst
-                    best = wp.min(h.t, tmax)
-                    if any_hit:
-                        return out
-            node = -1
-        else:
-            left = s.top[n.first]
-            right = s.top[n.first + 1]
-            tl = enter_padded_box(o, d, sl, left.lo, left.hi, tmin, best)
-            tr = enter_padded_box(o, d, sl, right.lo, right.hi, tmin, best)
-            if tl == INF and tr == INF:
-                node = -1
-            else:
-                near = wp.where(tl <= tr, n.first, n.first + 1)
-                far = wp.where(tl <= tr, n.first + 1, n.first)
-                node = near
-                if wp.max(tl, tr) < INF:
-                    nodes[sp] = far
-                    dists[sp] = wp.max(tl, tr)
-                    sp += 1
-        while node < 0 and sp > 0:
-            sp -= 1
-            if dists[sp] <= best:
-                node = nodes[sp]
-        if node < 0:
-            break
-    return out
+    the top level's binary traversal (bvh.binary_traversal; its depth is at most the
+    build's max_depth = STACK_SIZE), each instance's own BVH at its leaves."""
+    q = TopRay()
+    q.origin = origin
+    q.direction = direction
+    q.o = wp.vec3d(origin)
+    q.d = wp.vec3d(direction)
+    ad = wp.max(wp.max(wp.abs(q.d[0]), wp.abs(q.d[1])), wp.abs(q.d[2]))
+    q.slope = wp.float64(s.slope) * ad
+    return traverse_top(s, s.top, q, tmin, tmax, any_hit)
 
 
 @wp.kernel

@@ -83,9 +83,9 @@ def check_bvh(bvh, leaf_size: int, max_depth: int = 64) -> None:
             stack += [(c, depth + 1), (c + 1, depth + 1)]
     assert seen.all(), f"{int((~seen).sum())} nodes are not reachable from the root"
     assert np.all(covered == 1), "a triangle position is in no leaf or in several"
-    assert bvh.stats["depth"] == max_seen
-    assert bvh.stats["nodes"] == len(nodes)
-    assert bvh.stats["leaves"] == int(np.count_nonzero(nodes["count"]))
+    assert bvh.stats.depth == max_seen
+    assert bvh.stats.nodes == len(nodes)
+    assert bvh.stats.leaves == int(np.count_nonzero(nodes["count"]))
 
 
 def random_soup(rng, triangles: int, vertices: int | None = None):

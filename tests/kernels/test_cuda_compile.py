@@ -39,7 +39,7 @@ MODULES = kernel_modules()
 
 def test_every_kernel_module_is_listed():
     assert {"scenesort.kernels.bvh.build", "scenesort.kernels.dacrt.task_pool",
-            "scenesort.kernels.render.ao"} <= set(MODULES)
+            "scenesort.kernels.render.tracers"} <= set(MODULES)
 
 
 @pytest.mark.parametrize("arch", ARCHS)

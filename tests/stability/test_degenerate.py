@@ -47,7 +47,7 @@ def test_degenerate_triangles_are_skipped_and_never_hit(method, leaf_size):
     lines they collapse to must all miss."""
     v, f = degenerate_soup()
     bvh = kernels.build_bvh(v, f, method=method, leaf_size=leaf_size)
-    assert bvh.stats["degenerate"] == len(f)
+    assert bvh.stats.degenerate == len(f)
     check_bvh(bvh, leaf_size)
     targets = np.vstack([v, [[0.7, 0, 0], [1.5, 0, 0], [0, 0.5, 0], [3, 2, 0]]])
     o = np.tile(np.array([[0.3, 0.4, 1.0]], np.float32), (len(targets), 1))
@@ -69,7 +69,7 @@ def test_degenerate_triangles_mixed_into_a_real_scene():
     rng = np.random.default_rng(0)
     f2 = np.vstack([f, bad])[rng.permutation(len(f) + len(bad))]
     bvh = kernels.build_bvh(v, f2, leaf_size=4)
-    assert bvh.stats["degenerate"] == len(bad)
+    assert bvh.stats.degenerate == len(bad)
     check_bvh(bvh, 4)
     o, d = scene_rays(v, f, 1500, seed=3)
     h = kernels.trace(bvh, o, d)
@@ -85,7 +85,7 @@ def test_all_vertices_coincident():
     v = np.full((30, 3), 0.5, np.float32)
     f = np.arange(30, dtype=np.int32).reshape(10, 3)
     bvh = kernels.build_bvh(v, f)
-    assert bvh.stats["degenerate"] == 10
+    assert bvh.stats.degenerate == 10
     o = np.array([[0.5, 0.5, 2.0], [0.0, 0.0, 0.0], [0.5, 0.5, 0.5]], np.float32)
     d = np.array([[0, 0, -1], [1, 1, 1], [1, 0, 0]], np.float32)
     h = kernels.trace(bvh, o, d)
@@ -169,7 +169,7 @@ def test_single_triangle_at_every_scale():
         v = (np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]]) * scale).astype(np.float32)
         f = np.array([[0, 1, 2]], np.int32)
         bvh = kernels.build_bvh(v, f)
-        assert bvh.stats["nodes"] == 1 and bvh.stats["leaves"] == 1
+        assert bvh.stats.nodes == 1 and bvh.stats.leaves == 1
         o = (np.array([[0.25, 0.25, 1], [0.25, 0.25, -1], [0.75, 0.75, 1], [-0.1, 0.5, 1]])
              * scale).astype(np.float32)
         d = (np.array([[0, 0, -1], [0, 0, 1], [0, 0, -1], [0, 0, -1]]) * scale)
@@ -195,7 +195,7 @@ def test_median_build_of_huge_and_tiny_triangles_does_not_corrupt_memory(device)
         f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
         bvh = kernels.build_bvh(v, f, method="median", device=DEVICE)
         check_bvh(bvh, 8)
-        print("built", bvh.stats["nodes"])
+        print("built", bvh.stats.nodes)
     """).replace("DEVICE", repr(device))
     root = Path(__file__).resolve().parents[2]
     proc = subprocess.run([sys.executable, "-c", script], cwd=root, capture_output=True,

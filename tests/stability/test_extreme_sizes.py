@@ -33,7 +33,7 @@ def test_vertices_without_triangles_and_zero_rays():
     zero rays give empty (0,) results from trace, any-hit and AO."""
     v = np.random.default_rng(0).random((10, 3)).astype(np.float32)
     bvh = kernels.build_bvh(v, np.zeros((0, 3), np.int32))
-    assert bvh.stats["triangles"] == 0 and bvh.stats["leaves"] == 0
+    assert bvh.stats.triangles == 0 and bvh.stats.leaves == 0
     z = np.zeros((0, 3), np.float32)
     full = kernels.build_bvh(*box_room(2))
     for b in (bvh, full):
@@ -69,7 +69,7 @@ def test_two_million_triangles():
     f = np.vstack([sf, len(sv) + np.arange(len(soup)).reshape(-1, 3)]).astype(np.int32)
     assert len(f) >= 1_990_000
     bvh = kernels.build_bvh(v, f)
-    assert bvh.stats["triangles"] == len(f) and bvh.stats["degenerate"] == 0
+    assert bvh.stats.triangles == len(f) and bvh.stats.degenerate == 0
     perm = bvh.permutation()
     assert len(perm) == len(f) and np.array_equal(np.bincount(perm, minlength=len(f)),
                                                   np.ones(len(f), np.int64))

@@ -35,12 +35,12 @@ def test_structure_on_shared_scene(method, shared_scene):
     bvh = kernels.build_bvh(scene.vertices, scene.indices, method=method)
     check_bvh(bvh, 8)
     stats = bvh.stats
-    assert stats["triangles"] == len(scene.indices)
-    assert set(stats["phase_ms"]) >= {"SplitPlane", "PPS", "Swap", "AABB"}
-    assert stats["build_ms"] > 0 and stats["sah_cost"] > 1.0
+    assert stats.triangles == len(scene.indices)
+    assert set(stats.phase_ms) >= {"SplitPlane", "PPS", "Swap", "AABB"}
+    assert stats.build_ms > 0 and stats.sah_cost > 1.0
     # The spatial median needs the AABB phase; binned SAH takes the boxes from its bins.
-    assert (stats["phase_ms"]["AABB"] > 0) == (method == "median")
-    assert (stats["phase_ms"]["SplitPlane"] > 0) == (method == "sah")
+    assert (stats.phase_ms["AABB"] > 0) == (method == "median")
+    assert (stats.phase_ms["SplitPlane"] > 0) == (method == "sah")
 
 
 def test_sah_cost_statistic_matches_a_float64_sum(shared_scene):
@@ -50,14 +50,14 @@ def test_sah_cost_statistic_matches_a_float64_sum(shared_scene):
     e = np.maximum(nodes["hi"].astype(np.float64) - nodes["lo"], 0.0)
     area = e[:, 0] * e[:, 1] + e[:, 1] * e[:, 2] + e[:, 2] * e[:, 0]
     expected = np.sum(area * np.where(nodes["count"] > 0, nodes["count"], 1)) / area[0]
-    assert bvh.stats["sah_cost"] == pytest.approx(expected, rel=1e-6)
+    assert bvh.stats.sah_cost == pytest.approx(expected, rel=1e-6)
 
 
 def test_sah_beats_median_on_a_real_scene(shared_scene):
     scene = shared_scene("sponza")
     sah = kernels.build_bvh(scene.vertices, scene.indices, method="sah")
     median = kernels.build_bvh(scene.vertices, scene.indices, method="median")
-    assert sah.stats["sah_cost"] < median.stats["sah_cost"]
+    assert sah.stats.sah_cost < median.stats.sah_cost
 
 
 def test_degenerate_triangles_are_skipped_and_counted():
@@ -68,7 +68,7 @@ def test_degenerate_triangles_are_skipped_and_counted():
     n = len(v)
     f[10] = [n - 3, n - 2, n - 1]  # collinear
     bvh = kernels.build_bvh(v, f)
-    assert bvh.stats["degenerate"] == 11
+    assert bvh.stats.degenerate == 11
     check_bvh(bvh, 8)
 
 
@@ -85,7 +85,7 @@ def test_depth_cap_makes_big_leaves():
     rng = np.random.default_rng(4)
     v, f = random_soup(rng, 300)
     bvh = kernels.build_bvh(v, f, leaf_size=1, max_depth=3)
-    assert bvh.stats["depth"] <= 2
+    assert bvh.stats.depth <= 2
     check_bvh(bvh, 1, max_depth=3)
 
 
@@ -96,11 +96,11 @@ def test_sah_splits_below_the_leaf_size_where_that_is_cheaper():
     v = np.vstack([tri, tri + 100]).astype(np.float32)
     bvh = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), leaf_size=8)
     check_bvh(bvh, 8)
-    assert bvh.stats["leaves"] == 2
+    assert bvh.stats.leaves == 2
     copies = kernels.build_bvh(tri, np.zeros((8, 3), np.int32) + [0, 1, 2], leaf_size=8)
-    assert copies.stats["leaves"] == 1
+    assert copies.stats.leaves == 1
     median = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), method="median")
-    assert median.stats["leaves"] == 1  # the spatial median splits only above leaf_size
+    assert median.stats.leaves == 1  # the spatial median splits only above leaf_size
 
 
 @pytest.mark.parametrize("max_depth", [1, 2, 3, 5])
@@ -109,13 +109,13 @@ def test_depth_cap_inside_small_subtrees(max_depth):
     rng = np.random.default_rng(max_depth)
     v, f = random_soup(rng, 40)
     bvh = kernels.build_bvh(v, f, leaf_size=1, max_depth=max_depth)
-    assert bvh.stats["depth"] <= max_depth - 1
+    assert bvh.stats.depth <= max_depth - 1
     check_bvh(bvh, 1, max_depth=max_depth)
 
 
 def test_empty_mesh_builds():
     bvh = kernels.build_bvh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
-    assert bvh.stats["nodes"] == 1 and bvh.stats["triangles"] == 0
+    assert bvh.stats.nodes == 1 and bvh.stats.triangles == 0
 
 
 @pytest.mark.parametrize(
@@ -168,14 +168,14 @@ def test_compile_time_is_reported_apart_from_build_time(tmp_path):
     `compile_ms`, not `build_ms` (a first `scenesort render` printed "build 7095 ms" for a
     71 ms build). Run in a child process with a cache of its own."""
     code = textwrap.dedent("""
-        import json, numpy as np
+        import json
         from scenesort import kernels
         from scenesort.backend.render.scenes import default_scene
         scene = default_scene(64, 48)
         first = kernels.build_bvh(scene.vertices, scene.indices, device="cpu").stats
         again = kernels.build_bvh(scene.vertices, scene.indices, device="cpu").stats
-        print(json.dumps([first["compile_ms"], first["build_ms"], again["compile_ms"],
-                          again["build_ms"]]))
+        print(json.dumps([first.compile_ms, first.build_ms, again.compile_ms,
+                          again.build_ms]))
     """)
     env = {**os.environ, "WARP_CACHE_PATH": str(tmp_path)}
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True,

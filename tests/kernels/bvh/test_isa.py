@@ -93,7 +93,7 @@ def test_each_instruction_set_finds_the_hosts_hits(target_cpu, shared_scene):
     kernel = trace_on(target_cpu)
     isa = wp.zeros(2, dtype=int)
     for bvh, o, d, tmin, tmax in rays_and_trees(shared_scene):
-        assert bvh.stats["width"] in (4, 8)
+        assert bvh.stats.width in (4, 8)
         for any_hit in (False, True):
             n = len(o)
             out_t = wp.zeros((n, 3), dtype=float)

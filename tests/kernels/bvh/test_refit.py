@@ -34,8 +34,8 @@ def test_unmoved_refit_is_the_build(width):
     nodes, wide, blocks = (a.numpy().copy() for a in (bvh.arrays.nodes, bvh.arrays.wide,
                                                         bvh.arrays.blocks))
     out = kernels.refit_bvh(bvh, v.copy())
-    assert out is bvh and out.stats["action"] == "refit"
-    assert out.stats["sah_ratio"] == pytest.approx(1.0, abs=1e-9)
+    assert out is bvh and out.stats.action == "refit"
+    assert out.stats.sah_ratio == pytest.approx(1.0, abs=1e-9)
     assert np.array_equal(out.nodes(), nodes)
     assert np.array_equal(out.arrays.wide.numpy(), wide)
     assert np.array_equal(out.arrays.blocks.numpy(), blocks)
@@ -51,8 +51,8 @@ def test_refit_hits_equal_a_fresh_build(width, method):
     bvh = kernels.build_bvh(v, f, method=method, width=width)
     moved = wave(v, 0.15)
     out = kernels.refit_bvh(bvh, moved, rebuild_ratio=np.inf)
-    assert out.stats["action"] == "refit" and out.stats["sah_ratio"] > 1.0
-    assert set(out.stats["phase_ms"]) == {"validate", "triangles", "nodes"}
+    assert out.stats.action == "refit" and out.stats.sah_ratio > 1.0
+    assert set(out.stats.phase_ms) == {"validate", "triangles", "nodes"}
     fresh = kernels.build_bvh(moved, f, method=method, width=width)
     o, d = rays(rng)
     a, b = kernels.trace(out, o, d), kernels.trace(fresh, o, d)
@@ -71,8 +71,8 @@ def test_a_scrambled_mesh_is_rebuilt():
     bvh = kernels.build_bvh(v, f)
     moved = v[rng.permutation(len(v))]
     out = kernels.refit_bvh(bvh, moved)
-    assert out.stats["action"] == "rebuild" and out.stats["rebuild_reason"] == "sah"
-    assert out.stats["sah_ratio"] > kernels.REBUILD_RATIO
+    assert out.stats.action == "rebuild" and out.stats.rebuild_reason == "sah"
+    assert out.stats.sah_ratio > kernels.REBUILD_RATIO
     o, d = rays(rng)
     fresh = kernels.trace(kernels.build_bvh(moved, f), o, d)
     assert_same_hits(kernels.trace(out, o, d), fresh.t, fresh.triangle, rel=0.0)
@@ -84,9 +84,9 @@ def test_a_triangle_that_gains_area_forces_a_rebuild():
     flat = v.copy()
     flat[f[0, 1]] = flat[f[0, 0]]  # triangle 0 (and its neighbours on that edge) collapse
     bvh = kernels.build_bvh(flat, f)
-    assert bvh.stats["degenerate"] > 0
+    assert bvh.stats.degenerate > 0
     out = kernels.refit_bvh(bvh, v)
-    assert out.stats["action"] == "rebuild" and out.stats["rebuild_reason"] == "area"
+    assert out.stats.action == "rebuild" and out.stats.rebuild_reason == "area"
     o = np.zeros((1, 3), np.float32)
     target = v[f[0]].astype(np.float64).mean(axis=0)
     assert kernels.trace(out, o, target[None].astype(np.float32)).triangle[0] == 0

@@ -36,7 +36,7 @@ WIDTHS = (2, 4, 8)
 
 def decode(bvh) -> list[dict]:
     """The wide nodes as dicts of per-lane arrays (layout in kernels/bvh/wide.py)."""
-    w = bvh.stats["width"]
+    w = bvh.stats.width
     words = bvh.arrays.wide.numpy().reshape(-1, 8, w)
     ints = words.view(np.int32)
     return [{"lo": words[k, 0:6:2].T, "hi": words[k, 1:6:2].T, "child": ints[k, 6],
@@ -60,9 +60,9 @@ def test_wide_tree_covers_every_triangle_once_with_tight_boxes(width, method, le
     rng = np.random.default_rng(3 + width)
     v, f = random_soup(rng, 700)
     bvh = kernels.build_bvh(v, f, method=method, leaf_size=leaf_size, width=width)
-    assert bvh.stats["width"] == width
+    assert bvh.stats.width == width
     nodes = decode(bvh)
-    assert bvh.stats["wide_nodes"] == len(nodes)
+    assert bvh.stats.wide_nodes == len(nodes)
     blocks = bvh.arrays.blocks.numpy().reshape(-1, 10, 4)
     tri_verts = bvh.arrays.tri_verts.numpy().reshape(-1, 3, 3)
     covered = np.zeros(len(tri_verts), dtype=int)
@@ -98,7 +98,7 @@ def test_wide_tree_covers_every_triangle_once_with_tight_boxes(width, method, le
                 assert np.array_equal(n["hi"][j], kid["hi"][ok].max(axis=0))
     assert np.all(covered == 1), "a triangle is in no wide leaf or in several"
     assert np.all(reached == 1), "a wide node is reached from no parent or from several"
-    assert bvh.stats["leaf_blocks"] == len(blocks)
+    assert bvh.stats.leaf_blocks == len(blocks)
 
 
 def canonical(wide: np.ndarray, blocks: np.ndarray, width: int, k: int = 0) -> tuple:
@@ -191,9 +191,9 @@ def test_deep_tree(width):
     the wide tree's stack need stays within its stack."""
     v, f = nested_triangles(100)
     bvh = kernels.build_bvh(v, f, method="median", leaf_size=1, width=width)
-    assert bvh.stats["depth"] == 63
-    assert bvh.stats["width"] == width
-    assert bvh.stats["wide_stack"] <= WIDE_STACK
+    assert bvh.stats.depth == 63
+    assert bvh.stats.width == width
+    assert bvh.stats.wide_stack <= WIDE_STACK
     rng = np.random.default_rng(4)
     o = np.zeros((3000, 3), np.float32)
     o[:, 0] = -1.0
@@ -209,7 +209,7 @@ def test_a_tree_needing_more_stack_is_traversed_as_binary(monkeypatch):
     monkeypatch.setattr(bvh_api, "WIDE_STACK", 2)
     v, f = random_soup(np.random.default_rng(5), 300)
     bvh = kernels.build_bvh(v, f, width=8)
-    assert bvh.stats["width"] == 2 and bvh.arrays.width == 2
+    assert bvh.stats.width == 2 and bvh.arrays.width == 2
     o, d = random_rays(np.random.default_rng(6), 300, -0.5, 1.5)
     ref_t, ref_tri = brute_force(v, f, o, d)
     assert_same_hits(kernels.trace(bvh, o, d), ref_t, ref_tri)
@@ -266,9 +266,9 @@ def test_axis_aligned_rays_and_empty_mesh(width):
 def test_width_option(device):
     v, f = random_soup(np.random.default_rng(1), 50)
     bvh = kernels.build_bvh(v, f)
-    assert bvh.stats["width"] == bvh_api.default_width(wp.get_device(device))
-    assert bvh.stats["width"] == (8 if simd_support(device)[0] > 0 else 2)
-    assert "collapse" in bvh.stats["phase_ms"]
+    assert bvh.stats.width == bvh_api.default_width(wp.get_device(device))
+    assert bvh.stats.width == (8 if simd_support(device)[0] > 0 else 2)
+    assert "collapse" in bvh.stats.phase_ms
     with pytest.raises(ValueError, match="width must be one of"):
         kernels.build_bvh(v, f, width=3)
 
@@ -281,7 +281,7 @@ def test_default_width_follows_the_simd_traversal_compiled_in(monkeypatch):
     v, f = random_soup(np.random.default_rng(1), 50)
     for support, width in (((0, 0), 2), ((8, 1), 8), ((8, 2), 8)):
         monkeypatch.setattr(bvh_api, "simd_support", lambda device, s=support: s)
-        assert kernels.build_bvh(v, f).stats["width"] == width
+        assert kernels.build_bvh(v, f).stats.width == width
 
 
 def tricky_tree(width: int):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scenesort.kernels.core import DeviceMesh, degenerate_mask
-from scenesort.kernels.render import ao
+from scenesort.kernels.render import tracers
 
 from scenesort import kernels
 
@@ -55,6 +55,6 @@ def test_renders_reuse_the_bvh_mesh(engine, monkeypatch, device):
     first = kernels.render_ao(bvh, o, d, spp=4, engine=engine)
     soup = bvh.mesh._soup
     again = kernels.render_ao(bvh, o, d, spp=4, engine=engine)
-    assert not made and ao.scene_mesh(bvh) is bvh.mesh
+    assert not made and tracers.scene_mesh(bvh) is bvh.mesh
     assert (soup is not None) == (engine == "dacrt") and bvh.mesh._soup is soup
     assert np.array_equal(first.ao, again.ao)

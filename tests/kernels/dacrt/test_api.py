@@ -10,7 +10,7 @@ import pytest
 import trimesh
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from scenesort.kernels import dacrt_trace
+from scenesort.kernels import DacrtStats, dacrt_trace
 
 from scenesort import kernels
 
@@ -53,15 +53,15 @@ def test_counting_sort_of_small_tasks_equals_the_pps_rounds(split):
     ref = bvh_hits(v, f, o, d)
     stats = []
     for small in (0, 1 << 30):
-        info: dict = {}
+        info = DacrtStats()
         hits = dacrt_trace(v, f, o, d, split=split, stats=info,
                            **{**SMALL, "small_items": small})
         assert_equal_hits(hits, ref)
-        assert (info["phase_ms"]["Sort"] > 0) == (small > 0)
-        assert (info["phase_ms"]["PPS1"] > 0) == (small == 0)
+        assert (info.phase_ms["Sort"] > 0) == (small > 0)
+        assert (info.phase_ms["PPS1"] > 0) == (small == 0)
         stats.append(info)
     for key in ("tasks", "intersection_tasks", "rays_sorted", "tris_sorted", "pairs"):
-        assert stats[0][key] == stats[1][key] or split == "rdh", key
+        assert getattr(stats[0], key) == getattr(stats[1], key) or split == "rdh", key
 
 
 def camera_rays(scene, width: int = 64, height: int = 48):
@@ -168,11 +168,11 @@ def test_equals_bvh_with_camera_inside(name, shared_scene):
     ref = bvh_hits(scene.vertices, scene.indices, o, d, tmin, tmax)
     assert (ref.triangle >= 0).mean() > 0.9
     for variant, split in VARIANTS:
-        stats: dict = {}
+        stats = DacrtStats()
         h = dacrt_trace(scene.vertices, scene.indices, o, d, tmin, tmax, variant=variant,
                         split=split, stats=stats, **SMALL)
         assert_equal_hits(h, ref)
-        assert stats["peak_bytes"] > o.nbytes + d.nbytes + scene.vertices.nbytes
+        assert stats.peak_bytes > o.nbytes + d.nbytes + scene.vertices.nbytes
 
 
 @pytest.mark.parametrize("variant", ["pool", "breadth_first"])
@@ -222,20 +222,20 @@ def test_pool_workers_and_splits_agree_and_report_phases():
     runs = []
     for workers in (1, 2):
         for split in ("median", "rdh"):
-            stats: dict = {}
+            stats = DacrtStats()
             runs.append(dacrt_trace(v, f, o, d, split=split, workers=workers, stats=stats,
                                     **SMALL))
-            assert set(stats["phase_ms"]) == {"SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2",
+            assert set(stats.phase_ms) == {"SplitPlane", "PPS1", "Swap1", "PPS2", "Swap2",
                                               "AABB", "Intersect", "Sort", "Children"}
-            assert stats["phase_ms"]["Children"] > 0
-            assert (stats["phase_ms"]["SplitPlane"] > 0) == (split == "rdh")
-            assert stats["tasks"] > 7 and stats["intersection_tasks"] > 1
+            assert stats.phase_ms["Children"] > 0
+            assert (stats.phase_ms["SplitPlane"] > 0) == (split == "rdh")
+            assert stats.tasks > 7 and stats.intersection_tasks > 1
             # the root task alone sorts every ray and every triangle once
-            assert stats["rays_sorted"] >= len(o) and stats["tris_sorted"] >= len(f)
+            assert stats.rays_sorted >= len(o) and stats.tris_sorted >= len(f)
             # a ray with a hit was tested in at least one intersection task
-            tested = stats["intersection_rays"] - stats["intersection_rays_skipped"]
+            tested = stats.intersection_rays - stats.intersection_rays_skipped
             assert tested >= np.count_nonzero(runs[-1].triangle >= 0) > 0
-            assert stats["intersection_rays_skipped"] > 0
+            assert stats.intersection_rays_skipped > 0
     for h in runs[1:]:  # the closest hit with the (t, triangle) tie rule is deterministic
         assert np.array_equal(h.triangle, runs[0].triangle)
         assert np.array_equal(h.t, runs[0].t)
@@ -258,9 +258,9 @@ def test_default_pool_grows_after_an_overflow(monkeypatch):
     rng = np.random.default_rng(3)
     v, f = random_soup(rng, 3000)
     o, d = random_rays(rng, 3000, -0.5, 1.5)
-    stats: dict = {}
+    stats = DacrtStats()
     hits = dacrt_trace(v, f, o, d, workers=1, stats=stats, **SMALL)
-    assert stats["pool_retries"] >= 1 and stats["pool_capacity"] == 3 * 4 ** stats["pool_retries"]
+    assert stats.pool_retries >= 1 and stats.pool_capacity == 3 * 4 ** stats.pool_retries
     assert_equal_hits(hits, bvh_hits(v, f, o, d))
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import warp as wp
-from scenesort.kernels import dacrt_trace
+from scenesort.kernels import DacrtStats, dacrt_trace
 from scenesort.kernels.core import DeviceArrays
 from scenesort.kernels.dacrt import breadth_first as bf
 
@@ -48,12 +48,12 @@ def test_thresholds_and_buffer_flushes_give_the_same_hits(alpha, buffer_entries)
     v, f = random_soup(rng, 2500)
     o, d = random_rays(rng, 4000, -0.5, 1.5)
     ref = kernels.trace(kernels.build_bvh(v, f), o, d)
-    stats: dict = {}
+    stats = DacrtStats()
     h = dacrt_trace(v, f, o, d, variant="breadth_first", alpha=alpha, beta=alpha,
                     buffer_entries=buffer_entries, stats=stats)
     assert_same_hits(h, ref.t, ref.triangle)
-    assert (stats["levels"] == 1) == (alpha >= 2500)
-    assert set(stats["phase_ms"]) == {"filter", "sort", "reduce", "children", "gather",
+    assert (stats.levels == 1) == (alpha >= 2500)
+    assert set(stats.phase_ms) == {"filter", "sort", "reduce", "children", "gather",
                                       "intersect"}
 
 
@@ -62,10 +62,10 @@ def test_depth_cap_makes_every_child_terminal():
     v, f = random_soup(rng, 1500)
     o, d = random_rays(rng, 2000, -0.5, 1.5)
     ref = kernels.trace(kernels.build_bvh(v, f), o, d)
-    stats: dict = {}
+    stats = DacrtStats()
     h = dacrt_trace(v, f, o, d, variant="breadth_first", alpha=1, beta=1, max_depth=3,
                     stats=stats)
-    assert stats["levels"] <= 3
+    assert stats.levels <= 3
     assert_same_hits(h, ref.t, ref.triangle)
 
 
@@ -75,7 +75,7 @@ def test_peak_memory_is_reported_and_counts_the_buffer():
     o, d = random_rays(rng, 6000, -0.5, 1.5)
     inputs = o.nbytes + d.nbytes + 2 * 4 * len(o) + 3 * v.nbytes
     for entries in (1 << 10, 1 << 14):
-        stats: dict = {}
+        stats = DacrtStats()
         dacrt_trace(v, f, o, d, variant="breadth_first", buffer_entries=entries, stats=stats)
         # the buffer's arrays: 2 * 4 (ray ids) + 4 (segments) + 2 * 8 (keys) + 3 * 4 per entry
-        assert stats["peak_bytes"] >= inputs + 40 * entries
+        assert stats.peak_bytes >= inputs + 40 * entries

@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 import warp as wp
-from scenesort.kernels import dacrt_trace
+from scenesort.kernels import DacrtStats, dacrt_trace
 from scenesort.kernels.dacrt import DacrtOptions
 from scenesort.kernels.dacrt.options import DEVICE_DEFAULTS
 
@@ -49,11 +49,11 @@ def test_keywords_and_options_give_the_same_trace():
     o, d = random_rays(rng, 2000, -0.5, 1.5)
     by_keywords = dacrt_trace(v, f, o, d, c_sort=80.0, min_rays=32, rdh_min_rays=16)
     opts = DacrtOptions(c_sort=80.0, min_rays=32, rdh_min_rays=16)
-    stats: dict = {}
+    stats = DacrtStats()
     by_options = dacrt_trace(v, f, o, d, options=opts, stats=stats)
     assert np.array_equal(by_keywords.triangle, by_options.triangle)
     assert np.array_equal(by_keywords.t, by_options.t)
     overridden = dacrt_trace(v, f, o, d, options=opts, small_items=0, stats=stats)
-    assert stats["small_items"] == 0 and np.array_equal(overridden.t, by_options.t)
+    assert stats.small_items == 0 and np.array_equal(overridden.t, by_options.t)
     with pytest.raises(TypeError, match="unknown DACRT option"):
         dacrt_trace(v, f, o, d, csort=4.0)

@@ -99,11 +99,11 @@ def test_small_steps_run_inline(method):
     inline = kernels.build_bvh(v, f, method=method, min_chunks=1_000_000)
     pooled = kernels.build_bvh(v, f, method=method, min_chunks=1)
     default = kernels.build_bvh(v, f, method=method)
-    assert inline.stats["pool_steps_published"] == 0
-    assert pooled.stats["pool_steps_published"] > default.stats["pool_steps_published"] > 0
+    assert inline.stats.pool_steps_published == 0
+    assert pooled.stats.pool_steps_published > default.stats.pool_steps_published > 0
     for other in (pooled, default):
-        assert other.stats["sah_cost"] == pytest.approx(inline.stats["sah_cost"], rel=1e-12)
-        assert other.stats["nodes"] == inline.stats["nodes"]
+        assert other.stats.sah_cost == pytest.approx(inline.stats.sah_cost, rel=1e-12)
+        assert other.stats.nodes == inline.stats.nodes
 
 
 def test_several_workers_share_the_pool():
@@ -112,4 +112,4 @@ def test_several_workers_share_the_pool():
     v, f = random_soup(np.random.default_rng(2), 2000)
     one = kernels.build_bvh(v, f, workers=1)
     many = kernels.build_bvh(v, f, workers=64)
-    assert many.stats["sah_cost"] == pytest.approx(one.stats["sah_cost"], rel=1e-12)
+    assert many.stats.sah_cost == pytest.approx(one.stats.sah_cost, rel=1e-12)

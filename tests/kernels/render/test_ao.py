@@ -9,10 +9,10 @@ import trimesh
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from scenesort.kernels import Camera
-from scenesort.kernels.render.ao import (
+from scenesort.kernels.render.adaptive import (
     EFFICIENCY_MIN,
     Z95,
-    _allocation_key,
+    allocation_key,
     half_width,
     sampler_efficiency,
 )
@@ -282,13 +282,13 @@ def test_adaptive_open_plane_stops_at_the_first_power_of_two_within_target():
     d = np.tile(np.float32([0, 0, -1]), (r, 1))
     d[r // 2 :] *= -1  # pointing away from the plane's box: skipped
     res = kernels.render_ao(bvh, o, d, max_pixel_error=0.05, max_spp=1024)
-    assert res.rays["primary"] == r // 2
+    assert res.rays.primary == r // 2
     assert np.all(res.ao == 1.0)
     assert np.all(res.spp_used[r // 2 :] == 0)
     used = res.spp_used[: r // 2]
     assert np.all(used == 32)  # 16 (the default minimum) doubled once
     assert half_width(used // 2, used // 2, 1.0)[0] >= 0.05 > half_width(used, used, 1.0)[0]
-    assert res.rays["occlusion"] == int(used.sum()) and res.rays["rounds"] == 2
+    assert res.rays.occlusion == int(used.sum()) and res.rays.rounds == 2
 
 
 def test_deterministic_for_any_thread_count(shared_scene):
@@ -297,7 +297,7 @@ def test_deterministic_for_any_thread_count(shared_scene):
     cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 96, 96)
     o, d, tmin, tmax = cam.rays()
     one = kernels.render_ao(bvh, o, d, spp=3, seed=4, tmin=tmin, tmax=tmax, threads=1)
-    assert one.rays["primary"] > 8192  # enough that two threads really split the work
+    assert one.rays.primary > 8192  # enough that two threads really split the work
     two = kernels.render_ao(bvh, o, d, spp=3, seed=4, tmin=tmin, tmax=tmax, threads=2)
     assert np.array_equal(one.ao, two.ao) and np.array_equal(one.spp_used, two.spp_used)
     other = kernels.ambient_occlusion(bvh, o, d, spp=3, seed=5, tmin=tmin, tmax=tmax)
@@ -316,7 +316,7 @@ def test_dacrt_engine_gives_the_bvh_answer(shared_scene, target_error):
           "max_spp": 64}
     with_bvh = kernels.render_ao(bvh, o, d, **kw)
     with_dacrt = kernels.render_ao(bvh, o, d, engine="dacrt", **kw)
-    assert with_bvh.rays["occlusion"] > 0
+    assert with_bvh.rays.occlusion > 0
     assert np.array_equal(with_bvh.ao, with_dacrt.ao)
     assert np.array_equal(with_bvh.spp_used, with_dacrt.spp_used)
 
@@ -367,18 +367,18 @@ def test_compile_time_is_reported_apart(monkeypatch, device):
     bvh = kernels.build_bvh(v, np.array([[0, 1, 2]], np.int32), device=device)
     result = kernels.render_ao(bvh, np.array([[0.2, 0.2, 1.0]], np.float32),
                                np.array([[0.0, 0.0, -1.0]], np.float32), spp=2)
-    assert result.timings_ms["compile"] == 1.0e6 and result.timings_ms["total"] < 1.0e5
+    assert result.timings_ms.compile == 1.0e6 and result.timings_ms.total < 1.0e5
 
 
 def test_progress_of_a_tiny_target_is_a_fraction():
     """The round loop's progress for any target in (0, 1): its aim squared underflows to 0
     for 1e-200 (the service answered 500 with a ZeroDivisionError there)."""
-    from scenesort.kernels.render.ao import _progress
+    from scenesort.kernels.render.adaptive import error_progress
 
-    assert 0.0 < _progress(1e-3, 5e-4, 1e-200) < 1.0
-    assert _progress(1e-3, 2e-3, 1e-200) == 0.0  # the error has not come down yet
-    assert _progress(1e-3, 1e-6, 0.01) == 1.0  # below the aim: done
-    assert 0.0 < _progress(1e-3, 5e-4, 0.01) < 1.0
+    assert 0.0 < error_progress(1e-3, 5e-4, 1e-200) < 1.0
+    assert error_progress(1e-3, 2e-3, 1e-200) == 0.0  # the error has not come down yet
+    assert error_progress(1e-3, 1e-6, 0.01) == 1.0  # below the aim: done
+    assert 0.0 < error_progress(1e-3, 5e-4, 0.01) < 1.0
 
 
 def _touches_box(lo, hi, o, d, t0, t1) -> np.ndarray:
@@ -399,7 +399,7 @@ def _touches_box(lo, hi, o, d, t0, t1) -> np.ndarray:
 
 def test_box_candidates_are_the_rays_whose_segment_touches_the_widened_box():
     import warp as wp
-    from scenesort.kernels.render.ao import box_candidates
+    from scenesort.kernels.render.primary import box_candidates
 
     rng = np.random.default_rng(5)
     n = 4000
@@ -427,5 +427,5 @@ def test_box_candidates_are_the_rays_whose_segment_touches_the_widened_box():
 def test_allocation_key_orders_under_first_then_by_gain():
     gain = np.array([1e-3, 1e-5, 1e-1, 2e-3, 1e-3], dtype=np.float32)
     under = np.array([False, True, False, True, False])
-    order = np.argsort(_allocation_key(gain, under), kind="stable")
+    order = np.argsort(allocation_key(gain, under), kind="stable")
     np.testing.assert_array_equal(order, [3, 1, 2, 0, 4])  # ties (0, 4) in item order

@@ -130,7 +130,7 @@ def test_dacrt_traces_the_same_smooth_rays(floor_sphere):
     kw = {"spp": 8, "seed": 4, "distance": 2.0, "normals": normals, **clip}
     with_bvh = kernels.render_ao(bvh, o, d, **kw)
     with_dacrt = kernels.render_ao(bvh, o, d, engine="dacrt", **kw)
-    assert with_bvh.rays["occlusion"] > 0
+    assert with_bvh.rays.occlusion > 0
     np.testing.assert_array_equal(with_bvh.ao, with_dacrt.ao)
 
 

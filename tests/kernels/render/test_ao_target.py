@@ -9,8 +9,8 @@ import math
 import numpy as np
 import pytest
 from scenesort.backend.render.scenes import shared_scene
-from scenesort.kernels.render import ao
-from scenesort.kernels.render.ao import half_width
+from scenesort.kernels.render import adaptive
+from scenesort.kernels.render.adaptive import half_width
 
 from scenesort import kernels
 
@@ -72,10 +72,10 @@ def test_samples_follow_the_pixels_standard_deviation(bunny_view):
     flat = p > 0.995
     assert np.median(res.spp_used[hit][mixed]) >= 2 * np.median(res.spp_used[hit][flat])
     stats = res.stats()
-    assert stats["spp_max"] > stats["spp_mean"] >= 8
-    assert stats["rays"] == res.rays["primary"] + res.rays["occlusion"]
+    assert stats.spp_max > stats.spp_mean >= 8
+    assert stats.rays == res.rays.primary + res.rays.occlusion
     bound = kernels.render_ao(bvh, o, d, spp=1, seed=3, max_pixel_error=0.02, **kw)
-    assert bound.rays["occlusion"] > 2 * res.rays["occlusion"]
+    assert bound.rays.occlusion > 2 * res.rays.occlusion
 
 
 def test_max_pixel_error_bounds_every_pixel(bunny_view):
@@ -92,9 +92,9 @@ def test_max_pixel_error_bounds_every_pixel(bunny_view):
     k = np.rint(res.ao[hit].astype(np.float64) * n).astype(np.int64)
     # independent samples' half-widths at half the samples: every pixel that doubled needed to
     doubled = n > 8
-    assert np.all(half_width(k[doubled] // 2, n[doubled] // 2, ao.EFFICIENCY_MIN)
+    assert np.all(half_width(k[doubled] // 2, n[doubled] // 2, adaptive.EFFICIENCY_MIN)
                   < 2 * bound) and doubled.any()
     both = kernels.render_ao(bvh, o, d, spp=1, seed=4, max_pixel_error=bound,
                              target_error=0.01, max_spp=4096, **kw)
     assert np.all(both.spp_used >= res.spp_used)  # each rule only adds samples
-    assert both.rmse_estimate <= ao.RMSE_AIM * 0.01 + 1e-12
+    assert both.rmse_estimate <= adaptive.RMSE_AIM * 0.01 + 1e-12

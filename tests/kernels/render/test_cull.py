@@ -61,11 +61,13 @@ def test_culled_instances_change_no_pixel(cam):
     keep = visible([(v, f)], ids, ts, camera, dist)
     assert 0 < keep.sum() < 0.5 * len(ts)
     culled = kernels.build_scene([bvh], ids, ts, visible=keep)
-    assert culled.stats["instances_built"] == keep.sum()
+    assert culled.stats.instances_built == keep.sum()
     o, d, tmin, tmax = camera.rays()
     normals = v[f] / np.linalg.norm(v[f], axis=2, keepdims=True)
-    a = kernels.render_ao(full, o, d, 16, dist, tmin=tmin, tmax=tmax, normals=[normals])
-    b = kernels.render_ao(culled, o, d, 16, dist, tmin=tmin, tmax=tmax, normals=[normals])
+    a = kernels.render_ao(full, o, d, spp=16, distance=dist, tmin=tmin, tmax=tmax,
+                          normals=[normals])
+    b = kernels.render_ao(culled, o, d, spp=16, distance=dist, tmin=tmin, tmax=tmax,
+                          normals=[normals])
     assert (a.spp_used > 0).mean() > 0.3
     assert np.array_equal(a.ao, b.ao)
     # a shorter distance culls more, and still changes nothing
@@ -108,10 +110,10 @@ def test_unbuilt_meshes_change_no_pixel():
     placed = place_instances(boxes, ids, ts)
     culled = kernels.build_scene([bvhs[0], None], ids, ts, visible=keep, placed=placed)
     assert np.array_equal(culled.bounds, full.bounds)
-    assert culled.stats["meshes_built"] == 1 and culled.nbytes < full.nbytes
+    assert culled.stats.meshes_built == 1 and culled.nbytes < full.nbytes
     o, d, tmin, tmax = camera.rays()
-    a = kernels.render_ao(full, o, d, 8, tmin=tmin, tmax=tmax)  # the default distance
-    b = kernels.render_ao(culled, o, d, 8, tmin=tmin, tmax=tmax)
+    a = kernels.render_ao(full, o, d, spp=8, tmin=tmin, tmax=tmax)  # the default distance
+    b = kernels.render_ao(culled, o, d, spp=8, tmin=tmin, tmax=tmax)
     assert np.array_equal(a.ao, b.ao) and (a.spp_used > 0).mean() > 0.3
     with pytest.raises(ValueError, match="visible but its mesh 1 is None"):
         kernels.build_scene([bvhs[0], None], ids, ts, placed=placed)
@@ -137,9 +139,10 @@ def test_culled_triangles_change_no_pixel():
     keep = kernels.visible_triangles(verts, faces, camera, dist)
     assert 0 < keep.sum() < 0.5 * len(faces)
     o, d, tmin, tmax = camera.rays()
-    a = kernels.render_ao(kernels.build_bvh(verts, faces), o, d, 16, dist, tmin=tmin, tmax=tmax)
-    b = kernels.render_ao(kernels.build_bvh(verts, faces[keep]), o, d, 16, dist, tmin=tmin,
-                          tmax=tmax)
+    a = kernels.render_ao(kernels.build_bvh(verts, faces), o, d, spp=16, distance=dist,
+                          tmin=tmin, tmax=tmax)
+    b = kernels.render_ao(kernels.build_bvh(verts, faces[keep]), o, d, spp=16, distance=dist,
+                          tmin=tmin, tmax=tmax)
     assert np.array_equal(a.ao, b.ao)
 
 

@@ -179,11 +179,12 @@ def test_identity_instance_is_the_mesh_bit_for_bit(shared_scene):
     dist = 0.05 * float(np.linalg.norm(bvh.bounds[1] - bvh.bounds[0]))
     n = np.tile(np.array([0.0, 0.0, 1.0], np.float32), (len(sc.indices), 3, 1))
     for normals in (None, n):
-        ra = kernels.render_ao(bvh, o, d, 8, dist, tmin=tmin, tmax=tmax, normals=normals)
-        rb = kernels.render_ao(scene, o, d, 8, dist, tmin=tmin, tmax=tmax,
+        ra = kernels.render_ao(bvh, o, d, spp=8, distance=dist, tmin=tmin, tmax=tmax,
+                               normals=normals)
+        rb = kernels.render_ao(scene, o, d, spp=8, distance=dist, tmin=tmin, tmax=tmax,
                                normals=None if normals is None else [normals])
         assert np.array_equal(ra.ao, rb.ao)
-    assert kernels.render_ao(scene, o, d, 4).ao.shape == (len(o),)  # default distance
+    assert kernels.render_ao(scene, o, d, spp=4).ao.shape == (len(o),)  # default distance
 
 
 @pytest.mark.parametrize("scale", [(1.0, 1.0, 1.0), (-1.0, 1.0, 1.0), (0.5, 2.0, -1.5)])
@@ -212,8 +213,10 @@ def test_ao_of_instances_equals_the_flattened_scene(scale):
     for shade in (False, True):
         fn = np.vstack([world_n, np.zeros((2, 3, 3), np.float32)]) if shade else None
         sn = [normals, None] if shade else None
-        ra = kernels.render_ao(flat, o, d, 16, 1.0, tmin=tmin, tmax=tmax, normals=fn)
-        rb = kernels.render_ao(scene, o, d, 16, 1.0, tmin=tmin, tmax=tmax, normals=sn)
+        ra = kernels.render_ao(flat, o, d, spp=16, distance=1.0, tmin=tmin, tmax=tmax,
+                               normals=fn)
+        rb = kernels.render_ao(scene, o, d, spp=16, distance=1.0, tmin=tmin, tmax=tmax,
+                               normals=sn)
         assert np.mean(ra.ao == rb.ao) >= 0.99
         assert np.abs(ra.ao - rb.ao).mean() < 1e-3
         assert np.array_equal(ra.spp_used > 0, rb.spp_used > 0)
@@ -230,7 +233,7 @@ def test_instances_share_their_mesh():
     scene = kernels.build_scene([bvh], np.zeros(100, np.int32), ts)
     top = scene.nbytes - bvh_nbytes(bvh)
     assert 0 < top < 100 * 400 + 2 * 100 * 32 + 4096
-    assert scene.stats["instances_built"] == 100
+    assert scene.stats.instances_built == 100
 
 
 def test_bad_input_names_the_field():
@@ -281,6 +284,6 @@ def test_scene_results_do_not_depend_on_host_threads():
     a, b = kernels.trace(scene, o, d, threads=1), kernels.trace(scene, o, d, threads=2)
     for name in ("t", "triangle", "u", "v", "instance"):
         assert np.array_equal(getattr(a, name), getattr(b, name)), name
-    ra = kernels.render_ao(scene, o, d, 4, 0.5, threads=1)
-    rb = kernels.render_ao(scene, o, d, 4, 0.5, threads=2)
+    ra = kernels.render_ao(scene, o, d, spp=4, distance=0.5, threads=1)
+    rb = kernels.render_ao(scene, o, d, spp=4, distance=0.5, threads=2)
     assert np.array_equal(ra.ao, rb.ao)

@@ -1,0 +1,187 @@
+"""Every setting of an AO render (`render_ao`, `ambient_occlusion`): one frozen dataclass,
+each field defined, documented, bounded and checked here once.
+
+The bounds are data as well (`AO_OPTIONS`: name -> `OptionSpec`, in field order), for
+what offers or checks the same settings elsewhere (the service's request models, the
+command line, the add-on's properties): take the type, default, range or choices and
+documentation from there rather than writing them again.
+"""
+
+from __future__ import annotations
+
+import math
+import types
+import typing
+from dataclasses import dataclass, field, fields, replace
+from typing import Any, Literal
+
+import numpy as np
+
+Sampler = Literal["sobol", "random"]
+Engine = Literal["bvh", "dacrt"]
+DEFAULT_MAX_SPP = 1024
+MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
+DEFAULT_TERMINATOR_OFFSET = 0.1  # Blender's Object.shadow_terminator_geometry_offset default
+SERVICE_MAX_SPP = 4096  # the most samples per pixel a service request or the add-on offers
+SEED_MAX = 2**31 - 1  # the sampler's key is an int32
+
+
+@dataclass(frozen=True)
+class OptionSpec:
+    """What one setting takes: `kind` (int, float, str or bool) within [low, high] (an end
+    excluded where `low_open` / `high_open`; None: unbounded) or one of `choices`; None
+    too where `optional`. `soft_high`: the most a service request or a UI offers, where
+    the engine takes more."""
+
+    name: str
+    kind: type
+    default: Any
+    doc: str
+    low: float | None = None
+    high: float | None = None
+    low_open: bool = False
+    high_open: bool = False
+    choices: tuple[str, ...] | None = None
+    optional: bool = False
+    soft_high: float | None = None
+
+    def check(self, value: Any) -> Any:
+        """The value as the kind (numpy scalars become Python's), or ValueError naming the
+        setting and what it takes."""
+        if value is None:
+            if self.optional:
+                return None
+            raise ValueError(f"{self.name} must be {self.takes()}, got None")
+        if self.kind is bool:
+            if isinstance(value, bool | np.bool_):
+                return bool(value)
+        elif self.kind is str:
+            if value in self.choices:
+                return str(value)
+        else:
+            numbers = (int, np.integer) if self.kind is int else (int, float, np.number)
+            if isinstance(value, numbers) and not isinstance(value, bool | np.bool_):
+                number = self.kind(value)
+                if self.within(number):
+                    return number
+        raise ValueError(f"{self.name} must be {self.takes()}, got {value!r}")
+
+    def within(self, x: float) -> bool:
+        """Whether the number x lies in the range (NaN never does)."""
+        if math.isnan(x):
+            return False
+        above = self.low is None or (x > self.low if self.low_open else x >= self.low)
+        below = self.high is None or (x < self.high if self.high_open else x <= self.high)
+        return above and below
+
+    def takes(self) -> str:
+        """The values it takes, in words: 'an integer >= 1', 'a number in (0, 1) or None'."""
+        if self.kind is bool:
+            text = "True or False"
+        elif self.kind is str:
+            text = f"one of {list(self.choices)}"
+        else:
+            text = "an integer" if self.kind is int else "a number"
+            if self.low is not None and self.high is not None:
+                text += (f" in {'(' if self.low_open else '['}{_plain(self.low)}, "
+                         f"{_plain(self.high)}{')' if self.high_open else ']'}")
+            elif self.low is not None:
+                text += f" {'>' if self.low_open else '>='} {_plain(self.low)}"
+            elif self.high is not None:
+                text += f" {'<' if self.high_open else '<='} {_plain(self.high)}"
+        return text + (" or None" if self.optional else "")
+
+
+def _plain(x: float) -> str:
+    """A bound as written: 1 and 0 without a decimal point, 2147483647 in full."""
+    return str(int(x)) if x == int(x) else str(x)
+
+
+def _option(default: Any, doc: str, **bounds: Any) -> Any:
+    """A field of AoOptions with its documentation and bounds (OptionSpec's fields)."""
+    return field(default=default, metadata={"doc": doc, "bounds": bounds})
+
+
+@dataclass(frozen=True)
+class AoOptions:
+    """How an AO render samples and traces (`render_ao`; kernels/render/ao.py defines AO).
+    Checked when made: a bad value raises ValueError naming the field."""
+
+    spp: int = _option(
+        16, "samples per hit pixel; with an error target the fewest per pixel (at least "
+        "MIN_ADAPTIVE_SPP)", low=1, soft_high=SERVICE_MAX_SPP)
+    distance: float | None = _option(
+        None, "occluders farther than this from the shaded point are ignored (None: "
+        "DISTANCE_FRACTION of the scene box's diagonal)", low=0.0, low_open=True)
+    seed: int = _option(0, "the samples' seed: each is a pure function of (seed, ray, "
+                        "sample)", low=0, high=SEED_MAX)
+    target_error: float | None = _option(
+        None, "stop once the image's estimated RMSE over hit pixels against the converged "
+        "AO is below RMSE_AIM x this (achieved within [0.7, 1.0] x it in >= 95% of renders; "
+        "None: fixed spp)", low=0.0, high=1.0, low_open=True, high_open=True)
+    max_pixel_error: float | None = _option(
+        None, "stop each pixel once its 95% half-width is below this (None: no bound)",
+        low=0.0, high=1.0, low_open=True, high_open=True)
+    max_spp: int = _option(
+        DEFAULT_MAX_SPP, "with an error target, the most samples per pixel", low=1)
+    sampler: Sampler = _option(
+        "sobol", "Owen-scrambled Sobol, or independent random samples: both unbiased")
+    engine: Engine = _option(
+        "bvh", "what traces the rays: the BVH (or Scene), or the task-pool DACRT over the "
+        "BVH's triangles (the same AO to float32 rounding)")
+    terminator_offset: float = _option(
+        DEFAULT_TERMINATOR_OFFSET, "Cycles' shadow terminator geometry offset of smooth "
+        "triangles (render_ao's terminator_offset: one per triangle or instance)",
+        low=0.0, high=1.0)
+    denoise: bool = _option(
+        False, "denoise the image with OIDN (the scenesort[denoise] extra; render_ao's "
+        "image_shape says the image's shape)")
+    threads: int | None = _option(
+        None, "CPU host threads (None: every core); the result does not depend on it",
+        low=1)
+
+    def __post_init__(self) -> None:
+        for spec in AO_OPTIONS.values():
+            object.__setattr__(self, spec.name, spec.check(getattr(self, spec.name)))
+        if self.adaptive and self.max_spp < self.min_spp:
+            raise ValueError(f"max_spp ({self.max_spp}) must be >= the minimum spp "
+                             f"({self.min_spp}): raise max_spp or lower spp")
+
+    @property
+    def adaptive(self) -> bool:
+        """Whether an error target decides the samples (else `spp` per pixel)."""
+        return self.target_error is not None or self.max_pixel_error is not None
+
+    @property
+    def min_spp(self) -> int:
+        """Samples every hit pixel gets: spp, at least MIN_ADAPTIVE_SPP when adaptive."""
+        return max(self.spp, MIN_ADAPTIVE_SPP) if self.adaptive else self.spp
+
+    def with_(self, **changes: Any) -> AoOptions:
+        """A copy with these fields changed (None included: it means what it means for the
+        field); an unknown name raises TypeError naming it."""
+        unknown = sorted(set(changes) - set(AO_OPTIONS))
+        if unknown:
+            raise TypeError(f"unknown AO option(s) {unknown}; the options are "
+                            f"{list(AO_OPTIONS)}")
+        return replace(self, **changes)
+
+
+def _specs() -> dict[str, OptionSpec]:
+    """AO_OPTIONS from AoOptions' annotations (`X | None`: optional; a Literal: choices)
+    and its fields' metadata."""
+    hints = typing.get_type_hints(AoOptions)
+    out = {}
+    for f in fields(AoOptions):
+        kind = hints[f.name]
+        optional = typing.get_origin(kind) is types.UnionType
+        if optional:
+            kind = next(k for k in typing.get_args(kind) if k is not type(None))
+        choices = typing.get_args(kind) if typing.get_origin(kind) is Literal else None
+        out[f.name] = OptionSpec(name=f.name, kind=str if choices else kind,
+                                 default=f.default, doc=f.metadata["doc"], choices=choices,
+                                 optional=optional, **f.metadata["bounds"])
+    return out
+
+
+AO_OPTIONS: dict[str, OptionSpec] = _specs()

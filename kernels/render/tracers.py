@@ -1,0 +1,297 @@
+"""What traces the render's rays: per tracer (a mesh's BVH: `MeshTracer`; a two-level scene:
+`SceneArrays`) the closest surface of a primary ray and whether an occlusion ray is
+blocked, as Warp overloads, so that the render's kernels are generic over the tracer; and
+the occlusion rounds on the host, through the BVH or scene, or with the task-pool DACRT
+(`engine="dacrt"`: the same rays, closest hit within the AO distance).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import warp as wp
+
+from ..bvh.api import Bvh
+from ..bvh.node import BvhArrays
+from ..bvh.traversal import closest_hit, traverse
+from ..core.compile_options import MODULE_OPTIONS
+from ..core.launch import PARTS_PER_THREAD, part_launcher, run_parts
+from ..core.mesh import DeviceMesh, Shading
+from ..core.ray import make_ray
+from ..dacrt.api import dacrt_trace_mesh
+from ..scene.api import Scene
+from ..scene.top import SceneArrays, SceneShading, traverse_scene
+from .adaptive import RoundTracer
+from .options import AO_OPTIONS, AoOptions
+from .sampling import SAMPLERS, cosine_direction, pixel_key
+from .surface import PrimaryHits, Surface, instance_surface, occlusion_origin, surface
+
+wp.set_module_options(MODULE_OPTIONS)
+
+PART_RAYS = 4096  # fewest occlusion rays worth a host thread of their own
+LAUNCH_RAYS = 1 << 30  # most rays per launch (a launch's thread index is int32)
+
+
+@wp.struct
+class MeshTracer:
+    """A single mesh's BVH and triangles: what the render kernels trace and shade."""
+
+    bvh: BvhArrays
+    vertices: wp.array(dtype=wp.vec3)
+    indices: wp.array(dtype=wp.vec3i)
+
+
+@wp.func
+def closest_surface(g: MeshTracer, shading: Shading, o: wp.vec3, d: wp.vec3, tmin: float,
+                    tmax: float):
+    """(Surface, True) of the closest hit in [tmin, tmax], or (anything, False)."""
+    h = closest_hit(g.bvh, o, d, tmin, tmax)
+    if h.triangle >= 0:
+        return surface(g.vertices, g.indices, shading, d, h.triangle, h.u, h.v), True
+    return Surface(), False
+
+
+@wp.func  # a Warp overload of the one above (by the first argument's type)
+def closest_surface(g: SceneArrays, shading: SceneShading, o: wp.vec3, d: wp.vec3,  # noqa: F811
+                    tmin: float, tmax: float):
+    """`closest_surface` through a two-level scene."""
+    ih = traverse_scene(g, o, d, tmin, tmax, False)
+    if ih.instance >= 0:
+        return instance_surface(g, shading, d, ih), True
+    return Surface(), False
+
+
+@wp.func
+def occluded(g: BvhArrays, o: wp.vec3, w: wp.vec3, distance: float, find_any: bool) -> bool:
+    """Whether a triangle lies within `distance` along w from o."""
+    return traverse(g, make_ray(o, w), 0.0, distance, find_any).triangle >= 0
+
+
+@wp.func  # a Warp overload of the one above
+def occluded(g: SceneArrays, o: wp.vec3, w: wp.vec3, distance: float,  # noqa: F811
+             find_any: bool) -> bool:
+    """`occluded` in a two-level scene."""
+    return traverse_scene(g, o, w, 0.0, distance, find_any).instance >= 0
+
+
+@wp.kernel
+def primary_kernel(
+    tracer: Any,  # MeshTracer or SceneArrays
+    shading: Any,  # Shading or SceneShading
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),
+    tmax: wp.array(dtype=float),
+    out_surface: wp.array(dtype=Surface),
+    out_hit: wp.array(dtype=int),
+):
+    i = wp.tid()
+    s, hit = closest_surface(tracer, shading, origins[i], directions[i], tmin[i], tmax[i])
+    out_hit[i] = 0
+    if hit:
+        out_surface[i] = s
+        out_hit[i] = 1
+
+
+@wp.kernel
+def surface_kernel(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    shading: Shading,
+    directions: wp.array(dtype=wp.vec3),
+    triangle: wp.array(dtype=int),
+    u: wp.array(dtype=float),
+    v: wp.array(dtype=float),
+    out_surface: wp.array(dtype=Surface),
+):
+    """Surfaces of hits found by another tracer (engine="dacrt")."""
+    i = wp.tid()
+    out_surface[i] = surface(vertices, indices, shading, directions[i], triangle[i], u[i], v[i])
+
+
+@wp.kernel
+def occlusion_kernel(
+    bvh: Any,  # BvhArrays or SceneArrays
+    surfaces: wp.array(dtype=Surface),
+    pixels: wp.array(dtype=int),
+    active: wp.array(dtype=int),  # hit-pixel index of each slot of this round
+    slot0: int,  # the first slot of this launch
+    first: int,  # the first sample index of this round (the same for every slot)
+    count: int,  # samples per slot this round
+    sampler: int,
+    seed: int,
+    distance: float,
+    find_any: int,  # always 1; see below
+    mid: int,  # out_open_mid counts the open samples with index below this (absolute)
+    quarter: int,  # out_open_quarter: those below this
+    out_open: wp.array(dtype=int),  # per slot: open samples (accumulated)
+    out_open_mid: wp.array(dtype=int),
+    out_open_quarter: wp.array(dtype=int),
+):
+    # One occlusion ray per thread, slot-major, so the rays (not the pixels) are split
+    # between host threads. A slot's rays never straddle two launches: the plain
+    # read-modify-write adds below need no atomics (Warp's are not atomic on CPU).
+    # Cosine-weighted estimator (PBR 4th ed. 13.6.3 / A.5.3): each sample is V(p, w).
+    t = wp.tid()
+    s = t % count
+    j = slot0 + t // count
+    k = active[j]
+    hit = surfaces[k]
+    w = cosine_direction(hit.n, sampler, pixel_key(pixels[k], seed), first + s)
+    # traverse() with a run-time any-hit flag, as trace_kernel calls it: measured 25-30%
+    # faster on CPU than bvh_trace.any_hit, whose flag is the literal True.
+    if not occluded(bvh, occlusion_origin(hit, w), w, distance, find_any != 0):
+        out_open[j] += 1
+        if first + s < mid:
+            out_open_mid[j] += 1
+            if first + s < quarter:
+                out_open_quarter[j] += 1
+
+
+@wp.kernel
+def rays_kernel(
+    surfaces: wp.array(dtype=Surface),
+    pixels: wp.array(dtype=int),
+    first: int,
+    count: int,
+    sampler: int,
+    seed: int,
+    out_origin: wp.array(dtype=wp.vec3),
+    out_dir: wp.array(dtype=wp.vec3),
+):
+    i, s = wp.tid()
+    key = pixel_key(pixels[i], seed)
+    hit = surfaces[i]
+    w = cosine_direction(hit.n, sampler, key, first + s)
+    out_origin[i * count + s] = occlusion_origin(hit, w)
+    out_dir[i * count + s] = w
+
+
+for _tracer, _shading in ((MeshTracer, Shading), (SceneArrays, SceneShading)):
+    wp.overload(primary_kernel, {"tracer": _tracer, "shading": _shading})
+wp.overload(occlusion_kernel, {"bvh": BvhArrays})
+wp.overload(occlusion_kernel, {"bvh": SceneArrays})
+
+
+@wp.kernel
+def gather_surfaces_kernel(src: wp.array(dtype=Surface), sel: wp.array(dtype=int),
+                           dst: wp.array(dtype=Surface)):
+    i = wp.tid()
+    dst[i] = src[sel[i]]
+
+
+# --- host side ---------------------------------------------------------------------------
+
+
+def gather_surfaces(surfaces: wp.array, select: np.ndarray) -> wp.array:
+    """The surfaces `select` indexes, on their device."""
+    device = surfaces.device
+    out = wp.empty(len(select), dtype=Surface, device=device)
+    if len(select):
+        sel = wp.array(np.asarray(select, np.int32), dtype=int, device=device)
+        wp.launch(gather_surfaces_kernel, dim=len(select), inputs=[surfaces, sel, out],
+                  device=device)
+    return out
+
+
+def scene_mesh(bvh: Bvh) -> DeviceMesh:
+    """The BVH's mesh on the device (made here for a `Bvh` put together by hand)."""
+    if bvh.mesh is None:
+        bvh.mesh = DeviceMesh(bvh.vertices, bvh.indices, bvh.device)
+    return bvh.mesh
+
+
+def check_tracer(bvh: Any, engine: str) -> None:
+    """What render_ao traces through: a Bvh with either engine, a Scene with engine="bvh"."""
+    if isinstance(bvh, Scene):
+        if engine == "dacrt":
+            raise ValueError('engine="dacrt" traces one world-space triangle list; a two-level '
+                             'Scene is traced with engine="bvh" (or flatten it into one mesh)')
+    elif not isinstance(bvh, Bvh):
+        raise ValueError(f"render_ao takes a Bvh (build_bvh) or a Scene (build_scene), got "
+                         f"{type(bvh).__name__}")
+
+
+def occlusion_tracer(bvh: Bvh | Scene, hits: PrimaryHits, opts: AoOptions, dist: float,
+                     nthreads: int) -> RoundTracer:
+    """The rounds' tracer (adaptive.RoundTracer) of these hits' occlusion rays within
+    `dist`, by `opts.engine`."""
+    pix = wp.array(hits.pixels, dtype=int, device=bvh.device)
+    trace = occlusion_round if opts.engine == "bvh" else occlusion_round_dacrt
+    sampler = SAMPLERS[opts.sampler]
+
+    def trace_round(select: np.ndarray, first: int, count: int, mid: int,
+                    quarter: int) -> tuple[np.ndarray, ...]:
+        return trace(bvh, hits, pix, select, first, count, sampler, opts.seed, dist, nthreads,
+                     mid, quarter)
+
+    return trace_round
+
+
+def occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
+                    nthreads, mid, quarter) -> tuple[np.ndarray, ...]:
+    """Trace samples first..first+count-1 of the `active` hit pixels: per active pixel, the
+    open samples, and those among them with index below `mid` and below `quarter`. The
+    rays are split between host threads at pixel boundaries (a CPU launch runs on one
+    thread)."""
+    device = bvh.device
+    m = len(active)
+    act = wp.array(active.astype(np.int32), dtype=int, device=device)
+    outs = [wp.zeros(m, dtype=int, device=device) for _ in range(3)]
+    # More parts than threads, taken in turn (`run_parts`): a round's pixels cost very
+    # different amounts (an adaptive round's are clustered where the image is noisy).
+    spread = nthreads * PARTS_PER_THREAD if nthreads > 1 else 1
+    parts = max(1, min(spread, m * count // PART_RAYS, m), -(-m * count // LAUNCH_RAYS))
+    bounds = np.linspace(0, m, parts + 1).astype(int)
+
+    launch = part_launcher(occlusion_kernel, [
+        bvh.arrays, hits.surfaces, pix, act, 0, int(first), int(count), sampler_id, seed, dist,
+        1, int(mid), int(quarter), *outs], device)
+
+    def run(p: int) -> None:
+        launch(int(bounds[p + 1] - bounds[p]) * count, {4: int(bounds[p])})
+
+    run_parts(run, parts, nthreads)
+    return tuple(out.numpy().astype(np.int64) for out in outs)
+
+
+def occlusion_round_dacrt(bvh, hits, pix, active, first, count, sampler_id, seed, dist,
+                          nthreads, mid, quarter) -> tuple[np.ndarray, ...]:
+    """`occlusion_round` with the round's rays traced by DACRT (closest hit within the AO
+    distance: occluded if there is one)."""
+    m = len(active)
+    origins, dirs = _occlusion_rays(hits, first, count, seed, sampler_id, active)
+    h = dacrt_trace_mesh(scene_mesh(bvh), origins, dirs, 0.0, dist)
+    opened = (h.triangle < 0).reshape(m, count)
+    return tuple(opened[:, : max(0, k - first)].sum(axis=1) for k in (first + count, mid,
+                                                                        quarter))
+
+
+def occlusion_rays(hits: PrimaryHits, first: int, count: int, seed: int = 0,
+                   sampler: str = "sobol", select: np.ndarray | None = None,
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """The origins and unit directions of samples first..first+count-1 of every hit pixel
+    (or of the hit pixels `select` indexes), each (H*count, 3) float32, pixel-major:
+    exactly the rays `render_ao` traces (for DACRT and for peers in benchmarks/tests)."""
+    return _occlusion_rays(hits, first, count, AO_OPTIONS["seed"].check(seed),
+                           SAMPLERS[AO_OPTIONS["sampler"].check(sampler)], select)
+
+
+def _occlusion_rays(hits, first, count, seed, sampler_id, select) -> tuple[np.ndarray, ...]:
+    device = hits.surfaces.device
+    surfaces, pixels = hits.surfaces, hits.pixels
+    if select is not None:
+        surfaces, pixels = gather_surfaces(surfaces, select), pixels[select]
+    h = len(pixels)
+    origins = wp.empty(h * count, dtype=wp.vec3, device=device)
+    dirs = wp.empty(h * count, dtype=wp.vec3, device=device)
+    if h and count:
+        pix = wp.array(pixels, dtype=int, device=device)
+        wp.launch(rays_kernel, dim=(h, count),
+                  inputs=[surfaces, pix, int(first), int(count), sampler_id, seed],
+                  outputs=[origins, dirs], device=device)
+    return origins.numpy().reshape(-1, 3), dirs.numpy().reshape(-1, 3)
+
+
+WARP_MODULES = (occlusion_kernel.module,)  # this module's kernels (core.launch.load_modules)
