@@ -81,9 +81,9 @@ def test_a_client_that_hangs_up_mid_render_stops_the_work(
     gate.release()
     inproc.wait_idle()
     assert (gate.passed, gate.rounds) == (1, 0)  # stopped at the round: nothing rendered
-    until(lambda: "work stopped early: the client disconnected" in caplog.text,
-          "the log to say the work stopped")
-    assert "ao?rays=4000&spp=256 -> 400" in caplog.text and not inproc.service.live
+    until(lambda: "work stopped early: the client disconnected" in caplog.text
+          and "ao?rays=4000&spp=256 -> 400" in caplog.text, "the log to say both")
+    assert not inproc.service.live
     answers_the_next_client(inproc.client, scene_id, box_scene, make_rays)
 
 
