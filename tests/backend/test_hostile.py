@@ -430,6 +430,7 @@ def test_fifty_concurrent_large_uploads_get_503_past_the_budget(svc, client) -> 
     assert client.get("/v1/health").json()["cache"]["bytes"] <= CACHE_MB * 2**20
 
 
+@pytest.mark.slow
 def test_thousands_of_tiny_uploads_then_a_large_one(client) -> None:
     """The upload budget is released by every request: after 2000 small uploads a body of
     most of the budget still fits."""
@@ -594,6 +595,7 @@ def test_upload_answers_201_with_location(client) -> None:
     assert up.headers["location"] == f"/v1/scenes/{up.json()['scene_id']}"
 
 
+@pytest.mark.slow
 def test_out_of_memory_while_decoding_is_507(start_service) -> None:
     """A real MemoryError: the service runs under a 1000 MiB address-space limit and gets a
     144 MiB scene (decoding needs a few copies). 507 saying why; the service lives on."""
@@ -622,6 +624,7 @@ def test_out_of_memory_while_decoding_is_507(start_service) -> None:
     # cannot see the cancel; the process leaves it behind
     (signal.SIGINT, 0, {"spp": 1024, "target_error": 0.001}),
 ])
+@pytest.mark.slow
 def test_a_stop_signal_during_a_long_render_exits_promptly(
     start_service, sig, code, render
 ) -> None:
