@@ -35,6 +35,7 @@ def source_packages() -> set[str]:
     return names
 
 
+@pytest.mark.slow
 def test_the_only_top_level_entry_is_scenesort(wheel: Path) -> None:
     with zipfile.ZipFile(wheel) as zf:
         top = {name.split("/")[0] for name in zf.namelist()}
@@ -42,6 +43,7 @@ def test_the_only_top_level_entry_is_scenesort(wheel: Path) -> None:
                                 ".dist-info"}
 
 
+@pytest.mark.slow
 def test_every_package_folder_is_in_the_wheel(wheel: Path) -> None:
     with zipfile.ZipFile(wheel) as zf:
         packages = {name.rsplit("/", 1)[0].replace("/", ".") for name in zf.namelist()
@@ -49,6 +51,7 @@ def test_every_package_folder_is_in_the_wheel(wheel: Path) -> None:
     assert packages == source_packages()
 
 
+@pytest.mark.slow
 def test_every_file_the_engine_reads_is_in_the_wheel(wheel: Path) -> None:
     """The files beside the modules that they read at import (bvh/wide_simd.h, the SIMD
     traversal's C++): without one the engine fails on import."""
@@ -61,6 +64,7 @@ def test_every_file_the_engine_reads_is_in_the_wheel(wheel: Path) -> None:
         assert wanted <= set(zf.namelist())
 
 
+@pytest.mark.slow
 def test_the_command_line_is_scenesorts(wheel: Path) -> None:
     with zipfile.ZipFile(wheel) as zf:
         (entry,) = [n for n in zf.namelist() if n.endswith("entry_points.txt")]

@@ -4,13 +4,15 @@ from __future__ import annotations
 
 import json
 import threading
-import time
 from collections.abc import Iterator
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 
 from addon import client
+
+# Held by the health handler until the test ends: a service slower than any client timeout.
+_HELD = threading.Event()
 
 
 class _Handler(BaseHTTPRequestHandler):
@@ -28,7 +30,8 @@ class _Handler(BaseHTTPRequestHandler):
 
     def do_GET(self) -> None:  # noqa: N802 - http.server's naming
         if self.path == "/v1/health":
-            time.sleep(client.HEALTH_TIMEOUT_S + 1.0)  # slower than the client waits
+            _HELD.wait(60.0)  # no answer while the client waits, nor after
+            return
         if "/result?" in self.path:
             self._send(200, b"\0" * 12, "application/octet-stream")  # 3 values, not 2
             return
@@ -60,6 +63,7 @@ def server() -> Iterator[str]:
     try:
         yield f"http://127.0.0.1:{httpd.server_address[1]}"
     finally:
+        _HELD.set()
         httpd.shutdown()
         httpd.server_close()
 

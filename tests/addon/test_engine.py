@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import math
 import re
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from types import SimpleNamespace
@@ -33,6 +32,7 @@ from blender_scenes import (
 
 import addon
 from addon import camera, engine, export, prefs, service
+from tests.waiting import until
 
 WIDTH, HEIGHT = 40, 30
 FLOOR_TRIANGLES, BOX_TRIANGLES = 2 * 8 * 8, 12
@@ -395,13 +395,12 @@ def test_esc_cancels_the_services_job(probe, tmp_path) -> None:
     job_id = deleted[-1]
     url = bpy.context.window_manager.scenesort.url or service.served_url()
     headers = {"Authorization": f"Bearer {service.token_for(url)}"}
-    state = None
-    for _ in range(600):  # the job stops at the engine's next round
+
+    def ended() -> str | None:  # the job stops at the engine's next round
         state = httpx.get(f"{url}/v1/jobs/{job_id}", headers=headers).json()["state"]
-        if state not in {"queued", "running"}:
-            break
-        time.sleep(0.1)
-    assert state == "cancelled"
+        return None if state in {"queued", "running"} else state
+
+    assert until(ended, f"job {job_id} to end", 60.0) == "cancelled"
 
 
 def test_empty_scene_gives_a_transparent_image_and_says_so(probe, tmp_path) -> None:

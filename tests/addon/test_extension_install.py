@@ -23,10 +23,13 @@ import numpy as np
 import pytest
 from blender_scenes import BLENDER_EXT, REPO
 
-pytestmark = pytest.mark.skipif(
-    not (sys.platform.startswith("linux") and platform.machine() == "x86_64"),
-    reason="installs the linux-x64 zip, which only this platform can run",
-)
+pytestmark = [
+    pytest.mark.skipif(
+        not (sys.platform.startswith("linux") and platform.machine() == "x86_64"),
+        reason="installs the linux-x64 zip, which only this platform can run",
+    ),
+    pytest.mark.slow,  # builds the zips for every platform and a venv: ~25 s warm
+]
 SCRIPT = Path(__file__).with_name("install_and_render.py")
 INSTALL_TIMEOUT_S = 1800  # a cold pip cache downloads bpy (hundreds of MB)
 RENDER_TIMEOUT_S = 900  # a cold Warp kernel cache compiles every module once

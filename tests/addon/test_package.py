@@ -141,6 +141,7 @@ def engine_wheel(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return addon_zip.engine_wheel(REPO, tmp_path_factory.mktemp("engine"))
 
 
+@pytest.mark.slow
 def test_the_bundled_wheel_leaves_the_packaging_tools_out(engine_wheel: Path) -> None:
     """addon-zip, bench and the peer tracers are a packager's: Blender gets the service."""
     with zipfile.ZipFile(engine_wheel) as wheel:
@@ -151,6 +152,7 @@ def test_the_bundled_wheel_leaves_the_packaging_tools_out(engine_wheel: Path) ->
     assert addon_zip.TOOLS_IN_WHEEL.rstrip("/") == "scenesort/backend/tools"
 
 
+@pytest.mark.slow
 def test_the_bundled_wheels_record_lists_exactly_its_files(engine_wheel: Path) -> None:
     """PEP 376/427: RECORD names every file of the wheel with its sha256 and size."""
     with zipfile.ZipFile(engine_wheel) as wheel:
@@ -166,6 +168,7 @@ def test_the_bundled_wheels_record_lists_exactly_its_files(engine_wheel: Path) -
             assert (digest, size) == (f"sha256={expected.decode()}", str(len(data))), path
 
 
+@pytest.mark.slow
 def test_the_bundled_wheel_installs_and_says_where_the_tools_are(
     engine_wheel: Path, tmp_path: Path
 ) -> None:

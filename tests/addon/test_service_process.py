@@ -5,16 +5,17 @@ from __future__ import annotations
 import os
 import re
 import shlex
+import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import pytest
 from blender_scenes import REPO
 
 from addon import client, service
+from tests.waiting import until
 
 # Stands in for `scenesort serve`: sleeps (bounded) whatever arguments it gets.
 SLEEPER = shlex.join([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -29,13 +30,14 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _wait_gone(pid: int, seconds: float = 10.0) -> bool:
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        if not _alive(pid):
-            return True
-        time.sleep(0.05)
-    return False
+def _signalled(pid: int) -> bool:
+    """Whether SIGTERM or SIGKILL is pending for `pid`: sent, not yet acted on."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    pending = 0
+    for line in status.splitlines():
+        if line.startswith(("SigPnd:", "ShdPnd:")):
+            pending |= int(line.split()[1], 16)
+    return bool(pending & ((1 << (signal.SIGTERM - 1)) | (1 << (signal.SIGKILL - 1))))
 
 
 def test_command_line_appends_serve_and_address() -> None:
@@ -63,14 +65,22 @@ def test_a_child_started_from_a_finished_thread_lives_on() -> None:
     """Renders and operators start the service from worker threads, which end; Linux's
     parent-death signal follows the forking thread, so the child must not die with it."""
     started: list[subprocess.Popen] = []
-    thread = threading.Thread(
-        target=lambda: started.append(service.start(SLEEPER, "http://127.0.0.1:1"))
-    )
+    tids: list[int] = []
+
+    def launch() -> None:
+        tids.append(threading.get_native_id())
+        started.append(service.start(SLEEPER, "http://127.0.0.1:1"))
+
+    thread = threading.Thread(target=launch)
     thread.start()
     thread.join()
     try:
-        time.sleep(0.5)  # the signal, were it sent, arrives at once
-        assert started and _alive(started[0].pid) and service.running()
+        # Linux sends the signal as the thread exits, before its task leaves /proc: once
+        # it has, a signal due was sent, and is either pending or has ended the child.
+        until(lambda: not Path(f"/proc/self/task/{tids[0]}").exists(),
+              "the finished thread to leave /proc", 10.0)
+        assert started and _alive(started[0].pid) and not _signalled(started[0].pid)
+        assert service.running()
     finally:
         assert service.stop()
 
@@ -109,7 +119,8 @@ def test_child_dies_with_its_parent(ending: str) -> None:
     )
     child = int(parent.stdout.split()[0])
     try:
-        assert _wait_gone(child), f"service child {child} outlived its parent ({ending})"
+        until(lambda: not _alive(child), f"service child {child} to end with its parent "
+              f"({ending})", 10.0)
     finally:
         if _alive(child):
             os.kill(child, 9)

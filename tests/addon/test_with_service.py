@@ -200,6 +200,7 @@ def test_stop_ends_the_service(live) -> None:
         bpy.ops.scenesort.build_bvh()
 
 
+@pytest.mark.slow
 def test_first_render_starts_the_service_with_progress(live) -> None:
     """'Start the service on first render' (the default): Render AO alone is enough, and
     the start reports its progress as steps (the panel's progress line)."""

@@ -1,6 +1,7 @@
 """Fixtures: `start_service(*args)` starts a real service (stopped at session end),
 `service` is one shared instance, `api` a client of it (all three from
-tests/backend/service_client.py); `box_scene` and `make_rays`.
+tests/backend/service_client.py); `inproc`, the service in this process, and `gate`, its
+engine held until the test releases it (tests/backend/gated.py); `box_scene` and `make_rays`.
 """
 
 from __future__ import annotations
@@ -9,6 +10,7 @@ from collections.abc import Callable
 
 import numpy as np
 import pytest
+from gated import gate, inproc  # noqa: F401
 from service_client import api, floor_and_box, rays_towards_floor, service, start_service  # noqa: F401
 
 

@@ -25,6 +25,8 @@ import httpx
 import numpy as np
 import pytest
 
+from tests.waiting import WAIT_S, until
+
 REPO = Path(__file__).resolve().parents[2]
 START_TIMEOUT_S = 90.0  # first start may compile Warp kernels
 READY_LINE = "scenesort serving on "
@@ -87,15 +89,19 @@ def launch(
     if url is None:
         stop(service)
         raise RuntimeError(f"service did not start:\n{service.log()[-3000:]}")
-    for _ in range(200):  # bounded: 200 * 0.1 s
-        try:
-            if httpx.get(f"{url}/v1/health", timeout=2.0).status_code == 200:
-                return service
-        except httpx.TransportError:
-            pass
-        time.sleep(0.1)
-    stop(service)
-    raise RuntimeError(f"/v1/health never answered 200:\n{service.log()[-3000:]}")
+    try:
+        until(lambda: healthy(url), "/v1/health to answer 200", 20.0)
+    except AssertionError:
+        stop(service)
+        raise RuntimeError(f"/v1/health never answered 200:\n{service.log()[-3000:]}") from None
+    return service
+
+
+def healthy(url: str) -> bool:
+    try:
+        return httpx.get(f"{url}/v1/health", timeout=2.0).status_code == 200
+    except httpx.TransportError:
+        return False
 
 
 def stop(service: Service) -> None:
@@ -195,6 +201,19 @@ class Api:
 
     def health(self) -> httpx.Response:
         return self.client.get("/v1/health")
+
+
+FINAL = frozenset({"done", "failed", "cancelled"})
+
+
+def job_ended(client: httpx.Client, job_id: str, states: frozenset[str] = FINAL,
+              timeout_s: float = WAIT_S) -> dict:
+    """The job's status once its state is in `states` (by default: final), polled."""
+    def reached() -> dict | None:
+        status = client.get(f"/v1/jobs/{job_id}").json()
+        return status if status["state"] in states else None
+
+    return until(reached, f"job {job_id} to reach {sorted(states)}", timeout_s)
 
 
 # --- fixtures -----------------------------------------------------------------------

@@ -21,6 +21,8 @@ from scenesort.backend.render.bundle import BundleWriter
 from scenesort.backend.render.cluster import render_frames_ray
 from scenesort.backend.render.frames import frame_paths, render_frames
 
+pytestmark = pytest.mark.slow  # a local Ray cluster: ~14 s
+
 
 def grid(n: int, size: float, lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """An n x n grid of quads in z=0 bent up by `lift` * x^2."""

@@ -21,7 +21,7 @@ from scenesort.backend.render.bundle import (
     read_bundle,
 )
 from scenesort.backend.render.frames import FrameRenderer, render_frames
-from service_client import OCTET
+from service_client import OCTET, job_ended
 
 
 def grid(n: int, size: float, lift: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -179,20 +179,9 @@ def service_frame(api, bundle: Path, number: int) -> tuple[dict, str]:  # noqa: 
     job = api.client.post("/v1/jobs", json={
         "scene_id": listing.json()["scene_id"], "camera": record["camera"],
         **meta["settings"]}).json()
-    status = _wait(api, job["job_id"])
+    status = job_ended(api.client, job["job_id"])
     assert status["state"] == "done", status
     return status, job["job_id"]
-
-
-def _wait(api, job_id: str) -> dict:  # noqa: ANN001
-    import time
-
-    for _ in range(600):  # bounded: 600 * 0.05 s
-        status = api.client.get(f"/v1/jobs/{job_id}").json()
-        if status["state"] not in ("queued", "running"):
-            return status
-        time.sleep(0.05)
-    raise AssertionError(f"job {job_id} did not finish: {status}")
 
 
 def test_resume_and_frame_ranges(bundle, tmp_path) -> None:

@@ -1,17 +1,20 @@
-"""Many clients at once, and clients that leave early: all served, service stays healthy."""
+"""Many clients at once, and clients that leave early: all served, service stays healthy.
+
+The clients that leave do so at a moment the test holds: mid-upload, or while their work is
+running in the engine (the service in this process with a gated engine, gated.py)."""
 
 from __future__ import annotations
 
+import logging
 import socket
-import time
 from concurrent.futures import ThreadPoolExecutor
-from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
 import pytest
 
 from scenesort import kernels
+from tests.waiting import until
 
 OCTET = {"Content-Type": "application/octet-stream"}
 
@@ -58,32 +61,74 @@ def test_eight_concurrent_clients_all_get_their_own_answer(
     assert api.health().status_code == 200
 
 
-def _send_and_hang_up(url: str, path: str, body: bytes, send_all: bool) -> None:
-    """Send a request over a raw socket and close it without reading the answer."""
-    parts = urlsplit(url)
-    head = (
-        f"POST {path} HTTP/1.1\r\nHost: {parts.netloc}\r\n"
-        f"Content-Type: application/octet-stream\r\nContent-Length: {len(body)}\r\n\r\n"
-    ).encode()
-    with socket.create_connection((parts.hostname, parts.port), timeout=10) as sock:
-        sock.sendall(head + (body if send_all else body[: len(body) // 2]))
-        time.sleep(0.3)  # the service is now reading or rendering
-
-
-def test_client_leaving_mid_render_leaves_the_service_healthy(
-    service, api, box_scene, scene_id, make_rays
-):
+def test_a_client_that_hangs_up_mid_render_stops_the_work(
+    inproc, gate, box_scene, make_rays, caplog
+) -> None:
+    """The request's work is provably running (the engine holds it before its first
+    round) when its client hangs up: the service notices, stops the work at that round
+    without rendering, answers nobody (a 400 in its log), frees the worker and answers the
+    next client exactly (end to end with the real engine: test_hostile.py)."""
+    caplog.set_level(logging.INFO, logger="scenesort")
+    scene_id = upload(inproc.client, box_scene)
     origins, directions = make_rays(4000, seed=5)
-    heavy = np.concatenate([origins, directions], axis=1).astype("<f4").tobytes()
-    path = f"/v1/scenes/{scene_id}/ao?rays=4000&spp=256"
-    _send_and_hang_up(service.url, path, heavy, send_all=True)  # leaves mid-render
-    _send_and_hang_up(service.url, path, heavy, send_all=False)  # leaves mid-upload
-    assert api.health().status_code == 200  # the event loop is free while the worker renders
+    sock = raw_post(inproc, f"/v1/scenes/{scene_id}/ao?rays=4000&spp=256",
+                    np.concatenate([origins, directions], axis=1).astype("<f4").tobytes())
+    gate.wait_entered()
+    [signal] = inproc.service.live  # the running request's stop signal
+    sock.close()
+    until(lambda: signal.stopped, "the service to notice the hang-up")
+    assert signal.reason == "the client disconnected"
+    gate.release()
+    inproc.wait_idle()
+    assert (gate.passed, gate.rounds) == (1, 0)  # stopped at the round: nothing rendered
+    until(lambda: "work stopped early: the client disconnected" in caplog.text
+          and "ao?rays=4000&spp=256 -> 400" in caplog.text, "the log to say both")
+    assert not inproc.service.live
+    answers_the_next_client(inproc.client, scene_id, box_scene, make_rays)
+
+
+def test_a_client_that_hangs_up_mid_upload_never_reaches_the_worker(
+    inproc, gate, box_scene, make_rays, caplog
+) -> None:
+    """Half of the rays sent, then the connection closed: the request ends while reading
+    (a 400 in the log) and no work is queued or run."""
+    caplog.set_level(logging.INFO, logger="scenesort")
+    scene_id = upload(inproc.client, box_scene)
+    origins, directions = make_rays(4000, seed=5)
+    body = np.concatenate([origins, directions], axis=1).astype("<f4").tobytes()
+    raw_post(inproc, f"/v1/scenes/{scene_id}/ao?rays=4000&spp=7", body, len(body) // 2).close()
+    until(lambda: "ao?rays=4000&spp=7 -> 400" in caplog.text, "the request to end")
+    assert gate.calls == 0 and inproc.service.worker.queued == 0
+    gate.release()
+    answers_the_next_client(inproc.client, scene_id, box_scene, make_rays)
+
+
+def upload(client: httpx.Client, scene: tuple[np.ndarray, np.ndarray]) -> str:
+    v, i = scene
+    response = client.post("/v1/scenes", params={"vertices": len(v), "triangles": len(i)},
+                           content=v.tobytes() + i.tobytes(), headers=OCTET)
+    assert response.status_code in (200, 201), response.text
+    return response.json()["scene_id"]
+
+
+def raw_post(inproc, path: str, body: bytes, send: int | None = None) -> socket.socket:
+    """A POST of `body` (its first `send` bytes only, if given) on a raw socket."""
+    host, port = inproc.host_port()
+    sock = socket.create_connection((host, port), timeout=10)
+    sock.sendall(f"POST {path} HTTP/1.1\r\nHost: {host}:{port}\r\nContent-Type: "
+                 f"application/octet-stream\r\nContent-Length: {len(body)}\r\n\r\n".encode()
+                 + body[:send])
+    return sock
+
+
+def answers_the_next_client(client: httpx.Client, scene_id: str, box_scene, make_rays) -> None:
+    """Health, and a small request answered exactly as the engine answers it."""
+    assert client.get("/v1/health").status_code == 200
     small_o, small_d = make_rays(50, seed=6)
-    response = api.ao(scene_id, small_o, small_d, spp=2, seed=1)
+    response = client.post(f"/v1/scenes/{scene_id}/ao", params={"rays": 50, "spp": 2, "seed": 1},
+                           content=np.concatenate([small_o, small_d], axis=1).astype("<f4")
+                           .tobytes(), headers=OCTET)
     assert response.status_code == 200, response.text
     bvh = kernels.build_bvh(*box_scene, device="cpu")
     expected = kernels.ambient_occlusion(bvh, small_o, small_d, spp=2, seed=1)
     np.testing.assert_array_equal(np.frombuffer(response.content, "<f4"), expected)
-    assert service.proc.poll() is None
-    assert " -> 500 " not in service.log()

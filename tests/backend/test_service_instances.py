@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scenesort.backend.render.bundle import instance_body, mesh_id
 from scenesort.backend.wire import binary as wire
-from service_client import OCTET, floor_and_box, rays_towards_floor, scene_body
+from service_client import OCTET, floor_and_box, job_ended, rays_towards_floor, scene_body
 
 
 def cube() -> tuple[np.ndarray, np.ndarray]:
@@ -183,16 +183,10 @@ def test_decode_instances_keeps_the_values() -> None:
 
 
 def _job(api, scene_id: str, camera: dict) -> dict:  # noqa: ANN001
-    import time
-
     job = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera, "spp": 4,
                                             "seed": 2, "distance": 0.5})
     assert job.status_code == 202, job.text
-    for _ in range(600):  # bounded: 600 * 0.05 s
-        status = api.client.get(f"/v1/jobs/{job.json()['job_id']}").json()
-        if status["state"] not in ("queued", "running"):
-            break
-        time.sleep(0.05)
+    status = job_ended(api.client, job.json()["job_id"])
     assert status["state"] == "done", status
     ao = api.client.get(f"/v1/jobs/{status['job_id']}/result", params={"format": "f32"})
     return {**status, "ao": np.frombuffer(ao.content, "<f4")}

@@ -7,16 +7,12 @@ adds one failing route to a real app served by a real uvicorn on 127.0.0.1.
 from __future__ import annotations
 
 import logging
-import socket
-import threading
-import time
 
 import httpx
 import pytest
-import uvicorn
+from gated import serve
 from scenesort.backend.api.app import create_app
 from scenesort.backend.api.service import Settings
-from scenesort.backend.commands.serve import _listen
 
 
 @pytest.fixture
@@ -27,18 +23,8 @@ def failing_service():
     async def boom() -> dict:
         raise RuntimeError("engine exploded")
 
-    sock = _listen(socket.AF_INET, "127.0.0.1", 0)
-    server = uvicorn.Server(uvicorn.Config(app, log_level="warning", access_log=False))
-    thread = threading.Thread(target=server.run, kwargs={"sockets": [sock]}, daemon=True)
-    thread.start()
-    url = f"http://127.0.0.1:{sock.getsockname()[1]}"
-    for _ in range(100):  # bounded: 10 s
-        if server.started:
-            break
-        time.sleep(0.1)
-    yield url
-    server.should_exit = True
-    thread.join(timeout=10)
+    with serve(app) as running:
+        yield running.url
 
 
 def test_unexpected_error_is_a_logged_500_and_health_stays_200(failing_service, caplog):

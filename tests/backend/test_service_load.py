@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import httpx
+import pytest
 from load import OCTET, Load, rss_mb
 from service_client import floor_and_box, scene_body
 
@@ -12,6 +13,7 @@ WORKING_MB = 256  # the renders' and requests' arrays in flight
 BASELINE_SLACK_MB = 64  # what the first requests add to the idle process (allocator, caches)
 
 
+@pytest.mark.slow  # a few seconds of load by design
 def test_mixed_load_gets_only_designed_answers_within_the_memory_budget(start_service) -> None:
     svc = start_service("--cache-mb", str(CACHE_MB), "--results-mb", str(RESULTS_MB),
                         "--uploads-mb", str(UPLOADS_MB))

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import hashlib
 import re
-import time
 
 import httpx
 import numpy as np
+
+from tests.waiting import until
 
 
 def test_upload_is_201_then_200_with_the_same_id(api, box_scene) -> None:
@@ -88,10 +89,10 @@ def test_one_log_line_per_request_with_duration(api, service) -> None:
     marker = "a1" * 16
     for _ in range(3):
         api.client.head(f"/v1/scenes/{marker}")
-    for _ in range(50):  # the line is written after the response: allow it 5 s
+    def logged() -> list[str]:  # each line is written after its response
         lines = [line for line in service.log().splitlines() if marker in line]
-        if len(lines) >= 3:
-            break
-        time.sleep(0.1)
+        return lines if len(lines) >= 3 else []
+
+    lines = until(logged, "the three log lines", 5.0)
     assert len(lines) == 3
     assert all(re.search(r"HEAD /v1/scenes/a1\w+ -> 404 in \d+\.\d ms", line) for line in lines)

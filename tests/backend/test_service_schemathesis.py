@@ -18,6 +18,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.errors import Unsatisfiable
 
+pytestmark = pytest.mark.slow  # 40 generated requests per operation, twice: ~17 s
+
 EXAMPLES_PER_OPERATION = 40
 BUDGET_S = 120.0
 MAX_RAYS = 64  # AO requests on the known scene carry at most this many rays

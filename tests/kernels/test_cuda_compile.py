@@ -42,6 +42,7 @@ def test_every_kernel_module_is_listed():
             "scenesort.kernels.render.tracers"} <= set(MODULES)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("arch", ARCHS)
 @pytest.mark.parametrize("name", MODULES)
 def test_compiles_for_cuda(name, arch):

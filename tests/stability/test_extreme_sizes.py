@@ -57,6 +57,7 @@ def test_one_ray_and_one_triangle():
     assert h.triangle.tolist() == [-1]
 
 
+@pytest.mark.slow
 def test_two_million_triangles():
     """Guards index and node-count arithmetic at 2M triangles (4M nodes, 6M vertices):
     an icosphere of 1.31M triangles inside a 0.7M-triangle soup far outside. Rays from
@@ -81,6 +82,7 @@ def test_two_million_triangles():
     assert np.all(h.triangle < len(sf))  # the sphere, never the soup behind it
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 def test_ten_million_rays():
     """Guards ray-count arithmetic and the per-thread split at 10M rays (120 MB of rays):

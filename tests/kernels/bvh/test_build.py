@@ -162,6 +162,7 @@ def test_structure_property(triangles, leaf_size, method, seed, grid):
     check_bvh(bvh, leaf_size)
 
 
+@pytest.mark.slow
 @pytest.mark.host_only  # a child process compiling for the CPU
 def test_compile_time_is_reported_apart_from_build_time(tmp_path):
     """The first build in an empty kernel cache compiles Warp modules for seconds: that is

@@ -38,6 +38,7 @@ def measured_rmse(res, ref) -> float:
     return math.sqrt(max(mse, 0.0))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("target", [0.05, 0.02, 0.01])
 def test_achieved_rmse_is_calibrated_to_the_target(bunny_view, target):
     """Over 20 seeds the achieved RMSE lies in [0.7, 1.0] x target in >= 95% of runs (at
@@ -59,6 +60,7 @@ def test_achieved_rmse_is_calibrated_to_the_target(bunny_view, target):
     assert np.mean(np.abs(estimates - 1.0) <= 0.2) >= 0.95, estimates
 
 
+@pytest.mark.slow
 def test_samples_follow_the_pixels_standard_deviation(bunny_view):
     """Neyman allocation: pixels whose samples disagree get more samples than those
     whose samples all agree (the median at least one doubling more: a few flat pixels
@@ -78,6 +80,7 @@ def test_samples_follow_the_pixels_standard_deviation(bunny_view):
     assert bound.rays.occlusion > 2 * res.rays.occlusion
 
 
+@pytest.mark.slow
 def test_max_pixel_error_bounds_every_pixel(bunny_view):
     """Every pixel stops with its 95% half-width below max_pixel_error (or at max_spp),
     and >= 95% of hit pixels lie within it of the reference (a 95% interval each)."""
