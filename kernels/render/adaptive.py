@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .options import AoOptions
+from scenesort.ao_options import AoOptions
 
 Z95 = 1.959963984540054  # two-sided 95% normal quantile
 RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's margin)
