@@ -23,6 +23,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("scenesort.backend.commands.serve", "run the local HTTP service (FastAPI + uvicorn)"),
     "addon-zip": ("scenesort.backend.tools.addon_zip",
                   "build the installable Blender extension zip"),
+    "addon-options": ("scenesort.backend.tools.addon_options",
+                      "write addon/ao_options.py, the add-on's copy of the AO settings"),
     "token": ("scenesort.backend.commands.token",
               "print the token `scenesort serve` uses (clients send it)"),
 }
