@@ -138,12 +138,12 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
     ms = result.timings_ms
     rays = result.rays
     stats = result.stats()
-    rmse = stats["rmse_estimate"]
+    rmse = stats.rmse_estimate
     title = (
         f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
-        f"spp mean {stats['spp_mean']:.1f} (max {stats['spp_max']}), "
+        f"spp mean {stats.spp_mean:.1f} (max {stats.spp_max}), "
         f"est. RMSE {'-' if rmse is None else f'{rmse:.4f}'} (AO units, hit pixels"
-        f"{', before denoising' if stats['denoised'] else ''})"
+        f"{', before denoising' if stats.denoised else ''})"
     )
     table = Table(title=title, min_width=len(title) + 4)
     table.add_column("phase")
@@ -155,15 +155,15 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
         rate = f"{n / t / 1e3:.2f}" if n and t > 0 else ""
         table.add_row(name, f"{t:.1f}", f"{n:,}" if n is not None else "", rate)
 
-    compile_ms = timings["compile"] + ms.get("compile", 0.0)  # build's and render's kernels
+    compile_ms = timings["compile"] + ms.compile  # the build's and the render's kernels
     row("load", timings["load"])
     row("compile", compile_ms)
     row("build", timings["build"])
-    row("primary", ms["primary"], rays["primary"])
-    row("occlusion", ms["occlusion"], rays["occlusion"])
-    if "denoise" in ms:
-        row("denoise", ms["denoise"])
+    row("primary", ms.primary, rays.primary)
+    row("occlusion", ms.occlusion, rays.occlusion)
+    if ms.denoise is not None:
+        row("denoise", ms.denoise)
     row("write", timings["write"])
-    total = timings["load"] + compile_ms + timings["build"] + ms["total"] + timings["write"]
-    row("total", total, rays["primary"] + rays["occlusion"])
+    total = timings["load"] + compile_ms + timings["build"] + ms.total + timings["write"]
+    row("total", total, rays.primary + rays.occlusion)
     return table

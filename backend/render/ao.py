@@ -24,7 +24,7 @@ def ambient_occlusion(
 
     result = kernels.render_ao(bvh, origins, directions, options,
                                progress=lambda *_: signal.check(), **shading(scene))
-    return np.asarray(result.ao, dtype=np.float32), dict(result.timings_ms)
+    return np.asarray(result.ao, dtype=np.float32), result.timings_ms.to_dict()
 
 
 # An instance list's arguments are made once: the engine keeps its device copy of the

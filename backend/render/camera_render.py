@@ -54,7 +54,7 @@ def render_camera(
     bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device,
                                                     view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
-        job.add_timing("bvh.compile", float(getattr(bvh, "stats", {}).get("compile_ms", 0.0)))
+        job.add_timing("bvh.compile", float(bvh.stats.compile_ms))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
     result = timed(
@@ -63,9 +63,9 @@ def render_camera(
     job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
     job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0 spp
     stats = result.stats()
-    job.spp_mean, job.spp_max = stats["spp_mean"], stats["spp_max"]
-    job.rmse_estimate, job.rays = stats["rmse_estimate"], stats["rays"]
-    job.denoised = stats["denoised"]
+    job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
+    job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
+    job.denoised = stats.denoised
     depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
     job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
@@ -105,6 +105,6 @@ def _render_ao(
 
     result = kernels.render_ao(bvh, origins, directions, options, tmin=tmin, tmax=tmax,
                                progress=progress, image_shape=shape, **shading(scene))
-    for name, ms in result.timings_ms.items():
+    for name, ms in result.timings_ms.to_dict().items():
         job.add_timing(f"ao.{name}", float(ms))
     return result
