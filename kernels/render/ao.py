@@ -1,7 +1,7 @@
 """Ambient occlusion per primary ray, with fixed or adaptive sample counts: `render_ao`,
 `ambient_occlusion` and what they report (`AoResult`).
 
-Definition (issue 4; Cycles' AO pass since issue 14): for a primary ray's closest hit p
+Definition (Cycles' AO pass): for a primary ray's closest hit p
 with shading normal n, AO(p) = (1/pi) * integral over the hemisphere around n of
 V(p, w) cos(theta) dw, where V = 1 when no triangle lies within `distance` along w. It is
 estimated with cosine-weighted directions, so each sample is V itself (0 or 1) and the
