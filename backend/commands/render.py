@@ -42,9 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_ao_option(mode, "spp")
     add_ao_option(mode, "target_error")
     for name in ("max_pixel_error", "max_spp", "distance", "seed", "sampler", "denoise",
-                 "engine"):
+                 "engine", "threads"):
         add_ao_option(parser, name)
-    add_ao_option(parser, "threads")
     parser.add_argument("--out", type=Path, default=Path("ao.png"), help="8-bit PNG to write")
     parser.add_argument("--npy", type=Path, default=None, help="also write float32 AO (.npy)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -92,8 +91,8 @@ def _render(args: argparse.Namespace, options: Any, console: Any) -> int:
     timings["load"] = (time.perf_counter() - t0) * 1e3
 
     bvh, timings["compile"], timings["build"] = image.build(scene.vertices, scene.indices)
-    settings = dict(image_shape=(camera.height, camera.width))
-    result = _with_progress(bvh, rays, options, settings, console, not args.no_progress)
+    shape = (camera.height, camera.width)
+    result = _with_progress(bvh, rays, options, shape, console, not args.no_progress)
     ao = result.ao.reshape(camera.height, camera.width)
 
     t0 = time.perf_counter()
@@ -110,13 +109,13 @@ def _render(args: argparse.Namespace, options: Any, console: Any) -> int:
     return 0
 
 
-def _with_progress(bvh: Any, rays: tuple, options: Any, settings: dict, console: Any,
-                   show: bool) -> Any:
+def _with_progress(bvh: Any, rays: tuple, options: Any, shape: tuple[int, int],
+                   console: Any, show: bool) -> Any:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from scenesort.backend.render import image
 
     if not show:
-        return image.render_ao(bvh, rays, options, **settings)
+        return image.render_ao(bvh, rays, options, image_shape=shape)
     columns = (
         TextColumn("{task.description:<10}"),
         BarColumn(),
@@ -129,7 +128,7 @@ def _with_progress(bvh: Any, rays: tuple, options: Any, settings: dict, console:
         def progress(fraction: float, phase: str) -> None:
             bar.update(task, completed=fraction, description=phase)
 
-        return image.render_ao(bvh, rays, options, progress=progress, **settings)
+        return image.render_ao(bvh, rays, options, image_shape=shape, progress=progress)
 
 
 def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, float]) -> Any:
