@@ -25,12 +25,15 @@ from dataclasses import dataclass
 import bpy
 import numpy as np
 
+from .ao_options import AO_OPTIONS
 from .client import instances_id
 from .client import scene_id as content_id
 
 # Object types whose evaluated geometry can be turned into a mesh.
 _CONVERTIBLE = {"CURVE", "SURFACE", "FONT", "META"}
-DEFAULT_TERMINATOR_OFFSET = 0.1  # Object.shadow_terminator_geometry_offset's default
+# The service's (the engine's) default, Object.shadow_terminator_geometry_offset's too: a
+# scene whose objects all have it sends no offsets.
+DEFAULT_TERMINATOR_OFFSET = AO_OPTIONS["terminator_offset"]["default"]
 
 
 @dataclass(frozen=True)

@@ -13,7 +13,29 @@ from bpy.props import (
     StringProperty,
 )
 
+from .ao_options import AO_OPTIONS, MIN_ADAPTIVE_SPP
+
 HISTORY_LENGTH = 8  # earlier builds kept for comparison in the panel
+
+# The AO settings' defaults, ranges and choices come from the engine's one definition
+# (ao_options.py, generated from scenesort/ao_options.py; docs/addon.md). The settings a
+# render may leave unset whose lower end is excluded (target_error, max_pixel_error,
+# distance) show that end, 0, for "unset"; an excluded upper end is offered up to a step
+# below it.
+SPP, SEED, ENGINE = AO_OPTIONS["spp"], AO_OPTIONS["seed"], AO_OPTIONS["engine"]
+TARGET_ERROR, MAX_PIXEL_ERROR = AO_OPTIONS["target_error"], AO_OPTIONS["max_pixel_error"]
+DISTANCE = AO_OPTIONS["distance"]
+OPEN_END_STEP = 0.01
+ENGINE_WORDS = {  # the panel's words for each engine the service takes
+    "bvh": ("BVH", "Trace AO rays through the built BVH"),
+    "dacrt": ("DACRT", "Divide-and-conquer ray tracing (no BVH needed)"),
+}
+ENGINE_ITEMS = [(name, *ENGINE_WORDS[name]) for name in ENGINE["choices"]]
+
+
+def _top(spec: dict) -> float:
+    """The largest value the panel offers: the upper end, a step below it where excluded."""
+    return spec["high"] - OPEN_END_STEP if spec["high_open"] else spec["high"]
 
 
 class SCENESORT_PG_phase(bpy.types.PropertyGroup):
@@ -56,10 +78,11 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
     )
     spp: IntProperty(  # type: ignore[valid-type]
         name="Samples",
-        description="AO rays per pixel (the fewest per pixel, at least 8, with an error target)",
-        default=16,
-        min=1,
-        max=4096,
+        description=(f"AO rays per pixel (the fewest per pixel, at least {MIN_ADAPTIVE_SPP}, "
+                     "with an error target)"),
+        default=SPP["default"],
+        min=SPP["low"],
+        max=SPP["soft_high"],
     )
     target_error: FloatProperty(  # type: ignore[valid-type]
         name="Target error",
@@ -69,9 +92,9 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
             "you get is 0.7-1.0x of it in 95% of renders. Samples go where they lower it "
             "most (0: off, Samples per pixel)"
         ),
-        default=0.0,
-        min=0.0,
-        max=0.99,
+        default=TARGET_ERROR["low"],  # unset
+        min=TARGET_ERROR["low"],
+        max=_top(TARGET_ERROR),
         precision=4,
     )
     max_pixel_error: FloatProperty(  # type: ignore[valid-type]
@@ -81,9 +104,9 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
             "units (0 to 1): every pixel bounded, at many more samples than Target Error "
             "(0: off)"
         ),
-        default=0.0,
-        min=0.0,
-        max=0.99,
+        default=MAX_PIXEL_ERROR["low"],  # unset
+        min=MAX_PIXEL_ERROR["low"],
+        max=_top(MAX_PIXEL_ERROR),
         precision=4,
     )
     use_denoising: BoolProperty(  # type: ignore[valid-type]
@@ -103,19 +126,19 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
             "(0: the World's Ambient Occlusion distance, as Cycles' AO pass uses; "
             "10 m without a World)"
         ),
-        default=0.0,
-        min=0.0,
+        default=DISTANCE["low"],  # unset: the World's
+        min=DISTANCE["low"],
         soft_max=100.0,
         subtype="DISTANCE",
     )
-    seed: IntProperty(name="Seed", description="Random seed of the AO samples", default=0, min=0)  # type: ignore[valid-type]
+    seed: IntProperty(  # type: ignore[valid-type]
+        name="Seed", description="Random seed of the AO samples", default=SEED["default"],
+        min=SEED["low"], max=SEED["high"],
+    )
     engine: EnumProperty(  # type: ignore[valid-type]
         name="Engine",
-        items=[
-            ("bvh", "BVH", "Trace AO rays through the built BVH"),
-            ("dacrt", "DACRT", "Divide-and-conquer ray tracing (no BVH needed)"),
-        ],
-        default="bvh",
+        items=ENGINE_ITEMS,
+        default=ENGINE["default"],
     )
     # The last build, filled by scenesort.build_bvh and scenesort.render_ao.
     has_build: BoolProperty(default=False)  # type: ignore[valid-type]

@@ -1,23 +1,25 @@
 """What a request is refused before any work starts: ray casts over the service's budget
-(--max-work), AO settings the engine would refuse, an engine the scene cannot use, an
-image of too many pixels; each a 422 naming the parameter."""
+(--max-work), denoising where the denoiser is not installed, an engine the scene cannot
+use, an image of too many pixels; each a 422 naming the parameter. (AO settings the engine
+would refuse are refused as AoOptions are made: AoSettings.options().)"""
 
 from __future__ import annotations
 
 from typing import Any
 
 from scenesort.backend.render import engine
-from scenesort.backend.render.ao import AoParams
 from scenesort.backend.wire import binary as wire
 from scenesort.backend.wire.problems import ApiError
+
+from scenesort.ao_options import AoOptions
 
 MAX_JOB_PIXELS = 4096 * 4096
 
 
-def check_work(max_work: int, count: int, count_name: str, params: AoParams) -> None:
+def check_work(max_work: int, count: int, count_name: str, options: AoOptions) -> None:
     """Refuse a request whose ray casts (count x samples per ray) exceed --max-work."""
-    per_ray = engine.adaptive_max_spp() if params.adaptive else params.spp
-    spp_name = "the adaptive cap of spp" if params.adaptive else "spp"
+    per_ray = options.max_spp if options.adaptive else options.spp
+    spp_name = "the adaptive cap of spp" if options.adaptive else "spp"
     work = count * per_ray
     if work > max_work:
         raise ApiError(
@@ -31,20 +33,9 @@ def check_work(max_work: int, count: int, count_name: str, params: AoParams) -> 
         )
 
 
-def check_ao(params: AoParams) -> None:
-    """Refuse what the engine would refuse, naming the query parameter."""
-    max_spp = engine.adaptive_max_spp()
-    if params.adaptive and params.spp > max_spp:
-        raise ApiError(
-            422,
-            "spp",
-            f"with target_error or max_pixel_error, spp is the minimum per ray and must be "
-            f"<= {max_spp}, got {params.spp}",
-            f"lower spp to at most {max_spp}, or drop target_error and max_pixel_error for "
-            "a fixed spp",
-            "invalid_parameter",
-        )
-    problem = engine.denoiser_problem() if params.denoise else None
+def check_denoiser(options: AoOptions) -> None:
+    """Refuse denoising where the denoiser is not installed, naming the extra."""
+    problem = engine.denoiser_problem() if options.denoise else None
     if problem is not None:
         raise ApiError(
             422, "denoise", f"this service cannot denoise: {problem}",
@@ -54,9 +45,9 @@ def check_ao(params: AoParams) -> None:
         )
 
 
-def check_engine(scene: Any, params: AoParams) -> None:
+def check_engine(scene: Any, options: AoOptions) -> None:
     """DACRT traces one flat triangle list: instance lists are for the BVH engine."""
-    if params.engine == "dacrt" and isinstance(scene, wire.InstanceScene):
+    if options.engine == "dacrt" and isinstance(scene, wire.InstanceScene):
         raise ApiError(
             422, "engine", "engine dacrt traces single-mesh scenes; this is an instance list",
             "use engine bvh for instance lists, or upload the flattened scene with "

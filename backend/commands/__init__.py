@@ -5,6 +5,10 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from scenesort.ao_options import AoOptions
 
 # name -> (module that implements it, one-line help). Each module defines
 # `add_arguments(parser)` and `run(args) -> int`; importing is lazy so that
@@ -19,10 +23,41 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "serve": ("scenesort.backend.commands.serve", "run the local HTTP service (FastAPI + uvicorn)"),
     "addon-zip": ("scenesort.backend.tools.addon_zip",
                   "build the installable Blender extension zip"),
+    "addon-options": ("scenesort.backend.tools.addon_options",
+                      "write addon/ao_options.py, the add-on's copy of the AO settings"),
     "token": ("scenesort.backend.commands.token",
               "print the token `scenesort serve` uses (clients send it)"),
 }
 TOOLS = "scenesort.backend.tools"  # left out of the wheel the Blender extension bundles
+
+
+def add_ao_option(parser: Any, name: str) -> None:
+    """The flag of the AO setting `name` (--target-error for target_error), as AoOptions
+    defines it (scenesort/ao_options.py): its type, default, choices and help; a bool is a
+    switch."""
+    from scenesort.ao_options import AO_OPTIONS
+
+    spec = AO_OPTIONS[name]
+    flag = "--" + name.replace("_", "-")
+    shown = "" if spec.default is None or spec.kind is bool else f" (default {spec.default})"
+    help_text = spec.doc.replace("%", "%%") + shown
+    if spec.kind is bool:
+        parser.add_argument(flag, action="store_true", help=help_text)
+    else:
+        parser.add_argument(flag, type=spec.kind, default=spec.default, choices=spec.choices,
+                            help=help_text)
+
+
+def ao_options(args: argparse.Namespace, **more: Any) -> AoOptions:
+    """AoOptions of the AO flags in `args` (and `more`), checked there; ValueError naming
+    the flag at fault and the fix."""
+    from scenesort.ao_options import AO_OPTIONS, AoOptions, OptionError
+
+    given = {name: getattr(args, name) for name in AO_OPTIONS if hasattr(args, name)}
+    try:
+        return AoOptions(**given, **more)
+    except OptionError as exc:
+        raise ValueError(f"--{exc.name.replace('_', '-')}: {exc} ({exc.fix})") from None
 
 
 def check_at_least(args: argparse.Namespace, minimum: int, *names: str) -> None:

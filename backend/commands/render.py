@@ -18,9 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scenesort.backend.commands import check_at_least
-
-SAMPLERS = ("sobol", "random")
+from scenesort.backend.commands import add_ao_option, ao_options, check_at_least
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -38,59 +36,30 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--width", type=int, default=None, help="pixels across (default 640)")
     parser.add_argument("--height", type=int, default=None, help="pixels down (default 480)")
+    # The AO settings, as AoOptions defines them (a mesh file has no smooth normals, so no
+    # terminator offset); spp or an error target.
     mode = parser.add_mutually_exclusive_group()
-    mode.add_argument("--spp", type=int, default=16, help="samples per pixel (default 16)")
-    mode.add_argument(
-        "--target-error",
-        type=float,
-        default=None,
-        help="adaptive: stop once the image's estimated RMSE over hit pixels (AO in [0, 1]) is "
-        "below; the achieved RMSE is within [0.7, 1.0]x of it in >= 95%% of renders",
-    )
-    parser.add_argument(
-        "--max-pixel-error",
-        type=float,
-        default=None,
-        help="adaptive: stop each pixel once its 95%% interval half-width is below",
-    )
-    parser.add_argument(
-        "--max-spp", type=int, default=1024, help="adaptive: most samples per pixel (default 1024)"
-    )
-    parser.add_argument(
-        "--distance",
-        type=float,
-        default=None,
-        help="occlusion distance (default: 0.1 of the scene box diagonal)",
-    )
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--sampler", choices=SAMPLERS, default="sobol")
-    parser.add_argument(
-        "--denoise",
-        action="store_true",
-        help='denoise with Intel OIDN (pip install "scenesort[denoise]"); the estimated '
-        "RMSE stays the raw render's",
-    )
-    parser.add_argument("--engine", choices=("bvh", "dacrt"), default="bvh",
-                        help="trace through the BVH, or with the task-pool DACRT (no BVH)")
-    parser.add_argument("--threads", type=int, default=None, help="host threads (default: all)")
+    add_ao_option(mode, "spp")
+    add_ao_option(mode, "target_error")
+    for name in ("max_pixel_error", "max_spp", "distance", "seed", "sampler", "denoise",
+                 "engine", "threads"):
+        add_ao_option(parser, name)
     parser.add_argument("--out", type=Path, default=Path("ao.png"), help="8-bit PNG to write")
     parser.add_argument("--npy", type=Path, default=None, help="also write float32 AO (.npy)")
     parser.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
-def _check(args: argparse.Namespace) -> None:
-    check_at_least(args, 1, "width", "height", "spp")
-    if args.distance is not None and not args.distance > 0:
-        raise ValueError(f"--distance must be > 0, got {args.distance}")
-    for name in ("target_error", "max_pixel_error"):
-        value = getattr(args, name)
-        if value is not None and not 0 < value < 1:
-            raise ValueError(f"--{name.replace('_', '-')} must be in (0, 1), got {value}")
+def _check(args: argparse.Namespace) -> Any:
+    """The render's AoOptions (checked there), after the image's own flags; ValueError
+    naming the flag at fault."""
+    check_at_least(args, 1, "width", "height")
+    options = ao_options(args)
     from scenesort.backend.render import engine
 
-    problem = engine.denoiser_problem() if args.denoise else None
+    problem = engine.denoiser_problem() if options.denoise else None
     if problem is not None:
         raise ValueError(f"--denoise: {problem}")
+    return options
 
 
 def run(args: argparse.Namespace) -> int:
@@ -98,8 +67,7 @@ def run(args: argparse.Namespace) -> int:
 
     console = Console()
     try:
-        _check(args)
-        return _render(args, console)
+        return _render(args, _check(args), console)
     except ValueError as exc:
         from rich.markup import escape
 
@@ -107,7 +75,7 @@ def run(args: argparse.Namespace) -> int:
         return 2
 
 
-def _render(args: argparse.Namespace, console: Any) -> int:
+def _render(args: argparse.Namespace, options: Any, console: Any) -> int:
     # The engine is imported here, not with the module: `scenesort render --help` stays quick.
     from scenesort.backend.render import image
     from scenesort.backend.render.scenes import load_camera, load_scene
@@ -123,20 +91,8 @@ def _render(args: argparse.Namespace, console: Any) -> int:
     timings["load"] = (time.perf_counter() - t0) * 1e3
 
     bvh, timings["compile"], timings["build"] = image.build(scene.vertices, scene.indices)
-    settings = dict(
-        spp=args.spp,
-        distance=args.distance,
-        seed=args.seed,
-        target_error=args.target_error,
-        max_pixel_error=args.max_pixel_error,
-        engine=args.engine,
-        threads=args.threads,
-        max_spp=args.max_spp,
-        sampler=args.sampler,
-        denoise=args.denoise,
-        image_shape=(camera.height, camera.width),
-    )
-    result = _with_progress(bvh, rays, settings, console, not args.no_progress)
+    shape = (camera.height, camera.width)
+    result = _with_progress(bvh, rays, options, shape, console, not args.no_progress)
     ao = result.ao.reshape(camera.height, camera.width)
 
     t0 = time.perf_counter()
@@ -153,12 +109,13 @@ def _render(args: argparse.Namespace, console: Any) -> int:
     return 0
 
 
-def _with_progress(bvh: Any, rays: tuple, settings: dict, console: Any, show: bool) -> Any:
+def _with_progress(bvh: Any, rays: tuple, options: Any, shape: tuple[int, int],
+                   console: Any, show: bool) -> Any:
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
     from scenesort.backend.render import image
 
     if not show:
-        return image.render_ao(bvh, rays, **settings)
+        return image.render_ao(bvh, rays, options, image_shape=shape)
     columns = (
         TextColumn("{task.description:<10}"),
         BarColumn(),
@@ -171,7 +128,7 @@ def _with_progress(bvh: Any, rays: tuple, settings: dict, console: Any, show: bo
         def progress(fraction: float, phase: str) -> None:
             bar.update(task, completed=fraction, description=phase)
 
-        return image.render_ao(bvh, rays, progress=progress, **settings)
+        return image.render_ao(bvh, rays, options, image_shape=shape, progress=progress)
 
 
 def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, float]) -> Any:
@@ -180,12 +137,12 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
     ms = result.timings_ms
     rays = result.rays
     stats = result.stats()
-    rmse = stats["rmse_estimate"]
+    rmse = stats.rmse_estimate
     title = (
         f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
-        f"spp mean {stats['spp_mean']:.1f} (max {stats['spp_max']}), "
+        f"spp mean {stats.spp_mean:.1f} (max {stats.spp_max}), "
         f"est. RMSE {'-' if rmse is None else f'{rmse:.4f}'} (AO units, hit pixels"
-        f"{', before denoising' if stats['denoised'] else ''})"
+        f"{', before denoising' if stats.denoised else ''})"
     )
     table = Table(title=title, min_width=len(title) + 4)
     table.add_column("phase")
@@ -197,15 +154,15 @@ def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, fl
         rate = f"{n / t / 1e3:.2f}" if n and t > 0 else ""
         table.add_row(name, f"{t:.1f}", f"{n:,}" if n is not None else "", rate)
 
-    compile_ms = timings["compile"] + ms.get("compile", 0.0)  # build's and render's kernels
+    compile_ms = timings["compile"] + ms.compile  # the build's and the render's kernels
     row("load", timings["load"])
     row("compile", compile_ms)
     row("build", timings["build"])
-    row("primary", ms["primary"], rays["primary"])
-    row("occlusion", ms["occlusion"], rays["occlusion"])
-    if "denoise" in ms:
-        row("denoise", ms["denoise"])
+    row("primary", ms.primary, rays.primary)
+    row("occlusion", ms.occlusion, rays.occlusion)
+    if ms.denoise is not None:
+        row("denoise", ms.denoise)
     row("write", timings["write"])
-    total = timings["load"] + compile_ms + timings["build"] + ms["total"] + timings["write"]
-    row("total", total, rays["primary"] + rays["occlusion"])
+    total = timings["load"] + compile_ms + timings["build"] + ms.total + timings["write"]
+    row("total", total, rays.primary + rays.occlusion)
     return table

@@ -17,7 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from scenesort.backend.commands import check_at_least
+from scenesort.backend.commands import ao_options, check_at_least
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -67,7 +67,8 @@ def run(args: argparse.Namespace) -> int:
 
     console = Console()
     try:
-        check_at_least(args, 1, "threads", "ray_workers")
+        ao_options(args)  # --threads, as AoOptions takes it (the bundle holds the rest)
+        check_at_least(args, 1, "ray_workers")
         check_at_least(args, 0, "retries")
         frames = None if args.frames is None else parse_frames(args.frames)
         start = time.perf_counter()

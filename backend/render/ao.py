@@ -1,65 +1,20 @@
-"""AO as the service runs it: the settings of a request or a job (`AoParams`), AO on explicit
-rays, and the engine's shading arguments of a scene the service holds."""
+"""AO as the service runs it: AO on explicit rays, and the engine's shading arguments of a
+scene the service holds. (A request's settings are `AoOptions`: wire/models.py.)"""
 
 from __future__ import annotations
 
 import weakref
-from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 from scenesort.backend.wire.binary import InstanceScene, SceneArrays
 from scenesort.backend.work.stop import StopSignal
 
-
-@dataclass(frozen=True)
-class AoParams:
-    """AO settings shared by the explicit-ray route and camera jobs."""
-
-    spp: int = 16
-    distance: float | None = None
-    seed: int = 0
-    target_error: float | None = None
-    max_pixel_error: float | None = None
-    engine: Literal["bvh", "dacrt"] = "bvh"
-    threads: int | None = None  # host threads (None: all); results do not depend on it
-    denoise: bool = False  # camera jobs only: OIDN on the image
-
-    @property
-    def adaptive(self) -> bool:
-        return self.target_error is not None or self.max_pixel_error is not None
-
-    def kwargs(self) -> dict[str, Any]:
-        """Keyword arguments for `kernels.ambient_occlusion` / `kernels.render_ao`."""
-        out: dict[str, Any] = {"spp": self.spp, "seed": self.seed}
-        if self.distance is not None:
-            out["distance"] = self.distance
-        if self.target_error is not None:
-            out["target_error"] = self.target_error
-        if self.max_pixel_error is not None:
-            out["max_pixel_error"] = self.max_pixel_error
-        out["engine"] = self.engine
-        if self.threads is not None:
-            out["threads"] = self.threads
-        return out
-
-
-def ao_params(request: Any, threads: int | None = None) -> AoParams:
-    """The AO settings of a job request (models.JobRequest, or a frame of a bundle)."""
-    return AoParams(
-        spp=request.spp,
-        distance=request.distance,
-        seed=request.seed,
-        target_error=request.target_error,
-        max_pixel_error=request.max_pixel_error,
-        engine=request.engine,
-        threads=threads,
-        denoise=request.denoise,
-    )
+from scenesort.ao_options import DEFAULT_TERMINATOR_OFFSET, AoOptions
 
 
 def ambient_occlusion(
-    bvh: Any, scene: Any, origins: np.ndarray, directions: np.ndarray, params: AoParams,
+    bvh: Any, scene: Any, origins: np.ndarray, directions: np.ndarray, options: AoOptions,
     signal: StopSignal,
 ) -> tuple[np.ndarray, dict[str, float]]:
     """AO for explicit rays, exactly `kernels.ambient_occlusion` (which is
@@ -67,11 +22,9 @@ def ambient_occlusion(
     `signal` is checked between the engine's rounds (it raises Stopped there)."""
     from scenesort import kernels
 
-    result = kernels.render_ao(
-        bvh, origins, directions, progress=lambda *_: signal.check(), **params.kwargs(),
-        **shading(scene),
-    )
-    return np.asarray(result.ao, dtype=np.float32), dict(result.timings_ms)
+    result = kernels.render_ao(bvh, origins, directions, options,
+                               progress=lambda *_: signal.check(), **shading(scene))
+    return np.asarray(result.ao, dtype=np.float32), result.timings_ms.to_dict()
 
 
 # An instance list's arguments are made once: the engine keeps its device copy of the
@@ -98,8 +51,6 @@ def shading(scene: SceneArrays | InstanceScene) -> dict[str, object]:
 
 
 def _instance_shading(scene: InstanceScene) -> dict[str, object]:
-    from scenesort.kernels.render.ao import DEFAULT_TERMINATOR_OFFSET
-
     normals = [m.normals for m in scene.meshes]
     if all(n is None for n in normals):
         return {}

@@ -15,8 +15,9 @@ A bundle is a directory:
     frames/<frame>.bin     the frame's instance list, the body of POST /v1/instance-scenes
 
 `<frame>` is the frame number as `%06d`. The settings and a frame's view are the fields of
-a service job (POST /v1/jobs without scene_id), validated by the same model. Meshes are read
-when a frame first needs them, and their ids are checked against their bytes.
+a service job (POST /v1/jobs without scene_id), validated by the same model and checked
+together as AoOptions; a setting left out takes the job's default (AoOptions'). Meshes are
+read when a frame first needs them, and their ids are checked against their bytes.
 """
 
 from __future__ import annotations
@@ -32,6 +33,8 @@ from scenesort.backend.render.engine import count_degenerate
 from scenesort.backend.wire import binary as wire
 from scenesort.backend.wire.models import JobRequest
 from scenesort.backend.wire.problems import ApiError
+
+from scenesort.ao_options import AoOptions
 
 FORMAT = "scenesort-frame-bundle"
 VERSION = 1
@@ -53,11 +56,13 @@ def frame_stem(root: Path, frame: int) -> Path:
 
 @dataclass(frozen=True)
 class Frame:
-    """One frame: its number, the job fields (view and settings) and its instance list."""
+    """One frame: its number, the job fields (view and settings), its instance list and its
+    AO settings checked together (`JobRequest.options()`)."""
 
     number: int
     request: JobRequest  # scene_id is the instance list's id
     instances: wire.InstanceList
+    options: AoOptions
 
 
 def _load_json(path: Path) -> Any:
@@ -158,7 +163,11 @@ class Bundle:
             where = ".".join(str(p) for p in first.get("loc", ()))
             raise BundleError(f"{path} (with the manifest's settings): {where}: "
                               f"{first.get('msg')}") from None
-        return Frame(number, request, listing)
+        try:
+            options = request.options()
+        except ApiError as exc:
+            raise _api(self.root / MANIFEST, exc) from None
+        return Frame(number, request, listing, options)
 
 
 def read_bundle(path: str | Path) -> Bundle:
@@ -188,10 +197,10 @@ def instance_body(ids: list[str], mesh_index: list[int], transforms: np.ndarray)
 @dataclass
 class BundleWriter:
     """A bundle from numpy, without Blender (pipelines, tests, benchmarks): frames added one
-    by one, then `write(root)`. Meshes without normals; the add-on writes its own."""
+    by one, then `write(root)`. Meshes without normals; the add-on writes its own.
+    `settings`: job fields (spp, seed, ...); those left out take the job's defaults."""
 
-    settings: dict[str, Any] = field(default_factory=lambda: {"spp": 4, "seed": 1,
-                                                              "distance": 1.0})
+    settings: dict[str, Any] = field(default_factory=dict)
     meshes: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     frames: dict[int, tuple[dict[str, Any], list[str], list[int], np.ndarray]] = field(
         default_factory=dict)

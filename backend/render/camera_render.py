@@ -9,12 +9,14 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from scenesort.backend.render.ao import AoParams, shading
+from scenesort.backend.render.ao import shading
 from scenesort.backend.render.bvhs import scene_bvh
 from scenesort.backend.render.framing import framed
 from scenesort.backend.render.visibility import View
 from scenesort.backend.wire.binary import encode_png
 from scenesort.backend.work.jobs import Job
+
+from scenesort.ao_options import AoOptions
 
 BACKGROUND_DEPTH = 1e10  # Cycles' Z pass on background pixels
 
@@ -31,7 +33,7 @@ def render_camera(
     store: Any,
     scene: Any,
     camera: Any,
-    params: AoParams,
+    options: AoOptions,
     method: str,
     leaf_size: int,
     device: str,
@@ -48,22 +50,22 @@ def render_camera(
         job.add_timing(phase, 1000.0 * (time.perf_counter() - start))
         return out
 
-    view = View(camera, params.distance) if cull else None
+    view = View(camera, options.distance) if cull else None
     bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device,
                                                     view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
-        job.add_timing("bvh.compile", float(getattr(bvh, "stats", {}).get("compile_ms", 0.0)))
+        job.add_timing("bvh.compile", float(bvh.stats.compile_ms))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
     result = timed(
-        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, params, shape)
+        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, options, shape)
     )
     job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
     job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0 spp
     stats = result.stats()
-    job.spp_mean, job.spp_max = stats["spp_mean"], stats["spp_max"]
-    job.rmse_estimate, job.rays = stats["rmse_estimate"], stats["rays"]
-    job.denoised = stats["denoised"]
+    job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
+    job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
+    job.denoised = stats.denoised
     depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
     job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
@@ -90,7 +92,7 @@ def _render_ao(
     directions: np.ndarray,
     tmin: np.ndarray,
     tmax: np.ndarray,
-    params: AoParams,
+    options: AoOptions,
     shape: tuple[int, int],
 ) -> Any:
     """`kernels.render_ao` within the camera's clip range with the scene's normals,
@@ -101,10 +103,8 @@ def _render_ao(
     def progress(fraction: float, phase: str) -> None:
         job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
 
-    result = kernels.render_ao(
-        bvh, origins, directions, tmin=tmin, tmax=tmax, progress=progress, **params.kwargs(),
-        **shading(scene), denoise=params.denoise, image_shape=shape,
-    )
-    for name, ms in result.timings_ms.items():
+    result = kernels.render_ao(bvh, origins, directions, options, tmin=tmin, tmax=tmax,
+                               progress=progress, image_shape=shape, **shading(scene))
+    for name, ms in result.timings_ms.to_dict().items():
         job.add_timing(f"ao.{name}", float(ms))
     return result

@@ -78,13 +78,6 @@ def denoise_extra() -> str:
     return EXTRA_HINT
 
 
-def adaptive_max_spp() -> int:
-    """The engine's cap on samples per ray in adaptive (target_error) mode."""
-    from scenesort.kernels.render import ao
-
-    return int(getattr(ao, "DEFAULT_MAX_SPP", 1024))
-
-
 def count_degenerate(vertices: np.ndarray, indices: np.ndarray) -> int:
     """Zero-area triangles (kept, never hit), by the engine's own test on every core."""
     from scenesort.kernels.core import count_degenerate as engine_count

@@ -11,7 +11,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from scenesort.backend.render.ao import ao_params
 from scenesort.backend.render.bundle import Bundle, read_bundle
 from scenesort.backend.render.bvhs import BuildReport
 from scenesort.backend.render.camera_render import job_camera, render_camera
@@ -68,8 +67,8 @@ class FrameRenderer:
         camera = job_camera(request)
         job = Job(job_id=f"frame-{frame_number}", scene_id=scene.scene_id,
                   width=camera.width, height=camera.height)
-        params = ao_params(request, threads=self.threads)
-        render_camera(job, self.store, scene, camera, params, request.method,
+        options = frame.options.with_(threads=self.threads)
+        render_camera(job, self.store, scene, camera, options, request.method,
                       request.leaf_size, self.device, cull=self.cull)
         assert job.ao is not None and job.coverage is not None and job.depth is not None
         return FrameResult(frame_number, job.ao, job.coverage, job.depth, job.png or b"",

@@ -15,14 +15,15 @@ def build(vertices: np.ndarray, indices: np.ndarray) -> tuple[Any, float, float]
 
     start = time.perf_counter()
     bvh = kernels.build_bvh(vertices, indices)
-    compile_ms = float(bvh.stats.get("compile_ms", 0.0))  # Warp's first use: apart
+    compile_ms = float(bvh.stats.compile_ms)  # Warp's first use: apart
     return bvh, compile_ms, (time.perf_counter() - start) * 1e3 - compile_ms
 
 
-def render_ao(bvh: Any, rays: tuple[np.ndarray, ...], **settings: Any) -> Any:
-    """`kernels.render_ao` of a camera's rays (origins, directions, tmin, tmax): its
-    AoResult."""
+def render_ao(bvh: Any, rays: tuple[np.ndarray, ...], options: Any, **settings: Any) -> Any:
+    """`kernels.render_ao` of a camera's rays (origins, directions, tmin, tmax) with these
+    AoOptions (and `render_ao`'s other keywords: image_shape, progress): its AoResult."""
     from scenesort import kernels
 
     origins, directions, tmin, tmax = rays
-    return kernels.render_ao(bvh, origins, directions, tmin=tmin, tmax=tmax, **settings)
+    return kernels.render_ao(bvh, origins, directions, options, tmin=tmin, tmax=tmax,
+                             **settings)

@@ -29,6 +29,8 @@ import tomllib
 import zipfile
 from pathlib import Path
 
+from scenesort.backend.tools import addon_options
+
 ROOT = Path(__file__).resolve().parents[2]
 ADDON_DIR = ROOT / "addon"
 CACHE_DIR = ROOT / ".cache" / "addon-wheels"
@@ -281,8 +283,12 @@ def build_zip(
     platform: str | None = None,
     wheels: list[Path] = (),
 ) -> Path:
-    """Write one zip and return its path; ValueError if `source` is not an extension."""
+    """Write one zip and return its path; ValueError if `source` is not an extension, or
+    if its copy of the AO settings differs from the engine's (tools/addon_options.py)."""
     text, manifest = read_manifest(source)
+    if addon_options.stale(source / "ao_options.py"):
+        raise ValueError(f"{source / 'ao_options.py'} differs from the engine's AO settings "
+                         "(scenesort/ao_options.py): run `scenesort addon-options` first")
     if output is None:
         suffix = f"-{platform}" if platform else ""
         output = Path("build") / f"{manifest['id']}-{manifest['version']}{suffix}.zip"

@@ -42,14 +42,14 @@ def run(args: argparse.Namespace) -> int:
     bvhs = {}
     first = kernels.build_bvh(np.eye(3, dtype=np.float32), np.array([[0, 1, 2]], np.int32))
     builds.add_row("compile (Warp, first use; not in the rows below)",
-                   f"{first.stats['compile_ms']:.1f}", "", "", "")
+                   f"{first.stats.compile_ms:.1f}", "", "", "")
     for method in ("sah", "median"):
         t = peers.timeit(lambda m=method: bvhs.__setitem__(m, kernels.build_bvh(v, f, m)),
                          args.repeat)
         ref = peers.timeit(lambda m=method: peers.WarpMesh(v, f, m, 8), args.repeat)
         s = bvhs[method].stats
-        builds.add_row(f"ours {method}", f"{1e3 * t:.1f}", f"{s['sah_cost']:.1f}",
-                       f"{s['nodes']:,}", f"{t / ref:.2f}")
+        builds.add_row(f"ours {method}", f"{1e3 * t:.1f}", f"{s.sah_cost:.1f}",
+                       f"{s.nodes:,}", f"{t / ref:.2f}")
         builds.add_row(f"wp.Mesh {method} (leaf 8)", f"{1e3 * ref:.1f}", "", "", "")
     console.print(builds)
 

@@ -24,6 +24,8 @@ from functools import cached_property
 import numpy as np
 from scenesort.backend.wire.problems import ApiError
 
+from scenesort.ao_options import AO_OPTIONS
+
 F32 = np.dtype("<f4")
 I32 = np.dtype("<i4")
 SCENE_HASH_CHARS = 32  # hex characters kept from the sha256 digest (128 bits)
@@ -226,13 +228,16 @@ def decode_scene(
         at += 36 * triangle_count
     if terminator_offsets:
         offsets = np.frombuffer(body, F32, count=triangle_count, offset=at).astype(np.float32)
-        bad = ~((offsets >= 0.0) & (offsets <= 1.0))  # NaN fails too
+        spec = AO_OPTIONS["terminator_offset"]
+        bad = ~spec.within(offsets)  # NaN fails too
         if bad.any():
             row = int(np.argmax(bad))
             raise ApiError(
                 400, "body (terminator offsets)",
-                f"triangle {row} has terminator offset {float(offsets[row])}, outside [0, 1]",
-                "send Blender's Shadow Terminator Geometry Offset (0..1) for every triangle",
+                f"triangle {row} has terminator offset {float(offsets[row])}, not "
+                f"{spec.takes()}",
+                f"send Blender's Shadow Terminator Geometry Offset ({spec.takes()}) for every "
+                "triangle",
                 "bad_terminator_offset",
             )
     return SceneArrays(

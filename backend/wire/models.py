@@ -1,13 +1,22 @@
 """The HTTP API's data: Pydantic models (extra fields forbidden) and the OpenAPI pieces
-that FastAPI cannot infer, such as raw binary bodies."""
+that FastAPI cannot infer, such as raw binary bodies.
 
-from __future__ import annotations
+The AO settings of a request are fields of `AoOptions` (scenesort/ao_options.py, which
+imports no engine): `ao_setting` gives each its type, default, range, choices and
+documentation from there, and `AoSettings.options()` checks them together there.
+(No `from __future__ import annotations`: the fields' types are calls, evaluated here.)
+"""
 
 from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
+from scenesort.backend.wire.problems import ApiError
+
+from scenesort.ao_options import AO_OPTIONS, AoOptions, OptionError
 
 OCTET = "application/octet-stream"
+Method = Literal["sah", "median"]  # the BVH builders
+LeafSize = Annotated[int, Field(ge=1, le=64)]
 
 
 class Strict(BaseModel):
@@ -86,8 +95,8 @@ class BuildReport(Strict):
 
 
 class BvhRequest(Strict):
-    method: Literal["sah", "median"] = "sah"
-    leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
+    method: Method = "sah"
+    leaf_size: LeafSize = 8
 
 
 class BvhStats(Strict):
@@ -101,7 +110,7 @@ class BvhStats(Strict):
 
 class BvhInfo(Strict):
     scene_id: str
-    method: Literal["sah", "median"]
+    method: Method
     leaf_size: int
     cached: bool = Field(description="true when an earlier build was reused")
     timings_ms: dict[str, float] = Field(
@@ -142,27 +151,67 @@ class Window(Strict):
 PixelAspect = Annotated[float, Field(gt=0, le=1000, allow_inf_nan=False)]
 
 
-TARGET_ERROR_DOC = (
-    "stop when the image's RMSE over hit pixels against the converged AO (AO in [0, 1]) "
-    "is estimated below this; the achieved RMSE is within [0.7, 1.0] x target_error in "
-    ">= 95% of renders (null: fixed spp)"
-)
-MAX_PIXEL_ERROR_DOC = (
-    "stop each pixel when its 95% confidence half-width is below this (every pixel bounded;"
-    " more samples than target_error for the same number)"
-)
 RMSE_ESTIMATE_DOC = (
     "the render's estimate of its RMSE over hit pixels against the converged AO (AO in "
     "[0, 1]), from the per-pixel sample variances; of the raw render, also when denoised"
 )
-DENOISE_DOC = (
-    "denoise the image with Intel Open Image Denoise (normals as auxiliary input); needs "
-    'the service installed with pip install "scenesort[denoise]". rmse_estimate stays the '
-    "raw render's: the denoised error is not estimated"
-)
 
 
-class JobRequest(Strict):
+def ao_setting(name: str) -> Any:
+    """The type of the AO setting `name` in a request, as AoOptions defines it (AO_OPTIONS):
+    its kind (a Literal of its choices; null too where it is optional), its default, its
+    range (at most `soft_high` where it has one: what a request may ask), finite numbers
+    only, and its documentation (OpenAPI's description)."""
+    spec = AO_OPTIONS[name]
+    kind: Any = Literal[spec.choices] if spec.choices else spec.kind
+    bounds: dict[str, Any] = {}
+    if spec.low is not None:
+        bounds["gt" if spec.low_open else "ge"] = spec.low
+    if spec.soft_high is not None:
+        bounds["le"] = spec.soft_high
+    elif spec.high is not None:
+        bounds["lt" if spec.high_open else "le"] = spec.high
+    if spec.kind is float:
+        bounds["allow_inf_nan"] = False
+    return Annotated[kind | None if spec.optional else kind,
+                     Field(default=spec.default, description=spec.doc, **bounds)]
+
+
+class AoSettings(Strict):
+    """The AO settings a request may set (the others keep AoOptions' defaults: max_spp,
+    sampler; terminator offsets travel with the scene, threads are the service's)."""
+
+    spp: ao_setting("spp")
+    distance: ao_setting("distance")
+    seed: ao_setting("seed")
+    target_error: ao_setting("target_error")
+    max_pixel_error: ao_setting("max_pixel_error")
+    engine: ao_setting("engine")
+
+    def options(self, **service: Any) -> AoOptions:
+        """The settings as AoOptions, with the service's own (`threads`), checked there
+        together (spp against max_spp with an error target): what it refuses is an
+        ApiError 422 naming the setting and the fix."""
+        mine = {k: getattr(self, k) for k in type(self).model_fields if k in AO_OPTIONS}
+        try:
+            return AoOptions(**mine, **service)
+        except OptionError as exc:
+            raise ApiError(422, exc.name, str(exc), exc.fix, "invalid_parameter") from None
+
+
+class AoQuery(AoSettings):
+    """The query of POST /v1/scenes/{scene_id}/ao: the rays' count, the AO settings and
+    which BVH (method and leaf_size unset: the scene's latest). Names it does not know are
+    ignored, as a query string's are."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    rays: Annotated[int, Field(ge=1, le=2**27)]
+    method: Method | None = None
+    leaf_size: LeafSize | None = None
+
+
+class JobRequest(AoSettings):
     scene_id: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
     camera: CameraModel
     window: Window | None = Field(
@@ -171,17 +220,9 @@ class JobRequest(Strict):
     pixel_aspect: tuple[PixelAspect, PixelAspect] = Field(
         default=(1.0, 1.0), description="Blender's pixel aspect (x, y): a pixel's shape"
     )
-    spp: Annotated[int, Field(ge=1, le=4096)] = 16
-    distance: Annotated[float | None, Field(gt=0, allow_inf_nan=False)] = None
-    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
-    target_error: Annotated[float | None, Field(
-        gt=0, lt=1, allow_inf_nan=False, description=TARGET_ERROR_DOC)] = None
-    max_pixel_error: Annotated[float | None, Field(
-        gt=0, lt=1, allow_inf_nan=False, description=MAX_PIXEL_ERROR_DOC)] = None
-    engine: Literal["bvh", "dacrt"] = "bvh"
-    method: Literal["sah", "median"] = "sah"
-    leaf_size: Annotated[int, Field(ge=1, le=64)] = 8
-    denoise: bool = Field(default=False, description=DENOISE_DOC)
+    method: Method = "sah"
+    leaf_size: LeafSize = 8
+    denoise: ao_setting("denoise")
 
 
 class JobStatus(Strict):

@@ -52,8 +52,7 @@ def bvh_nbytes(bvh: Any) -> int:
     """Bytes a built BVH holds: host arrays, device arrays and its struct's arrays."""
     total = sum(_held_bytes(v) for v in vars(bvh).values()) if hasattr(bvh, "__dict__") else 0
     if total == 0:  # an engine object we cannot inspect: estimate from its statistics
-        stats = getattr(bvh, "stats", {}) or {}
-        total = int(stats.get("nodes", 0)) * _NODE_BYTES_ESTIMATE
+        total = int(getattr(getattr(bvh, "stats", None), "nodes", 0)) * _NODE_BYTES_ESTIMATE
     return max(total, 1)
 
 

@@ -1,45 +1,41 @@
 """Statistics records: the typed dataclasses in which builds, traces and renders report
 what they did and what it cost (`BvhStats`, `SceneStats`, `DacrtStats`, AO's timings).
 
-A record also reads as a read-only mapping of its fields, in their order (`dict(stats)`
-for JSON; `stats["build_ms"]`, `stats.get(...)` as the untyped dicts that records replaced
-were read): a field declared with `unset()` is left out of that view while it is None,
-as the dicts left out a key that did not apply (a refit's figures after a build, the other
-DACRT variant's counts).
+Read them as attributes; `to_dict()` gives the fields for JSON. A field declared with
+`unset()` is None until it applies (a refit's figures after a build, the other DACRT
+variant's counts, the denoise time of an image not denoised) and left out of `to_dict()`
+while it is None.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
 from dataclasses import Field, field, fields
 from typing import Any
 
-_UNSET = "record.unset"  # field metadata: left out of the mapping view while None
+_UNSET = "record.unset"  # field metadata: left out of to_dict() while None
 
 
 def unset() -> Field:
-    """A field that is None until it applies (`dataclasses.field`), and left out of the
-    mapping view until then."""
+    """A field that is None until it applies (`dataclasses.field`), and left out of
+    `to_dict()` until then."""
     return field(default=None, metadata={_UNSET: True})
 
 
-class Record(Mapping[str, Any]):
-    """Base of a statistics dataclass: the mapping view of its fields."""
+class Record:
+    """Base of a statistics dataclass: its fields for JSON, and filling a mutable one."""
 
     __slots__ = ()
 
-    def __getitem__(self, name: str) -> Any:
-        if name not in iter(self):
-            raise KeyError(name)
-        return getattr(self, name)
-
-    def __iter__(self) -> Iterator[str]:
+    def to_dict(self) -> dict[str, Any]:
+        """The fields by name, in their order, for JSON (a dict field copied); those
+        declared with `unset()` left out while None."""
+        out = {}
         for f in fields(self):
-            if not (f.metadata.get(_UNSET) and getattr(self, f.name) is None):
-                yield f.name
-
-    def __len__(self) -> int:
-        return sum(1 for _ in self)
+            value = getattr(self, f.name)
+            if value is None and f.metadata.get(_UNSET):
+                continue
+            out[f.name] = dict(value) if isinstance(value, dict) else value
+        return out
 
     def fill(self, **values: Any) -> None:
         """Set these fields (of a mutable record; an unknown name raises AttributeError)."""

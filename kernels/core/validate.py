@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from scenesort.ao_options import AO_OPTIONS
+
 
 def _float_array(a, name: str, width: int) -> np.ndarray:
     a = np.asarray(a)
@@ -119,7 +121,8 @@ def as_terminator_offsets(terminator_offset, count: int, per: str) -> np.ndarray
     if offsets.shape != (count,):
         raise ValueError(f"terminator_offset must be a number or have shape ({count},) (one "
                          f"per {per}), got {offsets.shape}")
-    if not (np.isfinite(offsets).all() and (offsets >= 0.0).all() and (offsets <= 1.0).all()):
-        raise ValueError("terminator_offset must lie in [0, 1] (Blender's Shadow Terminator "
-                         "Geometry Offset), got values outside it")
+    spec = AO_OPTIONS["terminator_offset"]
+    if not spec.within(offsets).all():
+        raise ValueError(f"terminator_offset must lie {spec.range()} (Blender's Shadow "
+                         "Terminator Geometry Offset), got values outside it")
     return np.ascontiguousarray(offsets, dtype=np.float32)

@@ -2,13 +2,14 @@
 occlusion with fixed or adaptive sample counts (of a mesh or a two-level scene; every
 setting in one `AoOptions`), and the culling of what a camera's image cannot depend on."""
 
+from scenesort.ao_options import AO_OPTIONS, DEFAULT_MAX_SPP, AoOptions, OptionError, OptionSpec
+
 from .ao import AoRays, AoResult, AoStats, AoTimings, ambient_occlusion, default_distance, render_ao
 from .camera import Camera
 from .cull import mesh_box, view_planes, visible_instances, visible_triangles
-from .options import AO_OPTIONS, DEFAULT_MAX_SPP, AoOptions, OptionSpec
 
 __all__ = [
     "AO_OPTIONS", "DEFAULT_MAX_SPP", "AoOptions", "AoRays", "AoResult", "AoStats", "AoTimings",
-    "Camera", "OptionSpec", "ambient_occlusion", "default_distance", "mesh_box", "render_ao",
-    "view_planes", "visible_instances", "visible_triangles",
+    "Camera", "OptionError", "OptionSpec", "ambient_occlusion", "default_distance", "mesh_box",
+    "render_ao", "view_planes", "visible_instances", "visible_triangles",
 ]

@@ -2,7 +2,7 @@
 the render stops. Fixed mode (no error target): every hit pixel's `spp` samples, in rounds
 of at most ROUND_RAYS rays (a progress call between rounds).
 
-Adaptive sampling, two stopping rules (issue 19), which may be combined:
+Adaptive sampling, two stopping rules, which may be combined:
 - `target_error` is the image's RMSE over hit pixels against the converged AO (the
   expectation of infinitely many samples). The render estimates it as
   sqrt(mean_i efficiency(n_i) * v_i / n_i) over the hit pixels (`rmse_estimate`), v_i
@@ -28,7 +28,7 @@ Adaptive sampling, two stopping rules (issue 19), which may be combined:
   round's fixed cost is worth more than a small overshoot); sigma_i^2 is the
   Jeffreys-smoothed variance below, so that a pixel whose few samples agreed still earns
   more.
-- `max_pixel_error` bounds every pixel (the rule `target_error` had before issue 19):
+- `max_pixel_error` bounds every pixel (a per-pixel rule; target_error bounds the image):
   pixels whose 95% half-width z * sqrt(spread * s^2 / n) is still >= it double their
   samples (`half_width`; spread as below).
 A pixel's samples are always a power-of-two prefix of its Sobol sequence (when the
@@ -53,7 +53,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .options import AoOptions
+from scenesort.ao_options import AoOptions
 
 Z95 = 1.959963984540054  # two-sided 95% normal quantile
 RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's margin)
@@ -250,7 +250,7 @@ def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float |
             # Sobol's variance often falls faster than the last measured rho says, and an
             # overshoot cannot be undone, while a shortfall costs one more round. With at
             # most SHORT_NEED aim^2 to go it aims at all of it: selected pixels' drops came
-            # out up to 1.25x the prediction (issue 19, measured on the shared scenes),
+            # out up to 1.25x the prediction (measured on the shared scenes),
             # which lands at >= 0.75 aim^2, inside the calibration band ((0.7 / 0.82)^2 =
             # 0.73), and the shortfall round it saves has a fixed cost (launches, this
             # allocation over every hit pixel; sponza at 0.05 went from 5 rounds to 3,

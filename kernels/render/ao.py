@@ -1,7 +1,7 @@
 """Ambient occlusion per primary ray, with fixed or adaptive sample counts: `render_ao`,
 `ambient_occlusion` and what they report (`AoResult`).
 
-Definition (issue 4; Cycles' AO pass since issue 14): for a primary ray's closest hit p
+Definition (Cycles' AO pass): for a primary ray's closest hit p
 with shading normal n, AO(p) = (1/pi) * integral over the hemisphere around n of
 V(p, w) cos(theta) dw, where V = 1 when no triangle lies within `distance` along w. It is
 estimated with cosine-weighted directions, so each sample is V itself (0 or 1) and the
@@ -21,7 +21,8 @@ Guarantees:
 - Skipped work: primary rays that miss the scene box are not traced, missed pixels get no
   occlusion rays, and (with an error target) converged pixels get no more samples.
 
-The render by concept: options.py (AoOptions, every setting), primary.py (the primary
+The render by concept: scenesort/ao_options.py (AoOptions, every setting: beside the
+engine, importable without Warp, for the service and the add-on too), primary.py (the primary
 rays and their hits), surface.py (where and about which normal occlusion rays start),
 tracers.py (what traces: a mesh's BVH, a scene, DACRT), adaptive.py (the rounds of
 occlusion rays and when they stop: the error targets' rules and confidence).
@@ -37,6 +38,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from scenesort.ao_options import DISTANCE_FRACTION, AoOptions
+
 from ..bvh.api import Bvh
 from ..core.launch import host_threads, load_modules
 from ..core.record import Record, unset
@@ -47,17 +50,9 @@ from ..scene.top import WARP_MODULES as SCENE_MODULES
 from . import primary, tracers
 from .adaptive import Progress, SampleCounts, sample_rounds
 from .denoise import denoise_ao, require_denoiser
-from .options import DEFAULT_MAX_SPP, DEFAULT_TERMINATOR_OFFSET, AoOptions
 from .primary import scene_shading, trace_primary
 from .surface import PrimaryHits
 from .tracers import check_tracer, occlusion_tracer
-
-# the defaults the service reads here
-__all__ = ["DEFAULT_MAX_SPP", "DEFAULT_TERMINATOR_OFFSET", "DISTANCE_FRACTION", "AoOptions",
-           "AoRays", "AoResult", "AoStats", "AoTimings", "ambient_occlusion",
-           "default_distance", "render_ao"]
-
-DISTANCE_FRACTION = 0.1  # distance=None: this fraction of the scene box's diagonal
 
 
 @dataclass(frozen=True, slots=True, kw_only=True)

@@ -1,5 +1,5 @@
 """What a camera's AO image cannot depend on: geometry outside the view volume widened by the
-AO distance (issue 18).
+AO distance.
 
 A pixel's value depends on its primary ray's closest hit p, which lies in the camera's view
 volume (inside the image's edges, between clip_start and clip_end), and on occlusion rays

@@ -8,6 +8,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from scenesort.ao_options import DEFAULT_TERMINATOR_OFFSET
+
 from ..bvh.api import Bvh
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import host_threads, launch_split
@@ -16,7 +18,6 @@ from ..core.validate import ray_range
 from ..dacrt.api import dacrt_trace_mesh
 from ..scene.api import Scene
 from ..scene.top import SceneShading
-from .options import DEFAULT_TERMINATOR_OFFSET
 from .surface import PrimaryHits, Surface
 from .tracers import MeshTracer, gather_surfaces, primary_kernel, scene_mesh, surface_kernel
 

@@ -12,6 +12,8 @@ from typing import Any
 import numpy as np
 import warp as wp
 
+from scenesort.ao_options import AO_OPTIONS, AoOptions
+
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
 from ..bvh.traversal import closest_hit, traverse
@@ -23,7 +25,6 @@ from ..dacrt.api import dacrt_trace_mesh
 from ..scene.api import Scene
 from ..scene.top import SceneArrays, SceneShading, traverse_scene
 from .adaptive import RoundTracer
-from .options import AO_OPTIONS, AoOptions
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import PrimaryHits, Surface, instance_surface, occlusion_origin, surface
 

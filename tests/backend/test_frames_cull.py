@@ -1,4 +1,4 @@
-"""Culling in frames (issue 18): a camera moving across a field of instances larger than its
+"""Culling in frames: a camera moving across a field of instances larger than its
 view renders the same images with culling on and off (bit for bit, with the request's AO
 distance and with the scene default), never builds a mesh that stays out of view, builds
 one when it enters the view, and reuses the top level while the same instances are in view;

@@ -1,4 +1,4 @@
-"""Hostile requests against a real `scenesort serve` on loopback (issue 16).
+"""Hostile requests against a real `scenesort serve` on loopback (docs/security.md's limits).
 
 Each test sends one kind of attack or abuse and asserts the status it gets; after every
 test an autouse fixture asserts that the service still answers /v1/health, runs, and

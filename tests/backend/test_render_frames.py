@@ -69,7 +69,7 @@ FRAME_CAMERAS = {1: CAM1, 2: CAM2, 3: CAM2, 4: CAM2, 5: CAM1}
 
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    writer = BundleWriter()
+    writer = BundleWriter(settings={"spp": 4, "seed": 1, "distance": 1.0})
     for number, camera in FRAME_CAMERAS.items():
         writer.frame(number, camera, scene_of(number))
     return writer.write(tmp_path_factory.mktemp("bundle"))

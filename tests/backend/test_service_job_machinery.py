@@ -203,21 +203,22 @@ def test_events_end_with_the_final_state(worker) -> None:
 def test_explicit_ray_ao_stops_between_the_engines_rounds() -> None:
     """The signal reaches the engine's progress calls: stopped (the client hung up) or past
     its deadline, `render.ao.ambient_occlusion` raises Stopped instead of rendering on."""
-    from scenesort.backend.render.ao import AoParams, ambient_occlusion
+    from scenesort.backend.render.ao import ambient_occlusion
     from scenesort.backend.wire.binary import SceneArrays
     from scenesort.backend.work.stop import Stopped, StopSignal
 
     from scenesort import kernels
+    from scenesort.ao_options import AoOptions
 
     vertices = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0]], np.float32)
     indices = np.array([[0, 1, 2]], np.int32)
     bvh = kernels.build_bvh(vertices, indices)
     scene = SceneArrays(vertices, indices, scene_id="0" * 32, degenerate=0)
     rays = np.full((8, 3), [0.2, 0.2, 1.0], np.float32), np.tile(np.float32([0, 0, -1]), (8, 1))
-    assert ambient_occlusion(bvh, scene, *rays, AoParams(spp=4), StopSignal())[0].shape == (8,)
+    assert ambient_occlusion(bvh, scene, *rays, AoOptions(spp=4), StopSignal())[0].shape == (8,)
     hung_up = StopSignal()
     hung_up.stop("the client disconnected")
     with pytest.raises(Stopped, match="the client disconnected"):
-        ambient_occlusion(bvh, scene, *rays, AoParams(spp=4), hung_up)
+        ambient_occlusion(bvh, scene, *rays, AoOptions(spp=4), hung_up)
     with pytest.raises(Stopped, match="deadline"):
-        ambient_occlusion(bvh, scene, *rays, AoParams(spp=4), StopSignal(deadline=0.0))
+        ambient_occlusion(bvh, scene, *rays, AoOptions(spp=4), StopSignal(deadline=0.0))

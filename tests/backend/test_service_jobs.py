@@ -74,7 +74,7 @@ def test_a_job_reports_what_it_achieved(api, box_scene, scene_id) -> None:
         status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
         assert status["state"] == "done", status
         expected = kernels.render_ao(bvh, origins, directions, tmin=tmin, tmax=tmax,
-                                     **params).stats()
+                                     **params).stats().to_dict()
         got = {k: status[k] for k in ("rmse_estimate", "spp_mean", "spp_max", "rays",
                                       "denoised")}
         assert got == pytest.approx(expected), (got, expected)

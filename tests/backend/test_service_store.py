@@ -65,4 +65,4 @@ def test_a_real_bvh_is_charged_for_its_device_arrays(box_scene) -> None:
     vertices, indices = box_scene
     bvh = kernels.build_bvh(vertices, indices, device="cpu")
     inputs = vertices.nbytes + indices.nbytes
-    assert bvh_nbytes(bvh) > inputs + 32 * bvh.stats["nodes"]
+    assert bvh_nbytes(bvh) > inputs + 32 * bvh.stats.nodes

@@ -15,7 +15,7 @@ from dribble import Dribblers
 from scenesort.backend.api.server import MAX_HEAD_BYTES
 from service_client import Service
 
-FLOOR_S = 1.0  # the floor: /v1/health answers the token holder within 1 s
+FLOOR_S = 1.0  # the slow-client floor: /v1/health answers the token holder within 1 s
 WAIT_S = 30.0  # bound on every wait below
 
 

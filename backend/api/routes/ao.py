@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import time
-from typing import Annotated, Literal
+from typing import Annotated
 
 import numpy as np
 from fastapi import APIRouter, Query, Request, Response
@@ -14,16 +14,9 @@ from scenesort.backend.api.params import SceneId
 from scenesort.backend.api.requests import read_body, run_on_worker, server_timing
 from scenesort.backend.api.service import Shared
 from scenesort.backend.render import bvhs
-from scenesort.backend.render.ao import AoParams
 from scenesort.backend.render.ao import ambient_occlusion as rays_ao
 from scenesort.backend.wire import binary as wire
-from scenesort.backend.wire.models import (
-    MAX_PIXEL_ERROR_DOC,
-    OCTET,
-    TARGET_ERROR_DOC,
-    binary_body,
-    error_responses,
-)
+from scenesort.backend.wire.models import OCTET, AoQuery, binary_body, error_responses
 from starlette.concurrency import run_in_threadpool
 
 router = APIRouter()
@@ -49,17 +42,7 @@ async def ambient_occlusion(
     request: Request,
     scene_id: SceneId,
     service: Shared,
-    rays: Annotated[int, Query(ge=1, le=2**27)],
-    spp: Annotated[int, Query(ge=1, le=4096)] = 16,
-    distance: Annotated[float | None, Query(gt=0, allow_inf_nan=False)] = None,
-    seed: Annotated[int, Query(ge=0, le=2**31 - 1)] = 0,
-    target_error: Annotated[float | None, Query(
-        gt=0, lt=1, allow_inf_nan=False, description=TARGET_ERROR_DOC)] = None,
-    max_pixel_error: Annotated[float | None, Query(
-        gt=0, lt=1, allow_inf_nan=False, description=MAX_PIXEL_ERROR_DOC)] = None,
-    engine: Literal["bvh", "dacrt"] = "bvh",
-    method: Literal["sah", "median"] | None = None,
-    leaf_size: Annotated[int | None, Query(ge=1, le=64)] = None,
+    query: Annotated[AoQuery, Query()],
 ) -> Response:
     """AO per ray, identical to `kernels.ambient_occlusion` for the same inputs (the
     scene's normals and terminator offsets included).
@@ -70,17 +53,13 @@ async def ambient_occlusion(
     """
     t0 = time.perf_counter()
     scene = service.scene(scene_id)
-    params = AoParams(
-        spp=spp, distance=distance, seed=seed, target_error=target_error,
-        max_pixel_error=max_pixel_error, engine=engine,
-    )
-    limits.check_ao(params)
-    limits.check_engine(scene, params)
-    limits.check_work(service.settings.max_work, rays, "rays", params)
-    body = await read_body(request, 24 * rays)
+    options = query.options()
+    limits.check_engine(scene, options)
+    limits.check_work(service.settings.max_work, query.rays, "rays", options)
+    body = await read_body(request, 24 * query.rays)
     t1 = time.perf_counter()
     try:
-        origins, directions = await run_in_threadpool(wire.decode_rays, body, rays)
+        origins, directions = await run_in_threadpool(wire.decode_rays, body, query.rays)
     except MemoryError as exc:
         raise errors.out_of_memory(exc) from None
     del body  # the decoded copies are what the work holds
@@ -92,9 +71,10 @@ async def ambient_occlusion(
         # Runs on the worker: pick or build the BVH there, never on the event loop.
         signal.check()
         w0 = time.perf_counter()
-        bvh = bvhs.bvh_for_ao(service.store, scene, method, leaf_size, service.settings.device)
+        bvh = bvhs.bvh_for_ao(service.store, scene, query.method, query.leaf_size,
+                              service.settings.device)
         w1 = time.perf_counter()
-        ao, engine_ms = rays_ao(bvh, scene, origins, directions, params, signal)
+        ao, engine_ms = rays_ao(bvh, scene, origins, directions, options, signal)
         timings.update(bvh=1000 * (w1 - w0), ao=1000 * (time.perf_counter() - w1))
         timings.update({f"ao.{k}": v for k, v in engine_ms.items() if k != "total"})
         return ao

@@ -55,16 +55,15 @@ async def build_bvh(
 
 
 def _bvh_info(scene_id: str, method: str, leaf_size: int, bvh: Any, cached: bool) -> BvhInfo:
-    stats = dict(bvh.stats)
-    timings = {"total": float(stats["build_ms"])}
-    timings.update({k: float(v) for k, v in stats.get("phase_ms", {}).items()})
-    timings["compile"] = float(stats.get("compile_ms", 0.0))  # Warp's, not part of total
-    fields = BvhStats.model_fields
+    stats = bvh.stats
+    timings = {"total": float(stats.build_ms)}
+    timings.update({k: float(v) for k, v in stats.phase_ms.items()})
+    timings["compile"] = float(stats.compile_ms)  # Warp's, not part of total
     return BvhInfo(
         scene_id=scene_id,
         method=method,
         leaf_size=leaf_size,
         cached=cached,
         timings_ms=timings,
-        stats=BvhStats(**{k: stats[k] for k in fields}),
+        stats=BvhStats(**{k: getattr(stats, k) for k in BvhStats.model_fields}),
     )

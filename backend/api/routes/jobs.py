@@ -14,7 +14,6 @@ from scenesort.backend.api.openapi import COMMON_ERRORS
 from scenesort.backend.api.params import JobId
 from scenesort.backend.api.requests import server_timing
 from scenesort.backend.api.service import Shared
-from scenesort.backend.render.ao import ao_params
 from scenesort.backend.render.camera_render import job_camera, render_camera
 from scenesort.backend.wire import binary as wire
 from scenesort.backend.wire.models import OCTET, JobRequest, JobStatus, error_responses
@@ -45,15 +44,15 @@ async def create_job(request: JobRequest, response: Response, service: Shared) -
             "invalid_camera",
         ) from None
     limits.check_pixels(camera.width, camera.height)
-    params = ao_params(request)
-    limits.check_ao(params)
+    options = request.options()
+    limits.check_denoiser(options)
     limits.check_work(service.settings.max_work, camera.width * camera.height,
-                      "camera.width x camera.height", params)
+                      "camera.width x camera.height", options)
     scene = service.scene(request.scene_id)
-    limits.check_engine(scene, params)
+    limits.check_engine(scene, options)
 
     def work(job: Job) -> None:
-        render_camera(job, service.store, scene, camera, params, request.method,
+        render_camera(job, service.store, scene, camera, options, request.method,
                       request.leaf_size, service.settings.device)
 
     try:

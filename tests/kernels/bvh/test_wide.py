@@ -1,4 +1,4 @@
-"""The wide BVH (issue 17): its structure, and its traversal against the float64 brute force
+"""The wide BVH: its structure, and its traversal against the float64 brute force
 and against the binary tree, for every width, on deep trees, flat boxes and rays along
 axes and in planes; the SIMD node test and traversal against the portable ones."""
 

@@ -109,7 +109,7 @@ def test_point_near_wall_matches_form_factor(sampler):
     res = kernels.render_ao(bvh, origins.astype(np.float32), directions.astype(np.float32),
                             spp=spp, distance=1e3, seed=3, sampler=sampler)
     expected = np.array([1.0 - wall_form_factor(t, wall) for t in target])
-    assert abs(expected.mean() - 0.5) < 0.005  # the limit the issue names
+    assert abs(expected.mean() - 0.5) < 0.005  # the form factor's limit, 0.5, within 0.005
     # Independent Bernoulli samples bound the standard error (Sobol's is smaller).
     se = np.sqrt(np.sum(expected * (1 - expected) / spp)) / r
     assert abs(res.ao.mean() - expected.mean()) < 4 * se

@@ -1,4 +1,4 @@
-"""target_error as the image's RMSE (issue 19): calibration over seeds against a
+"""target_error as the image's RMSE: calibration over seeds against a
 brute-force reference, the reported estimate against the measured error, Neyman
 allocation, and max_pixel_error bounding every pixel."""
 

@@ -1,4 +1,4 @@
-"""Denoising (issue 19, item 3): the normal image, OIDN bringing a noisy render closer to
+"""Denoising: the normal image, OIDN bringing a noisy render closer to
 a converged reference, what the result claims, and the missing extra."""
 
 from __future__ import annotations

@@ -1,15 +1,17 @@
-"""Every setting of an AO render (`render_ao`, `ambient_occlusion`): one frozen dataclass,
-each field defined, documented, bounded and checked here once.
+"""Every setting of an AO render: one frozen dataclass, `AoOptions`, each field defined,
+documented, bounded and checked here once.
 
-The bounds are data as well (`AO_OPTIONS`: name -> `OptionSpec`, in field order), for
-what offers or checks the same settings elsewhere (the service's request models, the
-command line, the add-on's properties): take the type, default, range or choices and
-documentation from there rather than writing them again.
+The engine renders with it (`scenesort.kernels.render_ao`, which re-exports it as
+`kernels.AoOptions`); the service's request models, the command line, frame bundles and the
+add-on's properties take their defaults, ranges, choices and documentation from its bounds
+as data (`AO_OPTIONS`: name -> `OptionSpec`, in field order) rather than writing them again.
+This module imports numpy only, never Warp or the engine: the service's wire layer, which
+must not import the engine, reads it too (docs/architecture.md). In the documentation
+"unset" is None in Python, null or absent in JSON, an option not given on the command line.
 """
 
 from __future__ import annotations
 
-import math
 import types
 import typing
 from dataclasses import dataclass, field, fields, replace
@@ -22,8 +24,22 @@ Engine = Literal["bvh", "dacrt"]
 DEFAULT_MAX_SPP = 1024
 MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
 DEFAULT_TERMINATOR_OFFSET = 0.1  # Blender's Object.shadow_terminator_geometry_offset default
+DISTANCE_FRACTION = 0.1  # distance unset: this fraction of the scene box's diagonal
 SERVICE_MAX_SPP = 4096  # the most samples per pixel a service request or the add-on offers
 SEED_MAX = 2**31 - 1  # the sampler's key is an int32
+
+
+class OptionError(ValueError):
+    """A value an AO setting does not take: `name` is the setting at fault, the message
+    says what is wrong and `fix` what to change."""
+
+    def __init__(self, name: str, message: str, fix: str) -> None:
+        super().__init__(message)
+        self.name = name
+        self.fix = fix
+
+    def __reduce__(self) -> tuple[Any, ...]:  # pickled with its fields (Ray ships errors)
+        return type(self), (self.name, str(self), self.fix)
 
 
 @dataclass(frozen=True)
@@ -51,7 +67,7 @@ class OptionSpec:
         if value is None:
             if self.optional:
                 return None
-            raise ValueError(f"{self.name} must be {self.takes()}, got None")
+            raise self.error(None)
         if self.kind is bool:
             if isinstance(value, bool | np.bool_):
                 return bool(value)
@@ -64,15 +80,23 @@ class OptionSpec:
                 number = self.kind(value)
                 if self.within(number):
                     return number
-        raise ValueError(f"{self.name} must be {self.takes()}, got {value!r}")
+        raise self.error(value)
 
-    def within(self, x: float) -> bool:
-        """Whether the number x lies in the range (NaN never does)."""
-        if math.isnan(x):
-            return False
-        above = self.low is None or (x > self.low if self.low_open else x >= self.low)
-        below = self.high is None or (x < self.high if self.high_open else x <= self.high)
-        return above and below
+    def error(self, value: Any) -> OptionError:
+        """The OptionError of `value`, which this setting does not take."""
+        return OptionError(self.name, f"{self.name} must be {self.takes()}, got {value!r}",
+                           f"set {self.name} to {self.takes()}")
+
+    def within(self, x: Any) -> Any:
+        """Whether the number x lies in the range (NaN never does); of an array, per
+        element."""
+        x = np.asarray(x, dtype=np.float64)
+        ok = ~np.isnan(x)
+        if self.low is not None:
+            ok &= x > self.low if self.low_open else x >= self.low
+        if self.high is not None:
+            ok &= x < self.high if self.high_open else x <= self.high
+        return ok
 
     def takes(self) -> str:
         """The values it takes, in words: 'an integer >= 1', 'a number in (0, 1) or None'."""
@@ -81,15 +105,20 @@ class OptionSpec:
         elif self.kind is str:
             text = f"one of {list(self.choices)}"
         else:
-            text = "an integer" if self.kind is int else "a number"
-            if self.low is not None and self.high is not None:
-                text += (f" in {'(' if self.low_open else '['}{_plain(self.low)}, "
-                         f"{_plain(self.high)}{')' if self.high_open else ']'}")
-            elif self.low is not None:
-                text += f" {'>' if self.low_open else '>='} {_plain(self.low)}"
-            elif self.high is not None:
-                text += f" {'<' if self.high_open else '<='} {_plain(self.high)}"
+            text = " ".join(filter(None, ("an integer" if self.kind is int else "a number",
+                                          self.range())))
         return text + (" or None" if self.optional else "")
+
+    def range(self) -> str:
+        """The range in words: 'in [0, 1]', 'in (0, 1)', '> 0', '>= 1' ('' if unbounded)."""
+        if self.low is not None and self.high is not None:
+            return (f"in {'(' if self.low_open else '['}{_plain(self.low)}, "
+                    f"{_plain(self.high)}{')' if self.high_open else ']'}")
+        if self.low is not None:
+            return f"{'>' if self.low_open else '>='} {_plain(self.low)}"
+        if self.high is not None:
+            return f"{'<' if self.high_open else '<='} {_plain(self.high)}"
+        return ""
 
 
 def _plain(x: float) -> str:
@@ -105,47 +134,63 @@ def _option(default: Any, doc: str, **bounds: Any) -> Any:
 @dataclass(frozen=True)
 class AoOptions:
     """How an AO render samples and traces (`render_ao`; kernels/render/ao.py defines AO).
-    Checked when made: a bad value raises ValueError naming the field."""
+    Checked when made: a bad value raises OptionError (a ValueError) naming the field."""
 
     spp: int = _option(
-        16, "samples per hit pixel; with an error target the fewest per pixel (at least "
-        "MIN_ADAPTIVE_SPP)", low=1, soft_high=SERVICE_MAX_SPP)
+        16, "samples per hit pixel; with an error target, the fewest per pixel (at least "
+        f"{MIN_ADAPTIVE_SPP})", low=1, soft_high=SERVICE_MAX_SPP)
     distance: float | None = _option(
-        None, "occluders farther than this from the shaded point are ignored (None: "
-        "DISTANCE_FRACTION of the scene box's diagonal)", low=0.0, low_open=True)
-    seed: int = _option(0, "the samples' seed: each is a pure function of (seed, ray, "
-                        "sample)", low=0, high=SEED_MAX)
+        None, "occluders farther than this from the shaded point are ignored (unset: "
+        f"{DISTANCE_FRACTION} of the scene box's diagonal)", low=0.0, low_open=True)
+    seed: int = _option(0, "the samples' seed: each sample is a pure function of (seed, "
+                        "ray, sample index)", low=0, high=SEED_MAX)
     target_error: float | None = _option(
         None, "stop once the image's estimated RMSE over hit pixels against the converged "
-        "AO is below RMSE_AIM x this (achieved within [0.7, 1.0] x it in >= 95% of renders; "
-        "None: fixed spp)", low=0.0, high=1.0, low_open=True, high_open=True)
-    max_pixel_error: float | None = _option(
-        None, "stop each pixel once its 95% half-width is below this (None: no bound)",
+        "AO (AO in [0, 1]) is safely below this: the achieved RMSE is within [0.7, 1.0] x "
+        "it in >= 95% of renders (unset: a fixed spp)",
         low=0.0, high=1.0, low_open=True, high_open=True)
+    max_pixel_error: float | None = _option(
+        None, "stop each pixel once its 95% confidence half-width is below this: every "
+        "pixel bounded, at more samples than target_error for the same number (unset: no "
+        "bound)", low=0.0, high=1.0, low_open=True, high_open=True)
     max_spp: int = _option(
         DEFAULT_MAX_SPP, "with an error target, the most samples per pixel", low=1)
     sampler: Sampler = _option(
         "sobol", "Owen-scrambled Sobol, or independent random samples: both unbiased")
     engine: Engine = _option(
-        "bvh", "what traces the rays: the BVH (or Scene), or the task-pool DACRT over the "
-        "BVH's triangles (the same AO to float32 rounding)")
+        "bvh", "what traces the rays: the BVH (of a mesh or a two-level scene), or the "
+        "task-pool DACRT over a mesh BVH's triangles (the same AO to float32 rounding)")
     terminator_offset: float = _option(
-        DEFAULT_TERMINATOR_OFFSET, "Cycles' shadow terminator geometry offset of smooth "
-        "triangles (render_ao's terminator_offset: one per triangle or instance)",
-        low=0.0, high=1.0)
+        DEFAULT_TERMINATOR_OFFSET, "Cycles' shadow terminator geometry offset: how far "
+        "smooth triangles lift occlusion rays off their flat surface (render_ao takes one "
+        "per triangle or instance)", low=0.0, high=1.0)
     denoise: bool = _option(
-        False, "denoise the image with OIDN (the scenesort[denoise] extra; render_ao's "
-        "image_shape says the image's shape)")
+        False, "denoise the image with Intel Open Image Denoise, the shading normals as its "
+        'guide (needs pip install "scenesort[denoise]"); the estimated RMSE stays the raw '
+        "render's")
     threads: int | None = _option(
-        None, "CPU host threads (None: every core); the result does not depend on it",
+        None, "CPU host threads (unset: every core); the result does not depend on it",
         low=1)
 
     def __post_init__(self) -> None:
         for spec in AO_OPTIONS.values():
             object.__setattr__(self, spec.name, spec.check(getattr(self, spec.name)))
         if self.adaptive and self.max_spp < self.min_spp:
-            raise ValueError(f"max_spp ({self.max_spp}) must be >= the minimum spp "
-                             f"({self.min_spp}): raise max_spp or lower spp")
+            raise self._over_max_spp()
+
+    def _over_max_spp(self) -> OptionError:
+        """With an error target, more samples than max_spp asked for: of spp (over it) or
+        of max_spp (below MIN_ADAPTIVE_SPP)."""
+        if self.spp > self.max_spp:
+            return OptionError(
+                "spp", f"with target_error or max_pixel_error, spp is the fewest samples per "
+                f"pixel and must be <= max_spp ({self.max_spp}), got {self.spp}",
+                f"lower spp to at most {self.max_spp}, or drop target_error and "
+                "max_pixel_error for a fixed spp")
+        return OptionError(
+            "max_spp", f"with target_error or max_pixel_error, max_spp must be >= "
+            f"{MIN_ADAPTIVE_SPP} (the fewest samples per pixel), got {self.max_spp}",
+            f"raise max_spp to at least {MIN_ADAPTIVE_SPP}")
 
     @property
     def adaptive(self) -> bool:
