@@ -138,16 +138,7 @@ def degenerate_cases(quick: bool):
     f2 = np.vstack([f, bad])
     o, d = C.scene_rays(v, f, 1500 if quick else 6000, seed=3)
     yield "degenerate copies mixed in", v, f2, o, d, "closest"
-    rng = np.random.default_rng(9)
-    huge = np.array([[-1e4, 0, -1e4], [1e4, 0, -1e4], [0, 0, 2e4]])
-    centres = rng.uniform(-1, 1, (3000, 1, 3)) * [1, 0.01, 1] + [0, 0.02, 0]
-    tiny = (centres + rng.normal(scale=1e-5, size=(3000, 3, 3))).reshape(-1, 3)
-    v = np.vstack([huge, tiny]).astype(np.float32)
-    f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
-    cen = v[f[1:600]].astype(np.float64).mean(axis=1)
-    o = np.vstack([cen + [0, 1, 0], rng.uniform(-2, 2, (600, 3))]).astype(np.float32)
-    d = np.vstack([np.tile([[0, -1, 0]], (599, 1)), rng.normal(size=(600, 3))])
-    yield "one huge + 3000 tiny triangles", v, f, o, d.astype(np.float32), "closest"
+    yield "one huge + 3000 tiny triangles", *C.huge_over_tiny(3000), "closest"
 
 
 def size_cases(quick: bool):

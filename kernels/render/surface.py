@@ -96,6 +96,17 @@ def shading_normal(n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, u: float, v: float, ng
 
 
 @wp.func
+def corner_envelope(p: wp.vec3, pc: wp.vec3, pa: wp.vec3, pb: wp.vec3, nc: wp.vec3,
+                    side: float) -> float:
+    """One corner's term of Cycles' local linear envelope: how far the plane through corner
+    pc with its normal nc, lifted over the triangle's other corners pa and pb, lies above p
+    (side 1; -1: below, measured against the normals). Negating the differences is exact,
+    so both sides round as Cycles' two written-out branches do."""
+    lift = wp.max(wp.max(wp.dot(side * (pa - pc), nc), wp.dot(side * (pb - pc), nc)), 0.0)
+    return wp.max(wp.dot(side * (pc - p), nc) + lift, 0.0)
+
+
+@wp.func
 def smooth_surface_offset(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, n0: wp.vec3, n1: wp.vec3,
                           n2: wp.vec3, u: float, v: float, ng: wp.vec3) -> wp.vec3:
     # Cycles' shadow_ray_smooth_surface_offset (kernel/light/sample.h; Hanika 2021,
@@ -112,24 +123,12 @@ def smooth_surface_offset(p0: wp.vec3, p1: wp.vec3, p2: wp.vec3, n0: wp.vec3, n1
     b = wp.dot(n2 - n1, p1 - p2)
     c = wp.dot(n1 - n0, p1 - p0)
     h = a * wu * (wu - 1.0) + (a + b + c) * wu * wv + b * wv * (wv - 1.0)
-    if wp.dot(n, ng) > 0.0:
-        # Local linear envelope
-        h0 = wp.max(wp.max(wp.dot(p1 - p0, n0), wp.dot(p2 - p0, n0)), 0.0)
-        h1 = wp.max(wp.max(wp.dot(p0 - p1, n1), wp.dot(p2 - p1, n1)), 0.0)
-        h2 = wp.max(wp.max(wp.dot(p0 - p2, n2), wp.dot(p1 - p2, n2)), 0.0)
-        h0 = wp.max(wp.dot(p0 - p, n0) + h0, 0.0)
-        h1 = wp.max(wp.dot(p1 - p, n1) + h1, 0.0)
-        h2 = wp.max(wp.dot(p2 - p, n2) + h2, 0.0)
-        h = wp.max(wp.min(wp.min(h0, h1), h2), h * 0.5)
-    else:  # seen from behind the normals: the same envelope below
-        h0 = wp.max(wp.max(wp.dot(p0 - p1, n0), wp.dot(p0 - p2, n0)), 0.0)
-        h1 = wp.max(wp.max(wp.dot(p1 - p0, n1), wp.dot(p1 - p2, n1)), 0.0)
-        h2 = wp.max(wp.max(wp.dot(p2 - p0, n2), wp.dot(p2 - p1, n2)), 0.0)
-        h0 = wp.max(wp.dot(p - p0, n0) + h0, 0.0)
-        h1 = wp.max(wp.dot(p - p1, n1) + h1, 0.0)
-        h2 = wp.max(wp.dot(p - p2, n2) + h2, 0.0)
-        h = wp.min(-wp.min(wp.min(h0, h1), h2), h * 0.5)
-    return n * h
+    # Local linear envelope, above the normals or, seen from behind them, below
+    side = wp.where(wp.dot(n, ng) > 0.0, 1.0, -1.0)
+    e = wp.min(wp.min(corner_envelope(p, p0, p1, p2, n0, side),
+                      corner_envelope(p, p1, p0, p2, n1, side)),
+               corner_envelope(p, p2, p0, p1, n2, side))
+    return n * wp.where(side > 0.0, wp.max(e, h * 0.5), wp.min(-e, h * 0.5))
 
 
 @wp.func

@@ -341,6 +341,22 @@ def mixed_scene(seed: int = 0, scale: float = 1.0, offset: float = 0.0):
     return transform(v, scale, offset).astype(np.float32), f
 
 
+def huge_over_tiny(tiny: int, seed: int = 9):
+    """One 2e4-wide triangle over `tiny` triangles of size 1e-5 (extents 1e9 apart), and
+    rays: straight down at 599 tiny triangles' centroids, and 600 random ones. Returns
+    (v, f, o, d), float32 and int32."""
+    rng = np.random.default_rng(seed)
+    huge = np.array([[-1e4, 0, -1e4], [1e4, 0, -1e4], [0, 0, 2e4]])
+    centres = rng.uniform(-1, 1, (tiny, 1, 3)) * [1, 0.01, 1] + [0, 0.02, 0]
+    small = (centres + rng.normal(scale=1e-5, size=(tiny, 3, 3))).reshape(-1, 3)
+    v = np.vstack([huge, small]).astype(np.float32)
+    f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+    cen = v[f[1:600]].astype(np.float64).mean(axis=1)
+    o = np.vstack([cen + [0, 1, 0], rng.uniform(-2, 2, (600, 3))]).astype(np.float32)
+    d = np.vstack([np.tile([[0, -1, 0]], (599, 1)), rng.normal(size=(600, 3))])
+    return v, f, o, d.astype(np.float32)
+
+
 def scene_rays(v, f, count: int, seed: int = 0):
     """Half aimed at random points of random triangles (vertices and edges included),
     half in random directions, all from random points in the scene's box enlarged 1.5x."""

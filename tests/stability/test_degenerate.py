@@ -15,7 +15,7 @@ import pytest
 from scenesort import kernels
 from tests.kernels.reference import check_bvh
 
-from .cases import check_closest, mixed_scene, plane_grid, scene_rays
+from .cases import check_closest, huge_over_tiny, mixed_scene, plane_grid, scene_rays
 
 
 def degenerate_soup():
@@ -140,20 +140,11 @@ def test_one_huge_and_many_tiny_triangles():
     """Guards the builder's split choice and the box test with extents 1e9 apart (a 1e4
     triangle over 3000 triangles of size 1e-5): structure exact, hits as the oracle says,
     tiny triangles found under and beside the huge one."""
-    rng = np.random.default_rng(9)
-    huge = np.array([[-1e4, 0, -1e4], [1e4, 0, -1e4], [0, 0, 2e4]])
-    centres = rng.uniform(-1, 1, (3000, 1, 3)) * [1, 0.01, 1] + [0, 0.02, 0]
-    tiny = (centres + rng.normal(scale=1e-5, size=(3000, 3, 3))).reshape(-1, 3)
-    v = np.vstack([huge, tiny]).astype(np.float32)
-    f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+    # Rays straight down at tiny triangles' centroids, and random rays onto the huge one.
+    v, f, o, d = huge_over_tiny(3000)
     for method in ("sah",):  # median: see the next test
         bvh = kernels.build_bvh(v, f, method=method)
         check_bvh(bvh, 8)
-        # Rays straight down at tiny triangles' centroids, and random rays onto the huge one.
-        cen = v[f[1:600]].astype(np.float64).mean(axis=1)
-        o = np.vstack([cen + [0, 1, 0], rng.uniform(-2, 2, (600, 3))]).astype(np.float32)
-        d = np.vstack([np.tile([[0, -1, 0]], (599, 1)), rng.normal(size=(600, 3))])
-        d = d.astype(np.float32)
         h = kernels.trace(bvh, o, d)
         check = check_closest(v, f, o, d, h.t, h.triangle)
         assert check.failures == 0, f"{method}: {check.summary()}"
@@ -184,15 +175,10 @@ def test_median_build_of_huge_and_tiny_triangles_does_not_corrupt_memory(device)
     heap corruption) inside build_bvh(method="median"); 1000 tiny triangles, or no huge
     one, build fine. Run in a child process so a crash fails this test, not the suite."""
     script = textwrap.dedent("""
-        import numpy as np
         from scenesort import kernels
         from tests.kernels.reference import check_bvh
-        rng = np.random.default_rng(9)
-        centres = rng.uniform(-1, 1, (1200, 1, 3)) * [1, 0.01, 1] + [0, 0.02, 0]
-        tiny = (centres + rng.normal(scale=1e-5, size=(1200, 3, 3))).reshape(-1, 3)
-        huge = [[-1e4, 0, -1e4], [1e4, 0, -1e4], [0, 0, 2e4]]
-        v = np.vstack([huge, tiny]).astype(np.float32)
-        f = np.arange(len(v), dtype=np.int32).reshape(-1, 3)
+        from tests.stability.cases import huge_over_tiny
+        v, f, _, _ = huge_over_tiny(1200)
         bvh = kernels.build_bvh(v, f, method="median", device=DEVICE)
         check_bvh(bvh, 8)
         print("built", bvh.stats.nodes)
