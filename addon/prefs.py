@@ -1,12 +1,16 @@
 """Add-on preferences: where the service is, how the local one starts, on which device.
 
 Kept in the user's preferences, never in a .blend: a file someone sends you cannot
-choose where your geometry goes or which program Blender runs.
+choose where your geometry goes or which program Blender runs. The service token is not
+even in the preferences file: it lives in a file only the user can read, in Blender's
+config folder, written by the engine's token_file (as the service keeps its own token).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
+from pathlib import Path
 
 import bpy
 from bpy.props import BoolProperty, EnumProperty, IntProperty, StringProperty
@@ -22,6 +26,47 @@ LEGACY_COMMAND = "scenesort"  # the old default ('scenesort' on PATH): now means
 # enum items kept alive on the Python side while they are shown.
 _reported: list[str] = []
 _items: list[tuple[str, str, str, int]] = []
+_session_token = ""  # where the token lives without the bundled engine: this session only
+
+
+def token_path() -> Path:
+    """The file of the token of a service of your own (mode 0600, folder 0700)."""
+    return Path(bpy.utils.user_resource("CONFIG", path="scenesort")) / "service-token"
+
+
+def _token_file():  # noqa: ANN202 - the module, or None
+    """The engine's private-file functions (backend/api/token_file.py, standard library
+    only); None when the extension was installed without the engine."""
+    try:
+        from scenesort.backend.api import token_file
+    except ImportError:
+        return None
+    return token_file
+
+
+def _get_token(self) -> str:  # noqa: ANN001
+    store = _token_file()
+    if store is not None:
+        with contextlib.suppress(OSError, ValueError):  # unreadable: as if none were saved
+            saved = store.read_private(token_path())
+            if saved is not None:
+                return saved
+    return _session_token
+
+
+def _set_token(self, value: str) -> None:  # noqa: ANN001
+    global _session_token
+    _session_token = value.strip()
+    store = _token_file()
+    if store is None:
+        return
+    try:
+        if _session_token:
+            store.write_private(token_path(), _session_token)
+        else:
+            token_path().unlink(missing_ok=True)
+    except OSError as exc:  # a read-only config folder: the token lasts this session
+        print(f"scenesort: the service token could not be saved in {token_path()}: {exc}")
 
 
 def remember_devices(health: dict) -> None:
@@ -91,10 +136,12 @@ class SCENESORT_AP_preferences(bpy.types.AddonPreferences):
         name="Service token",
         description=(
             "The token of the service at Service URL ('scenesort token' prints it there); "
-            "kept in Blender's preferences file. The local service needs none"
+            "kept in a file only you can read, never in Blender's preferences file. The "
+            "local service needs none"
         ),
-        default="",
         subtype="PASSWORD",
+        get=_get_token,
+        set=_set_token,
     )
     allow_remote: BoolProperty(  # type: ignore[valid-type]
         name="Allow a remote service",

@@ -124,9 +124,9 @@ def _bundled_engine() -> Path:
 def command_line(command: str, host: str, port: int, device: str = "cpu") -> list[str]:
     """The child's argument list (no shell involved): `command` (the preference's
     override) if set, else Blender's own Python running the bundled engine, then
-    `serve --host H --port P --device D --exit-with-stdin`."""
-    serve = ["serve", "--host", host, "--port", str(port), "--device", device,
-             "--exit-with-stdin"]  # fmt: skip
+    `serve --host H --port P --exit-with-stdin --device D`."""
+    serve = ["serve", "--host", host, "--port", str(port), "--exit-with-stdin",
+             "--device", device]  # fmt: skip
     if not command.strip():
         _bundled_engine()
         # -s: the user's own site-packages must not shadow the bundled wheels.

@@ -43,8 +43,8 @@ def _signalled(pid: int) -> bool:
 def test_command_line_appends_serve_and_address() -> None:
     argv = service.command_line(SLEEPER, "127.0.0.1", 9999, "cuda:0")
     assert argv[0] == sys.executable
-    assert argv[-8:] == ["serve", "--host", "127.0.0.1", "--port", "9999", "--device", "cuda:0",
-                         "--exit-with-stdin"]  # fmt: skip
+    assert argv[-8:] == ["serve", "--host", "127.0.0.1", "--port", "9999", "--exit-with-stdin",
+                         "--device", "cuda:0"]  # fmt: skip
     with pytest.raises(service.LaunchError, match="was not found"):
         service.command_line("no-such-program-scenesort", "127.0.0.1", 1)
     assert service.host_port("http://localhost:1234/") == ("127.0.0.1", 1234)
@@ -187,8 +187,8 @@ def test_default_launch_is_this_python_running_the_engine_on_its_path() -> None:
     """No command: Blender's own interpreter, the engine's folder as the whole path."""
     argv = service.command_line("", "127.0.0.1", 0, "cpu")
     assert argv[:4] == [sys.executable, "-s", "-m", "scenesort.backend.commands"]
-    assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--device", "cpu",
-                        "--exit-with-stdin"]  # fmt: skip
+    assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--exit-with-stdin",
+                        "--device", "cpu"]  # fmt: skip
     assert service.engine_root() == REPO  # here the checkout; in Blender the wheels' folder
     env = service.child_env("", "secret")
     assert env["PYTHONPATH"] == str(REPO) and "PYTHONHOME" not in env
