@@ -26,7 +26,9 @@ def _wait_for_eof(stream: BinaryIO) -> None:
         while stream.read(4096):  # whatever arrives is ignored: only the end matters
             pass
     log.warning("the program that started the service went away (stdin closed): stopping")
-    threading.Timer(GRACE_S, os._exit, args=(0,)).start()
+    deadline = threading.Timer(GRACE_S, os._exit, args=(0,))
+    deadline.daemon = True  # a stop that finishes in time exits at once, not at the deadline
+    deadline.start()
     signal.raise_signal(signal.SIGTERM)  # uvicorn's handler, in the main thread
 
 

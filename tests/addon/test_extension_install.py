@@ -6,8 +6,8 @@ Blender ships it) runs tests/addon/install_and_render.py: Blender's own installe
 zip's wheels into the extensions' site-packages, and the add-on, with no setting changed,
 no SCENESORT_COMMAND and no `scenesort` on PATH, starts the service with that Python and
 renders (Render AO, then F12). The image must equal a direct engine call made here. This
-runs for Blender 4.2 LTS (its newest patch), 5.0 (the dev extra's bpy) and the newest 5.x
-on Python 3.13 with numpy 2; in each, every RNA property the add-on names must exist, or
+runs for Blender 4.2 and 4.5 LTS (their newest patches), 5.0 (the dev extra's bpy) and the
+newest 5.x on Python 3.13 with numpy 2; in each, every RNA property the add-on names must exist, or
 have a fallback (tests/addon/rna_audit.py).
 
 The bpy environments are kept in $SCENESORT_BPY_VENVS when it is set (CI: under .cache/),
@@ -46,10 +46,12 @@ AUDIT = Path(__file__).with_name("rna_audit.py")
 INSTALL_TIMEOUT_S = 1800  # a cold pip cache downloads bpy (hundreds of MB)
 RENDER_TIMEOUT_S = 900  # a cold Warp kernel cache compiles every module once
 PLATFORMS = ["linux-x64", "windows-x64", "macos-arm64"]
-# Blender -> (its Python, the numpy Blender ships with it, as the venv gets it). 4.2.23 is
-# the newest 4.2 LTS patch on the index; 5.3.0 the newest 5.x. None: the dev extra's bpy.
+# Blender -> (its Python, the numpy Blender ships with it, as the venv gets it). 4.2.23 and
+# 4.5.15 are the newest 4.2 and 4.5 LTS patches on the index; 5.3.0 the newest 5.x. None:
+# the dev extra's bpy.
 BLENDERS = {
     "4.2.23": ("3.11", "numpy==1.26.4"),
+    "4.5.15": ("3.11", "numpy==1.26.4"),
     "dev": ("3.11", None),
     "5.3.0": ("3.13", "numpy>=2.2,<3"),
 }
