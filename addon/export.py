@@ -37,9 +37,9 @@ DEFAULT_TERMINATOR_OFFSET = AO_OPTIONS["terminator_offset"]["default"]
 
 
 def terminator_offset(obj: bpy.types.Object) -> float:
-    """The object's Shadow Terminator > Geometry Offset. Blender 5.0 keeps it on the Object;
-    4.2 in Cycles' object settings (`obj.cycles`); without either (Cycles disabled in 4.2)
-    Cycles' default, which renders as Cycles would."""
+    """The object's Shadow Terminator > Geometry Offset. Blender 4.5 and later keep it on
+    the Object, 4.2 in Cycles' object settings (`obj.cycles`); without either (Cycles
+    disabled in 4.2) Cycles' default."""
     for owner in (obj, getattr(obj, "cycles", None)):
         value = getattr(owner, "shadow_terminator_geometry_offset", None)
         if value is not None:
