@@ -41,12 +41,13 @@ FIXED_DATE = (2024, 1, 1, 0, 0, 0)  # zip timestamps cannot predate 1980; any fi
 
 # Blender's platform names -> the wheel platform tags pip may pick for them. Blender 4.2+
 # needs glibc 2.28 on Linux and macOS 11 on Apple silicon; pip does not widen an explicit
-# manylinux tag to older glibc versions, so they are listed.
+# manylinux tag to older glibc versions, so they are listed. The denoiser's macOS wheel
+# needs macOS 12: on macOS 11 Denoise cannot load it (the rest works).
 PLATFORMS: dict[str, list[str]] = {
     "linux-x64": [f"manylinux_2_{m}_x86_64" for m in range(28, 16, -1)]
     + ["manylinux2014_x86_64", "manylinux2010_x86_64", "manylinux1_x86_64"],
     "windows-x64": ["win_amd64"],
-    "macos-arm64": ["macosx_11_0_arm64"],
+    "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],  # 12.0: pyoidn's wheel
 }
 # Blender's Python -> the Blender versions that run it, as the manifest's
 # blender_version_min and blender_version_max (exclusive; None: no upper end).
@@ -72,6 +73,9 @@ BLENDER_SHIPS = {"numpy"}
 # This package (addon-zip, bench and the peer tracers) in the scenesort wheel: only a packager
 # runs it, so the wheel bundled for Blender leaves it out.
 TOOLS_IN_WHEEL = "scenesort/backend/tools/"
+# Extras a Blender user could not pip-install, so the zip carries them: the denoiser (pyoidn,
+# Intel Open Image Denoise with its CPU and CUDA devices) behind the Denoise checkbox.
+BUNDLED_EXTRAS = ("denoise",)
 BLENDER_NUMPY = {"3.11": "numpy==1.26.4", "3.13": "numpy>=2.2,<3"}
 
 
@@ -151,8 +155,11 @@ def manifest_with_wheels(text: str, platform: str, python: str, wheels: list[str
 
 
 def runtime_requirements(pyproject: Path) -> list[str]:
-    """pyproject's pinned runtime dependencies, less those Blender ships."""
-    deps = tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]["dependencies"]
+    """pyproject's pinned runtime dependencies and bundled extras, less what Blender ships."""
+    project = tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]
+    deps = project["dependencies"]
+    for extra in BUNDLED_EXTRAS:
+        deps = [*deps, *project["optional-dependencies"][extra]]
     return [d for d in deps if re.split(r"[<>=!~\[; ]", d, maxsplit=1)[0] not in BLENDER_SHIPS]
 
 

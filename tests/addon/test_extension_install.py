@@ -43,6 +43,7 @@ pytestmark = [
 ]
 SCRIPT = Path(__file__).with_name("install_and_render.py")
 AUDIT = Path(__file__).with_name("rna_audit.py")
+WIDTH, HEIGHT = 32, 24  # install_and_render.py's image
 INSTALL_TIMEOUT_S = 1800  # a cold pip cache downloads bpy (hundreds of MB)
 RENDER_TIMEOUT_S = 900  # a cold Warp kernel cache compiles every module once
 PLATFORMS = ["linux-x64", "windows-x64", "macos-arm64"]
@@ -137,7 +138,7 @@ def test_each_zip_carries_one_pythons_wheels_for_the_blenders_that_run_it(
     pythons = {w.rsplit("-", 3)[1] for w in wheels}  # PEP 427: ...-python-abi-platform.whl
     assert pythons <= {cp, "py3", "py2.py3"} and cp in pythons
     names = {re.split(r"-\d", Path(w).name, maxsplit=1)[0].lower() for w in wheels}
-    assert {"scenesort", "warp_lang", "fastapi", "uvicorn", "pydantic_core"} <= names
+    assert {"scenesort", "warp_lang", "fastapi", "uvicorn", "pydantic_core", "pyoidn"} <= names
     assert "numpy" not in names  # Blender ships it
     assert len([w for w in wheels if "pydantic_core" in w]) == 1
 
@@ -259,3 +260,9 @@ def test_install_from_zip_then_render_with_no_other_step(
     # F12 with the engine (Film > Transparent, a float EXR Blender wrote): the same image.
     np.testing.assert_array_equal(data["f12"][:, 0], data["ao"])
     np.testing.assert_array_equal(data["f12"][:, 3], data["alpha"])
+    # Denoise works from the zip (its pyoidn wheel): the direct call's denoised image.
+    denoised = kernels.render_ao(bvh, origins, directions, spp=s["spp"], distance=s["distance"],
+                                 seed=s["seed"], denoise=True, image_shape=(HEIGHT, WIDTH))
+    np.testing.assert_allclose(data["denoised"][:, 0], np.where(hit, denoised.ao, 0.0),
+                               atol=1e-5)  # fmt: skip
+    assert np.abs(data["denoised"][hit, 0] - data["ao"][hit]).max() > 0.05  # it did denoise
