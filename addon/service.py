@@ -143,11 +143,11 @@ def command_line(command: str, host: str, port: int, device: str = "cpu") -> lis
     return [exe, *argv[1:], *serve]
 
 
-def child_env(command: str, token: str) -> dict[str, str]:
-    """The child's environment: Blender's, the service's token, and for the bundled
-    engine exactly the extension's site-packages as the path (Blender's own Python
-    finds numpy itself)."""
-    env = {**os.environ, "SCENESORT_TOKEN": token}
+def child_env(command: str, token: str | None) -> dict[str, str]:
+    """The child's environment: Blender's, the service's token (unless None: the device
+    probe), and for the bundled engine exactly the extension's site-packages as the path
+    (Blender's own Python finds numpy itself)."""
+    env = {**os.environ, **({} if token is None else {"SCENESORT_TOKEN": token})}
     if not command.strip():
         for name in ("PYTHONHOME", "PYTHONPATH", "PYTHONSTARTUP"):
             env.pop(name, None)

@@ -100,6 +100,7 @@ def main(zip_path: str, out_dir: str) -> None:
             "url": status.url,
             "version": status.version,
             "python": sys.executable,
+            "devices": ext.devices.found(),  # probed by the first render's start
         }  # fmt: skip
         np.savez(out / "render.npz", ao=rgba[:, 0], alpha=rgba[:, 3], f12=f12, denoised=denoised,
                  vertices=mesh.vertices, indices=mesh.indices)  # fmt: skip

@@ -238,6 +238,11 @@ def test_install_from_zip_then_render_with_no_other_step(
     assert Path(info["site_packages"]) == site  # the engine came from the zip's wheel
     assert info["argv"][:4] == [str(exe), "-s", "-m", "scenesort.backend.commands"]
     assert info["service_exit"] is not None  # disabling the add-on stopped it
+    # The device probe ran with that Blender's Python and the zip's Warp: the service got
+    # the first CUDA device it found, else the CPU.
+    found = info["devices"]
+    assert found[0] == "cpu" and all(d.startswith("cuda:") for d in found[1:])
+    assert info["argv"][-2:] == ["--device", found[1] if len(found) > 1 else "cpu"]
 
     from scenesort.kernels import Camera
 
