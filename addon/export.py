@@ -36,6 +36,17 @@ _CONVERTIBLE = {"CURVE", "SURFACE", "FONT", "META"}
 DEFAULT_TERMINATOR_OFFSET = AO_OPTIONS["terminator_offset"]["default"]
 
 
+def terminator_offset(obj: bpy.types.Object) -> float:
+    """The object's Shadow Terminator > Geometry Offset. Blender 4.5 and later keep it on
+    the Object, 4.2 in Cycles' object settings (`obj.cycles`); without either (Cycles
+    disabled in 4.2) Cycles' default."""
+    for owner in (obj, getattr(obj, "cycles", None)):
+        value = getattr(owner, "shadow_terminator_geometry_offset", None)
+        if value is not None:
+            return float(value)
+    return DEFAULT_TERMINATOR_OFFSET
+
+
 @dataclass(frozen=True)
 class SceneMesh:
     """World-space triangles: vertices (N,3) float32, indices (M,3) int32; shading
@@ -219,7 +230,7 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
         vertex_parts.append(world.astype(np.float32))
         index_parts.append(tris + offset)
         normal_parts.append(normals)
-        offset_parts.append(float(obj.shadow_terminator_geometry_offset))
+        offset_parts.append(terminator_offset(obj))
         offset += len(arrays.vertices)
         count += 1
     if not vertex_parts:
@@ -314,7 +325,7 @@ def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
         m = np.array(inst.matrix_world, dtype=np.float32)[:3]
         if len(arrays.indices) == 0 or np.linalg.det(m[:, :3].astype(np.float64)) == 0.0:
             continue
-        key = (id(arrays), float(obj.shadow_terminator_geometry_offset))
+        key = (id(arrays), terminator_offset(obj))
         if key not in local:
             mesh = _local_mesh(arrays, key[1])
             local[key] = mesh_id(mesh)

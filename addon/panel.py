@@ -110,7 +110,7 @@ def draw(layout: bpy.types.UILayout, context: bpy.types.Context) -> None:
     """The whole panel; shared by both locations."""
     props = context.scene.scenesort
     status = context.window_manager.scenesort
-    _draw_service(layout, status, prefs.preferences(context).device_name)
+    _draw_service(layout, status, prefs.chosen_device(prefs.preferences(context), wait=False))
     _draw_settings(layout, props)
     row = layout.row(align=True)
     row.enabled = not status.busy

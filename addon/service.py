@@ -6,8 +6,10 @@ that the extension zip installed into Blender's extensions site-packages; the
 makes a fresh token (the service refuses requests without it) and hands it over in
 the child's environment as $SCENESORT_TOKEN, never on its command line where `ps`
 shows it; `token_for(url)` gives it to the client. The child never outlives Blender:
-it is stopped on unregister and at interpreter exit (atexit), and on Linux the kernel
-also sends it SIGTERM if Blender dies without cleaning up (PR_SET_PDEATHSIG). Only
+it is stopped on unregister and at interpreter exit (atexit); if Blender dies without
+cleaning up, the child's stdin, a pipe only Blender holds, closes and
+`serve --exit-with-stdin` stops (every OS); on Windows a kill-on-close Job Object also
+ends it (winjob.py), and on Linux the kernel sends it SIGTERM (PR_SET_PDEATHSIG). Only
 the process started here is stopped.
 """
 
@@ -30,6 +32,8 @@ import sys
 import tempfile
 import urllib.parse
 from pathlib import Path
+
+from . import winjob
 
 STOP_TIMEOUT_S = 5.0
 ENGINE_PACKAGE = "scenesort.backend"  # the service's package inside the scenesort wheel
@@ -120,8 +124,9 @@ def _bundled_engine() -> Path:
 def command_line(command: str, host: str, port: int, device: str = "cpu") -> list[str]:
     """The child's argument list (no shell involved): `command` (the preference's
     override) if set, else Blender's own Python running the bundled engine, then
-    `serve --host H --port P --device D`."""
-    serve = ["serve", "--host", host, "--port", str(port), "--device", device]
+    `serve --host H --port P --exit-with-stdin --device D`."""
+    serve = ["serve", "--host", host, "--port", str(port), "--exit-with-stdin",
+             "--device", device]  # fmt: skip
     if not command.strip():
         _bundled_engine()
         # -s: the user's own site-packages must not shadow the bundled wheels.
@@ -138,11 +143,11 @@ def command_line(command: str, host: str, port: int, device: str = "cpu") -> lis
     return [exe, *argv[1:], *serve]
 
 
-def child_env(command: str, token: str) -> dict[str, str]:
-    """The child's environment: Blender's, the service's token, and for the bundled
-    engine exactly the extension's site-packages as the path (Blender's own Python
-    finds numpy itself)."""
-    env = {**os.environ, "SCENESORT_TOKEN": token}
+def child_env(command: str, token: str | None) -> dict[str, str]:
+    """The child's environment: Blender's, the service's token (unless None: the device
+    probe), and for the bundled engine exactly the extension's site-packages as the path
+    (Blender's own Python finds numpy itself)."""
+    env = {**os.environ, **({} if token is None else {"SCENESORT_TOKEN": token})}
     if not command.strip():
         for name in ("PYTHONHOME", "PYTHONPATH", "PYTHONSTARTUP"):
             env.pop(name, None)
@@ -246,16 +251,18 @@ def start(command: str, url: str, device: str = "cpu") -> subprocess.Popen:
             _process = _launcher.submit(
                 subprocess.Popen,
                 argv,
-                stdin=subprocess.DEVNULL,
+                stdin=subprocess.PIPE,  # never written: it closes when Blender ends
                 stdout=log,
                 stderr=subprocess.STDOUT,
                 env=env,
                 cwd=cwd,
                 preexec_fn=preexec,  # only prctl: it must run in the child before exec
                 close_fds=True,
+                creationflags=winjob.CREATE_NO_WINDOW if sys.platform == "win32" else 0,
             ).result()
     except OSError as exc:
         raise LaunchError(f"Could not run {argv[0]}: {exc.strerror or exc}") from None
+    winjob.kill_with_blender(_process)
     return _process
 
 
@@ -272,6 +279,8 @@ def stop() -> bool:
         except subprocess.TimeoutExpired:
             proc.kill()
             proc.wait(STOP_TIMEOUT_S)
+    if proc.stdin is not None:
+        proc.stdin.close()
     return True
 
 

@@ -5,7 +5,8 @@ Like Jupyter's server, `scenesort serve` always has a token unless told `--no-to
 directory ($XDG_RUNTIME_DIR, a per-user tmpfs on Linux), else the config directory
 ($XDG_CONFIG_HOME or ~/.config), in a folder of mode 0700 and a file of mode 0600, so
 other local users cannot read it; `scenesort token` prints it for clients. A token never
-goes on a command line, where `ps` shows it to everyone.
+goes on a command line, where `ps` shows it to everyone. The Blender add-on keeps the token
+of a service of your own with the same two functions (`read_private`, `write_private`).
 """
 
 from __future__ import annotations
@@ -38,8 +39,26 @@ def _private(path: Path) -> bool:
         info = path.lstat()
     except FileNotFoundError:
         return False
-    mine = not hasattr(os, "getuid") or info.st_uid == os.getuid()
-    return stat.S_ISREG(info.st_mode) and mine and not info.st_mode & 0o077
+    if os.name == "nt":  # no mode bits: a user's profile folders are private by their ACL
+        return stat.S_ISREG(info.st_mode)
+    return stat.S_ISREG(info.st_mode) and info.st_uid == os.getuid() and not info.st_mode & 0o077
+
+
+def read_private(path: Path) -> str | None:
+    """The stripped text of `path` if only this user can read or write it, else None."""
+    return path.read_text(encoding="utf-8").strip() if _private(path) else None
+
+
+def write_private(path: Path, text: str) -> None:
+    """Write `text` to `path` as a file of mode 0600 in a folder of mode 0700, atomically:
+    a reader sees the old text or the new, whole."""
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    os.chmod(path.parent, 0o700)  # mkdir's mode is masked, and the folder may be older
+    fresh = path.with_name(f".{path.name}-{secrets.token_hex(8)}")
+    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w", encoding="utf-8") as out:
+        out.write(text + "\n")
+    os.replace(fresh, path)
 
 
 def stored_token() -> str:
@@ -48,18 +67,11 @@ def stored_token() -> str:
     A file that others could read, or that is not a plain file of this user, is replaced:
     its token may have leaked."""
     path = token_path()
-    if _private(path):
-        token = path.read_text().strip()
-        if len(token) >= MIN_TOKEN_CHARS:
-            return token
-    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
-    os.chmod(path.parent, 0o700)  # mkdir's mode is masked, and the folder may be older
+    token = read_private(path)
+    if token is not None and len(token) >= MIN_TOKEN_CHARS:
+        return token
     token = secrets.token_urlsafe(32)
-    fresh = path.with_name(f".token-{secrets.token_hex(8)}")
-    fd = os.open(fresh, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "w") as out:
-        out.write(token + "\n")
-    os.replace(fresh, path)  # atomic: a reader sees the old token or the new, whole
+    write_private(path, token)
     return token
 
 

@@ -19,6 +19,7 @@ import socket
 import sys
 from typing import Any
 
+from scenesort.backend.api import lifeline
 from scenesort.backend.api.server import HEAD_TIMEOUT_S, server
 from scenesort.backend.api.token_file import TOKEN_ENV, service_token
 from scenesort.backend.render import engine
@@ -61,6 +62,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="seconds a connection has to send a whole request head (request "
                         f"line and headers) before it is closed (default {HEAD_TIMEOUT_S:g})")
     parser.add_argument("--log-level", default="info", choices=["debug", "info", "warning"])
+    parser.add_argument("--exit-with-stdin", action="store_true",
+                        help="stop when stdin closes (the add-on holds a pipe open: the service "
+                        "ends with Blender on every OS)")
 
 
 def is_loopback(host: str) -> bool:
@@ -116,6 +120,8 @@ def _listen(family: socket.AddressFamily, host: str, port: int) -> socket.socket
 
 def run(args: argparse.Namespace) -> int:
     """Start uvicorn; return its exit status (2 for refused options)."""
+    if args.exit_with_stdin:
+        lifeline.exit_with_stdin()
     problem = _problem(args) or engine.device_problem(args.device)
     token, described = None, ""
     if problem is None:

@@ -1,12 +1,13 @@
 """`scenesort addon-zip`: build the installable Blender extension zip(s) from addon/.
 
-With `--platform` each zip is self-contained: the add-on, a wheel of scenesort built
-at zip time (the engine and the service, without these packaging tools) and the
-unmodified wheels of every runtime dependency Blender does not ship, for the Python of
-Blender 4.2-5.0 (3.11) and of 5.1+ (3.13), listed under `wheels` with the manifest's
-`platforms`. Blender unpacks them into its extensions' site-packages when it installs
-the zip. Without `--platform` the zip holds the add-on alone (for a service of your own
-install).
+With `--platform` each zip is self-contained and made for one Blender Python: the
+add-on, a wheel of scenesort built at zip time (the engine and the service, without these
+packaging tools) and the unmodified wheels of every runtime dependency Blender does not
+ship, for Python 3.11 (Blender 4.2-5.0) or 3.13 (5.1 and later), listed under `wheels`
+with the manifest's `platforms` and the Blender versions of that Python
+(`blender_version_min`/`_max`), so that no Blender installs wheels it cannot load.
+Blender unpacks them into its extensions' site-packages when it installs the zip.
+Without `--platform` the zip holds the add-on alone (for a service of your own install).
 
 The zip holds the extension's files at its root (blender_manifest.toml beside
 __init__.py), as `blender --command extension build` lays it out. Entries carry a
@@ -40,15 +41,21 @@ FIXED_DATE = (2024, 1, 1, 0, 0, 0)  # zip timestamps cannot predate 1980; any fi
 
 # Blender's platform names -> the wheel platform tags pip may pick for them. Blender 4.2+
 # needs glibc 2.28 on Linux and macOS 11 on Apple silicon; pip does not widen an explicit
-# manylinux tag to older glibc versions, so they are listed.
+# manylinux tag to older glibc versions, so they are listed. The denoiser's macOS wheel
+# needs macOS 12: on macOS 11 Denoise cannot load it (the rest works).
 PLATFORMS: dict[str, list[str]] = {
     "linux-x64": [f"manylinux_2_{m}_x86_64" for m in range(28, 16, -1)]
     + ["manylinux2014_x86_64", "manylinux2010_x86_64", "manylinux1_x86_64"],
     "windows-x64": ["win_amd64"],
-    "macos-arm64": ["macosx_11_0_arm64"],
+    "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],  # 12.0: pyoidn's wheel
 }
-# Blender 4.2-5.0 run Python 3.11, Blender 5.1+ Python 3.13.
-PYTHON_VERSIONS = ("3.11", "3.13")
+# Blender's Python -> the Blender versions that run it, as the manifest's
+# blender_version_min and blender_version_max (exclusive; None: no upper end).
+BLENDER_RANGES: dict[str, tuple[str, str | None]] = {
+    "3.11": ("4.2.0", "5.1.0"),
+    "3.13": ("5.1.0", None),
+}
+PYTHON_VERSIONS = tuple(BLENDER_RANGES)
 # The marker environment of each platform: pip evaluates dependency markers for the
 # machine it runs on, so the closure is checked against the target's afterwards.
 MARKER_ENV: dict[str, dict[str, str]] = {
@@ -59,14 +66,17 @@ MARKER_ENV: dict[str, dict[str, str]] = {
     "macos-arm64": {"sys_platform": "darwin", "platform_system": "Darwin", "os_name": "posix",
                     "platform_machine": "arm64"},
 }  # fmt: skip
-# Blender bundles numpy: it is never put in the zip. Blender 4.2-5.0 ship numpy 1.26.4
-# (the bpy 5.0 wheel requires numpy>=1.26,<2), so the 3.11 closure is resolved against
-# exactly that version: every bundled wheel then accepts Blender's numpy.
+# Blender bundles numpy: it is never put in the zip. The 3.11 closure is resolved against
+# numpy 1.26.4 (the bpy 5.0 wheel requires numpy>=1.26,<2), the 3.13 one against numpy 2
+# (bpy 5.1+ require numpy>=2.2): every bundled wheel then accepts Blender's numpy.
 BLENDER_SHIPS = {"numpy"}
 # This package (addon-zip, bench and the peer tracers) in the scenesort wheel: only a packager
 # runs it, so the wheel bundled for Blender leaves it out.
 TOOLS_IN_WHEEL = "scenesort/backend/tools/"
-BLENDER_NUMPY = {"3.11": "numpy==1.26.4"}
+# Extras a Blender user could not pip-install, so the zip carries them: the denoiser (pyoidn,
+# Intel Open Image Denoise with its CPU and CUDA devices) behind the Denoise checkbox.
+BUNDLED_EXTRAS = ("denoise",)
+BLENDER_NUMPY = {"3.11": "numpy==1.26.4", "3.13": "numpy>=2.2,<3"}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -79,12 +89,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "each); without it the zip holds the add-on alone",
     )
     parser.add_argument(
+        "--python",
+        choices=[*PYTHON_VERSIONS, "all"],
+        default="all",
+        help="the Blender Python to bundle for: 3.11 (Blender 4.2-5.0), 3.13 (5.1 and later); "
+        "'all' (default): one zip each",
+    )
+    parser.add_argument(
         "--output",
         "-o",
         type=Path,
         default=None,
-        help="zip file to write, or the folder for --platform all "
-        "(default: build/scenesort-<version>[-<platform>].zip)",
+        help="zip file to write, or the folder when several are built "
+        "(default: build/scenesort-<version>[-<platform>-<cpXY>].zip)",
     )
     parser.add_argument(
         "--source", type=Path, default=ADDON_DIR, help="the add-on folder (default: addon/)"
@@ -118,10 +135,19 @@ def read_manifest(source: Path) -> tuple[str, dict]:
     return text, tomllib.loads(text)
 
 
-def manifest_with_wheels(text: str, platform: str, wheels: list[str]) -> str:
-    """The manifest with `platforms` and `wheels` added as top-level keys (before the
-    first table, where TOML would otherwise put them inside it)."""
-    lines = text.splitlines(keepends=True)
+def manifest_with_wheels(text: str, platform: str, python: str, wheels: list[str]) -> str:
+    """The manifest with `platforms`, `wheels` and the Blender versions that run `python`
+    (replacing the source's `blender_version_min`/`_max`) as top-level keys, before the
+    first table, where TOML would otherwise put them inside it."""
+    low, high = BLENDER_RANGES[python]
+    versions = f'blender_version_min = "{low}"\n'
+    if high is not None:
+        versions += f'blender_version_max = "{high}"\n'
+    lines = [
+        versions if line.startswith("blender_version_min") else line
+        for line in text.splitlines(keepends=True)
+        if not line.startswith("blender_version_max")
+    ]
     first_table = next((i for i, line in enumerate(lines) if line.startswith("[")), len(lines))
     entries = "".join(f'  "./wheels/{name}",\n' for name in wheels)
     added = f'platforms = ["{platform}"]\nwheels = [\n{entries}]\n\n'
@@ -129,8 +155,11 @@ def manifest_with_wheels(text: str, platform: str, wheels: list[str]) -> str:
 
 
 def runtime_requirements(pyproject: Path) -> list[str]:
-    """pyproject's pinned runtime dependencies, less those Blender ships."""
-    deps = tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]["dependencies"]
+    """pyproject's pinned runtime dependencies and bundled extras, less what Blender ships."""
+    project = tomllib.loads(pyproject.read_text(encoding="utf-8"))["project"]
+    deps = project["dependencies"]
+    for extra in BUNDLED_EXTRAS:
+        deps = [*deps, *project["optional-dependencies"][extra]]
     return [d for d in deps if re.split(r"[<>=!~\[; ]", d, maxsplit=1)[0] not in BLENDER_SHIPS]
 
 
@@ -158,7 +187,7 @@ def _pip(args: list[str], what: str) -> None:
 def resolve(platform: str, python: str, requirements: list[str], cache: Path) -> list[str]:
     """Wheel file names of the dependency closure of `requirements` (numpy left out),
     as pip resolves it for this platform and Python; cached by its inputs."""
-    pins = [*requirements, *([BLENDER_NUMPY[python]] if python in BLENDER_NUMPY else [])]
+    pins = [*requirements, BLENDER_NUMPY[python]]
     options = _target_options(platform, python)
     key = hashlib.sha256(json.dumps([pins, options]).encode()).hexdigest()[:16]
     cached = cache / "resolved" / f"{platform}-py{python}-{key}.json"
@@ -259,15 +288,17 @@ def without_tools(wheel: Path) -> Path:
     return wheel
 
 
-def platform_wheels(platform: str, project: Path, cache: Path) -> list[Path]:
-    """Every dependency wheel for one platform, both Pythons, each file once."""
+def platform_wheels(platform: str, python: str, project: Path, cache: Path) -> list[Path]:
+    """Every dependency wheel for one platform and Blender Python."""
     requirements = runtime_requirements(project / "pyproject.toml")
-    found: dict[str, Path] = {}
-    for python in PYTHON_VERSIONS:
-        names = resolve(platform, python, requirements, cache)
-        for path in fetch_wheels(platform, python, names, cache):
-            found[path.name] = path
-    return [found[n] for n in sorted(found)]
+    names = resolve(platform, python, requirements, cache)
+    return sorted(fetch_wheels(platform, python, names, cache))
+
+
+def zip_name(manifest: dict, platform: str | None = None, python: str | None = None) -> str:
+    """`scenesort-<version>.zip`, or `scenesort-<version>-<platform>-cp<XY>.zip`."""
+    suffix = f"-{platform}-cp{python.replace('.', '')}" if platform else ""
+    return f"{manifest['id']}-{manifest['version']}{suffix}.zip"
 
 
 def _write(zf: zipfile.ZipFile, name: str, data: bytes, compress: int) -> None:
@@ -282,6 +313,7 @@ def build_zip(
     output: Path | None = None,
     platform: str | None = None,
     wheels: list[Path] = (),
+    python: str | None = None,
 ) -> Path:
     """Write one zip and return its path; ValueError if `source` is not an extension, or
     if its copy of the AO settings differs from the engine's (tools/addon_options.py)."""
@@ -290,10 +322,9 @@ def build_zip(
         raise ValueError(f"{source / 'ao_options.py'} differs from the engine's AO settings "
                          "(scenesort/ao_options.py): run `scenesort addon-options` first")
     if output is None:
-        suffix = f"-{platform}" if platform else ""
-        output = Path("build") / f"{manifest['id']}-{manifest['version']}{suffix}.zip"
+        output = Path("build") / zip_name(manifest, platform, python)
     if platform:
-        text = manifest_with_wheels(text, platform, [w.name for w in wheels])
+        text = manifest_with_wheels(text, platform, python, [w.name for w in wheels])
     output.parent.mkdir(parents=True, exist_ok=True)
     with zipfile.ZipFile(output, "w") as zf:
         for path in addon_files(source):
@@ -305,9 +336,10 @@ def build_zip(
 
 
 def build_platform_zips(
-    source: Path, platforms: list[str], output: Path | None, cache: Path
+    source: Path, platforms: list[str], pythons: list[str], output: Path | None, cache: Path
 ) -> list[Path]:
-    """One self-contained zip per platform, sharing one freshly built engine wheel."""
+    """One self-contained zip per platform and Blender Python, sharing one freshly built
+    engine wheel; `output` is the zip when there is one, else their folder."""
     project = source.resolve().parent
     _, manifest = read_manifest(source)
     if not (project / "pyproject.toml").is_file():
@@ -324,11 +356,12 @@ def build_platform_zips(
     with tempfile.TemporaryDirectory() as tmp:
         engine = engine_wheel(project, Path(tmp))
         for platform in platforms:
-            wheels = [engine, *platform_wheels(platform, project, cache)]
-            target = output
-            if output is not None and len(platforms) > 1:
-                target = output / f"{manifest['id']}-{manifest['version']}-{platform}.zip"
-            zips.append(build_zip(source, target, platform, wheels))
+            for python in pythons:
+                wheels = [engine, *platform_wheels(platform, python, project, cache)]
+                target = output
+                if output is not None and len(platforms) * len(pythons) > 1:
+                    target = output / zip_name(manifest, platform, python)
+                zips.append(build_zip(source, target, platform, wheels, python))
     return zips
 
 
@@ -338,7 +371,8 @@ def run(args: argparse.Namespace) -> int:
             zips = [build_zip(args.source, args.output)]
         else:
             platforms = list(PLATFORMS) if args.platform == "all" else [args.platform]
-            zips = build_platform_zips(args.source, platforms, args.output, args.cache)
+            pythons = list(PYTHON_VERSIONS) if args.python == "all" else [args.python]
+            zips = build_platform_zips(args.source, platforms, pythons, args.output, args.cache)
     except (ValueError, OSError, KeyError, tomllib.TOMLDecodeError) as exc:
         print(f"scenesort addon-zip: {exc}", file=sys.stderr)
         return 1

@@ -7,6 +7,7 @@ tests/addon/blender_scenes.py.
 
 from __future__ import annotations
 
+import os
 import sys
 from collections.abc import Iterator
 
@@ -18,6 +19,19 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 import addon  # noqa: E402 - needs the repo root on sys.path
+
+
+@pytest.fixture(scope="session", autouse=True)
+def blender_config(tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Blender's user config folder (the add-on's token file lives there) in a temporary
+    folder: no test writes into the developer's own Blender config."""
+    before = os.environ.get("BLENDER_USER_CONFIG")
+    os.environ["BLENDER_USER_CONFIG"] = str(tmp_path_factory.mktemp("blender-config"))
+    yield
+    if before is None:
+        os.environ.pop("BLENDER_USER_CONFIG")
+    else:
+        os.environ["BLENDER_USER_CONFIG"] = before
 
 
 @pytest.fixture

@@ -2,9 +2,11 @@
 
 Installs the extension zip with Blender's own installer into the (fresh) user
 directory named by the BLENDER_USER_* variables, renders the scene below through the
-add-on with its defaults, and writes what the test compares to OUT_DIR:
-render.npz (the image's AO, the exported triangles) and render.json (camera, settings,
-how the service was started). Usage: python install_and_render.py ZIP OUT_DIR
+add-on with its defaults (the panel's Render AO, then F12 with the engine into an EXR,
+without and with Denoise), and writes what the test compares to OUT_DIR: render.npz (the
+image's AO, both F12s' RGBA, the exported triangles) and render.json (camera, settings,
+how the service was started).
+Usage: python install_and_render.py ZIP OUT_DIR
 """
 
 from __future__ import annotations
@@ -47,6 +49,22 @@ def _scene() -> bpy.types.Scene:
     return scene
 
 
+def _f12(scene: bpy.types.Scene, path: Path) -> np.ndarray:
+    """F12 with the scenesort AO engine, written by Blender as a float EXR and read back:
+    (H*W, 4) RGBA, top row first."""
+    scene.render.engine = "SCENESORT"
+    scene.render.film_transparent = True
+    settings = scene.render.image_settings
+    settings.file_format, settings.color_depth = "OPEN_EXR", "32"
+    scene.render.filepath = str(path)
+    scene.render.use_file_extension = False
+    assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    img = bpy.data.images.load(str(path), check_existing=False)
+    pixels = np.empty(len(img.pixels), dtype=np.float32)
+    img.pixels.foreach_get(pixels)
+    return pixels.reshape(HEIGHT, WIDTH, 4)[::-1].reshape(-1, 4)
+
+
 def main(zip_path: str, out_dir: str) -> None:
     import addon_utils  # only importable once bpy is
 
@@ -65,6 +83,9 @@ def main(zip_path: str, out_dir: str) -> None:
         pixels = np.empty(len(img.pixels), dtype=np.float32)
         img.pixels.foreach_get(pixels)
         rgba = pixels.reshape(HEIGHT, WIDTH, 4)[::-1].reshape(-1, 4)  # top row first
+        f12 = _f12(scene, out / "f12.exr")
+        scene.scenesort.use_denoising = True  # the denoiser the zip bundles
+        denoised = _f12(scene, out / "f12-denoised.exr")
         depsgraph = bpy.context.evaluated_depsgraph_get()
         mesh = ext.export.export_scene(depsgraph)
         proc = ext.service._process
@@ -79,9 +100,10 @@ def main(zip_path: str, out_dir: str) -> None:
             "url": status.url,
             "version": status.version,
             "python": sys.executable,
+            "devices": ext.devices.found(),  # probed by the first render's start
         }  # fmt: skip
-        np.savez(out / "render.npz", ao=rgba[:, 0], alpha=rgba[:, 3], vertices=mesh.vertices,
-                 indices=mesh.indices)  # fmt: skip
+        np.savez(out / "render.npz", ao=rgba[:, 0], alpha=rgba[:, 3], f12=f12, denoised=denoised,
+                 vertices=mesh.vertices, indices=mesh.indices)  # fmt: skip
     finally:
         addon_utils.disable(MODULE)  # unregister: stops the service it started
     info["service_exit"] = proc.poll()

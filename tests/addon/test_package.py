@@ -186,3 +186,59 @@ def test_the_bundled_wheel_installs_and_says_where_the_tools_are(
         assert proc.returncode == 2, proc.stderr
         assert f"scenesort {command}: this install has no packaging tools" in proc.stderr
         assert "run it from a scenesort checkout" in proc.stderr
+
+
+# Which Python each Blender runs (bpy on the package index, docs/addon.md).
+BLENDER_PYTHONS = {"4.2.0": "3.11", "4.2.23": "3.11", "4.5.15": "3.11", "5.0.1": "3.11",
+                   "5.1.0": "3.13", "5.3.0": "3.13", "6.0.0": "3.13"}  # fmt: skip
+
+
+def _version(text: str) -> tuple[int, ...]:
+    return tuple(int(part) for part in text.split("."))
+
+
+@pytest.mark.parametrize(("blender", "python"), BLENDER_PYTHONS.items())
+def test_exactly_one_zip_installs_in_each_blender_and_it_is_for_its_python(
+    blender: str, python: str
+) -> None:
+    """Each zip's manifest takes the Blender versions of its Python (max is exclusive, as
+    Blender reads it), so no Blender installs wheels it cannot load."""
+    text = (ADDON / "blender_manifest.toml").read_text(encoding="utf-8")
+    takes = []
+    for zip_python in addon_zip.PYTHON_VERSIONS:
+        wheel = "fastapi-0.1-py3-none-any.whl"
+        m = tomllib.loads(addon_zip.manifest_with_wheels(text, "linux-x64", zip_python, [wheel]))
+        assert m["platforms"] == ["linux-x64"] and m["wheels"] == [f"./wheels/{wheel}"]
+        assert m["id"] == "scenesort" and "network" in m["permissions"]  # the rest kept
+        high = m.get("blender_version_max")
+        if _version(m["blender_version_min"]) <= _version(blender) and (
+            high is None or _version(blender) < _version(high)
+        ):
+            takes.append(zip_python)
+    assert takes == [python]
+
+
+@pytest.mark.parametrize(("python", "accepted", "refused"), [
+    ("3.11", ["1.26.4"], ["2.2.6"]),
+    ("3.13", ["2.2.0", "2.5.5"], ["1.26.4", "3.0.0"]),
+])  # fmt: skip
+def test_the_engines_numpy_requirement_holds_for_each_blender_python(
+    python: str, accepted: list[str], refused: list[str]
+) -> None:
+    """The scenesort wheel's numpy requirement (pyproject's), per Python: Blender 4.2-5.0
+    bring numpy 1.26, 5.1 and later numpy 2 (bpy requires >= 2.2)."""
+    from packaging.requirements import Requirement
+
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    env = {"python_version": python, "python_full_version": f"{python}.0", "extra": ""}
+    reqs = [Requirement(d) for d in pyproject["project"]["dependencies"]]
+    (numpy,) = [r for r in reqs if r.name == "numpy" and r.marker.evaluate(env)]
+    assert all(numpy.specifier.contains(v) for v in accepted)
+    assert not any(numpy.specifier.contains(v) for v in refused)
+
+
+def test_zip_names_say_platform_and_python() -> None:
+    m = _manifest()
+    assert addon_zip.zip_name(m) == f"scenesort-{m['version']}.zip"
+    platform_zip = addon_zip.zip_name(m, "linux-x64", "3.13")
+    assert platform_zip == f"scenesort-{m['version']}-linux-x64-cp313.zip"

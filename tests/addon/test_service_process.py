@@ -43,7 +43,8 @@ def _signalled(pid: int) -> bool:
 def test_command_line_appends_serve_and_address() -> None:
     argv = service.command_line(SLEEPER, "127.0.0.1", 9999, "cuda:0")
     assert argv[0] == sys.executable
-    assert argv[-7:] == ["serve", "--host", "127.0.0.1", "--port", "9999", "--device", "cuda:0"]
+    assert argv[-8:] == ["serve", "--host", "127.0.0.1", "--port", "9999", "--exit-with-stdin",
+                         "--device", "cuda:0"]  # fmt: skip
     with pytest.raises(service.LaunchError, match="was not found"):
         service.command_line("no-such-program-scenesort", "127.0.0.1", 1)
     assert service.host_port("http://localhost:1234/") == ("127.0.0.1", 1234)
@@ -126,6 +127,38 @@ def test_child_dies_with_its_parent(ending: str) -> None:
             os.kill(child, 9)
 
 
+def test_a_killed_blender_takes_its_service_along_by_the_pipe_alone() -> None:
+    """SIGKILL a headless Blender (bpy in a child Python) that started the real service, with
+    Linux's parent-death signal switched off: the service's stdin, a pipe only Blender held,
+    closes and the service is gone within 2 s. This is how it ends on macOS and Windows."""
+    code = (
+        "import os, sys, time\n"
+        "import bpy\n"
+        "sys.path.insert(0, sys.argv[1])\n"
+        "from addon import service\n"
+        "service._prctl = None  # no PR_SET_PDEATHSIG: only the pipe can end the child\n"
+        "proc = service.start('', 'http://127.0.0.1:0')\n"
+        "deadline = time.monotonic() + 300\n"
+        "while service.served_url() is None and time.monotonic() < deadline:\n"
+        "    assert proc.poll() is None, service.exit_message()\n"
+        "    time.sleep(0.05)\n"
+        "print(proc.pid, service.log_path(), service.served_url(), flush=True)\n"
+        "os.kill(os.getpid(), 9)\n"
+    )
+    parent = subprocess.run([sys.executable, "-c", code, str(REPO)], cwd=REPO,
+                            capture_output=True, text=True, timeout=360)  # fmt: skip
+    assert parent.returncode == -signal.SIGKILL, parent.stderr[-3000:]
+    pid, log, url = parent.stdout.split()
+    try:
+        assert url.startswith("http://127.0.0.1:")  # it was serving when Blender died
+        until(lambda: not _alive(int(pid)), f"service {pid} to end after its Blender", 2.0)
+        assert "stdin closed" in Path(log).read_text()  # the pipe ended it, not a signal
+    finally:
+        if _alive(int(pid)):
+            os.kill(int(pid), 9)
+        Path(log).unlink(missing_ok=True)
+
+
 @pytest.mark.parametrize(
     ("command", "words"),
     [
@@ -154,7 +187,8 @@ def test_default_launch_is_this_python_running_the_engine_on_its_path() -> None:
     """No command: Blender's own interpreter, the engine's folder as the whole path."""
     argv = service.command_line("", "127.0.0.1", 0, "cpu")
     assert argv[:4] == [sys.executable, "-s", "-m", "scenesort.backend.commands"]
-    assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--device", "cpu"]
+    assert argv[4:] == ["serve", "--host", "127.0.0.1", "--port", "0", "--exit-with-stdin",
+                        "--device", "cpu"]  # fmt: skip
     assert service.engine_root() == REPO  # here the checkout; in Blender the wheels' folder
     env = service.child_env("", "secret")
     assert env["PYTHONPATH"] == str(REPO) and "PYTHONHOME" not in env
