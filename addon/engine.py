@@ -36,8 +36,9 @@ _EXPECTED = (ServiceError, service.LaunchError, ValueError)
 
 
 def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
-    """Build and trace times, the scene's size and what the render achieved (estimated
-    RMSE in AO units, mean and largest spp, rays), for the status bar and metadata."""
+    """Build and trace times, the scene's size, what the render achieved (estimated
+    RMSE in AO units, mean and largest spp, rays) and the device that traced it, for the
+    status bar and metadata."""
     build = outcome.build or {}
     build_ms = float((build.get("timings_ms") or {}).get("total", 0.0))
     cached = " (cached)" if build.get("cached") else ""
@@ -55,8 +56,9 @@ def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
         f"{triangles:,} triangles | build {build_ms:.1f} ms{cached} | "
         f"trace {trace_ms:.1f} ms | total {outcome.render_ms:.0f} ms | "
         f"est. RMSE {rmse} | spp {outcome.spp_mean:.1f} mean, {outcome.spp_max} max | "
-        f"{outcome.rays:,} rays"
+        f"{outcome.rays:,} rays | {outcome.device}"
     )
+
 
 
 class AoEngine:
@@ -121,7 +123,7 @@ class AoEngine:
         line = stats_line(outcome, mesh.triangles)
         self._write(depsgraph, image.result_passes(outcome, transparent), outcome.size, line)
         self.show(line)
-        self._keep_build(scene, outcome)
+        self._keep(scene, outcome)
 
     # --- steps ----------------------------------------------------------------------
 
@@ -166,14 +168,15 @@ class AoEngine:
         if note:  # on the whole render's result, as Cycles does: files carry it
             self.get_result().stamp_data_add_field("scenesort", note)
 
-    def _keep_build(self, scene: bpy.types.Scene, outcome: pipeline.Outcome) -> None:
-        """The build's timings into the panel's table, on the main thread."""
-        if outcome.build is None:
-            return
+    def _keep(self, scene: bpy.types.Scene, outcome: pipeline.Outcome) -> None:
+        """The device for the Sampling panel and the build's timings for the panel's
+        table, on the main thread."""
         props, settings = scene.original.scenesort, pipeline.Settings.from_scene(scene)
 
         def apply() -> None:
-            timings.apply_build(props, outcome.build, settings.method, settings.leaf_size)
+            bpy.context.window_manager.scenesort.last_device = outcome.device
+            if outcome.build is not None:
+                timings.apply_build(props, outcome.build, settings.method, settings.leaf_size)
 
         if threading.current_thread() is threading.main_thread():
             apply()

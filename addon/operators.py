@@ -312,6 +312,7 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
         status.last_rmse = -1.0 if outcome.rmse_estimate is None else outcome.rmse_estimate
         status.last_spp_mean, status.last_spp_max = outcome.spp_mean, outcome.spp_max
         status.last_rays = outcome.rays
+        status.last_device = outcome.device
         status.renders += 1
         img = image.write_ao_image(outcome)
         image.show_in_image_editors(context.window_manager, img)

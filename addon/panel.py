@@ -185,6 +185,12 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
         (("ao_distance", "AO Distance"), ("seed", "Seed")),
     )
 
+    def draw(self, context: bpy.types.Context) -> None:
+        _EnginePanel.draw(self, context)  # type: ignore[arg-type]
+        device = context.window_manager.scenesort.last_device
+        if device:  # the service's device, which the Device preference may have changed
+            self.layout.label(text=f"Last render on {device}", icon="DESKTOP")
+
 
 class SCENESORT_PT_film(_EnginePanel, bpy.types.Panel):
     """Film > Transparent: alpha is the pixel's coverage (0 on background) when on."""

@@ -89,6 +89,13 @@ class Outcome:
     denoised: bool = False  # the image is OIDN's output (rmse_estimate is the raw render's)
     requests: list[str] = field(default_factory=list)
 
+    @property
+    def device(self) -> str:
+        """The device that traced it, as the service's health answer names it ("cpu",
+        "cuda:0")."""
+        health = self.connection.health if self.connection is not None else {}
+        return str(health.get("device", "unknown device"))
+
 
 def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) -> str:
     """The scene id on the service, uploading the scene only if the service lacks it."""

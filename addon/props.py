@@ -180,6 +180,7 @@ class SCENESORT_PG_status(bpy.types.PropertyGroup):
     last_spp_mean: FloatProperty(name="Mean spp")  # type: ignore[valid-type]
     last_spp_max: IntProperty(name="Max spp")  # type: ignore[valid-type]
     last_rays: IntProperty(name="Rays")  # type: ignore[valid-type]
+    last_device: StringProperty(name="Device")  # type: ignore[valid-type]  # F12's, "" before
     last_upload_bytes: IntProperty()  # type: ignore[valid-type]
     renders: IntProperty()  # type: ignore[valid-type]
 

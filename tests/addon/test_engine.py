@@ -134,12 +134,14 @@ def test_stats_line_reports_what_the_render_achieved() -> None:
     """The status bar and metadata line carries the job's estimated RMSE, mean and
     largest spp and rays; an unknown estimate shows as '-'."""
     from addon import pipeline
+    from addon.connection import Connection
 
     outcome = pipeline.Outcome(rmse_estimate=0.0123, spp_mean=40.25, spp_max=256,
-                               rays=123456, render_ms=10.0)
+                               rays=123456, render_ms=10.0,
+                               connection=Connection(None, {"device": "cuda:0"}, False))
     line = engine.stats_line(outcome, 1000)
     assert "est. RMSE 0.0123" in line and "spp 40.2 mean, 256 max" in line
-    assert "123,456 rays" in line
+    assert line.endswith("123,456 rays | cuda:0")
     assert "est. RMSE -" in engine.stats_line(pipeline.Outcome(), 1000)
 
 
@@ -481,6 +483,9 @@ class _Layout:
     def prop(self, owner: object, name: str, text: str = "") -> None:
         self.props.append((owner, name, text))
 
+    def label(self, text: str = "", icon: str = "NONE") -> None:
+        self.props.append((None, "label", text))
+
 
 def test_engine_panels_draw_the_scenes_settings(live) -> None:
     from addon import panel
@@ -490,8 +495,28 @@ def test_engine_panels_draw_the_scenes_settings(live) -> None:
         layout = _Layout()
         cls.draw(SimpleNamespace(layout=layout, source=cls.source, groups=cls.groups),
                  bpy.context)  # fmt: skip
-        drawn.update({name: owner for owner, name, _ in layout.props})
+        drawn.update({name: owner for owner, name, _ in layout.props if owner is not None})
     assert drawn == {"spp": live.scenesort, "target_error": live.scenesort,
                      "max_pixel_error": live.scenesort, "use_denoising": live.scenesort,
                      "ao_distance": live.scenesort, "seed": live.scenesort,
                      "film_transparent": live.render}  # fmt: skip
+
+
+def test_sampling_panel_names_the_device_of_the_last_f12(live, tmp_path) -> None:
+    """After F12 the Sampling panel says which device traced it (the service's, which the
+    Device preference decides); before any render it says nothing."""
+    from addon import panel
+
+    def labels() -> list[str]:
+        layout = _Layout()
+        cls = panel.SCENESORT_PT_sampling
+        cls.draw(SimpleNamespace(layout=layout, source=cls.source, groups=cls.groups),
+                 bpy.context)  # fmt: skip
+        return [text for _, name, text in layout.props if name == "label"]
+
+    status = bpy.context.window_manager.scenesort
+    status.last_device = ""
+    assert labels() == []
+    f12(live, tmp_path / "device")
+    assert status.last_device == "cpu"  # the live service's device: no GPU here
+    assert labels() == ["Last render on cpu"]
