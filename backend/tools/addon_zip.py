@@ -49,6 +49,13 @@ PLATFORMS: dict[str, list[str]] = {
     "windows-x64": ["win_amd64"],
     "macos-arm64": ["macosx_12_0_arm64", "macosx_11_0_arm64"],  # 12.0: pyoidn's wheel
 }
+# Blender platforms no zip can serve, and why (measured with `pip download --platform`).
+NO_ZIP: dict[str, str] = {
+    "macos-x64": "Warp publishes no macOS x86_64 wheel after 1.9.1 (its platform page lists "
+    "Intel Macs as discontinued), and the engine needs Warp 1.19; on an Intel Mac, use a "
+    "scenesort service on another computer (the Service URL and Allow a remote service "
+    "preferences)",
+}
 # Blender's Python -> the Blender versions that run it, as the manifest's
 # blender_version_min and blender_version_max (exclusive; None: no upper end).
 BLENDER_RANGES: dict[str, tuple[str, str | None]] = {
@@ -83,7 +90,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `scenesort addon-zip`."""
     parser.add_argument(
         "--platform",
-        choices=[*PLATFORMS, "all"],
+        choices=[*PLATFORMS, *NO_ZIP, "all"],
         default=None,
         help="bundle the engine and its wheels for this Blender platform ('all': one zip "
         "each); without it the zip holds the add-on alone",
@@ -366,6 +373,10 @@ def build_platform_zips(
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.platform in NO_ZIP:
+        print(f"scenesort addon-zip: no {args.platform} zip: {NO_ZIP[args.platform]}",
+              file=sys.stderr)  # fmt: skip
+        return 2
     try:
         if args.platform is None:
             zips = [build_zip(args.source, args.output)]

@@ -44,18 +44,21 @@ def channel(channels: dict[str, np.ndarray], *names: str) -> np.ndarray:
     raise KeyError(f"none of {names} in {sorted(channels)}")
 
 
-def render_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int,
-                     seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
-    """F12 with Cycles (`SETTINGS`, max bounces 0): its AO pass and alpha, (height, width)
-    each with row 0 at the top, and the seconds the F12 took (scene sync, BVH, render and
-    file). The scene's render settings are restored afterwards."""
+def write_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int, seed: int = 0) -> float:
+    """F12 with Cycles (`SETTINGS`, max bounces 0) into the multilayer EXR `path` (.exr
+    added); the seconds the F12 took (scene sync, BVH, render and file). The scene's render
+    settings are restored afterwards. Needs only bpy (Blender 4.2 to 5.x), so that a Python
+    with nothing else can write what OpenEXR reads elsewhere."""
     render, cycles, layer = scene.render, scene.cycles, scene.view_layers[0]
     fmt = render.image_settings
+    # Blender 5 chooses a multilayer file by media type, 4.x by file format.
+    kind = ((fmt, "media_type", "MULTI_LAYER_IMAGE") if hasattr(fmt, "media_type")
+            else (fmt, "file_format", "OPEN_EXR_MULTILAYER"))  # fmt: skip
     saved = [(render, "engine"), (render, "film_transparent"), (render, "filepath"),
              (cycles, "device"), (cycles, "samples"), (cycles, "use_adaptive_sampling"),
              (cycles, "use_denoising"), (cycles, "pixel_filter_type"),
              (cycles, "filter_width"), (cycles, "seed"), (cycles, "max_bounces"),
-             (layer, "use_pass_ambient_occlusion"), (fmt, "media_type"),
+             (layer, "use_pass_ambient_occlusion"), kind[:2],
              (fmt, "file_format"), (fmt, "color_depth")]  # restored in this order
     before = [(owner, name, getattr(owner, name)) for owner, name in saved]
     render.engine, render.film_transparent = "CYCLES", True
@@ -63,19 +66,31 @@ def render_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int,
     cycles.use_adaptive_sampling, cycles.use_denoising = False, False
     cycles.pixel_filter_type, cycles.filter_width = "GAUSSIAN", 0.01
     layer.use_pass_ambient_occlusion = True
-    fmt.media_type = "MULTI_LAYER_IMAGE"
+    setattr(*kind)
     fmt.color_depth = "32"
     render.filepath = str(path)
     try:
         start = time.perf_counter()
         assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
-        seconds = time.perf_counter() - start
+        return time.perf_counter() - start
     finally:
         for owner, name, value in before:
             setattr(owner, name, value)
+
+
+def read_cycles_ao(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """The AO pass and alpha of `write_cycles_ao`'s file, (height, width) each with row 0
+    at the top."""
     channels = exr_channels(path.with_suffix(".exr"))
     ao = channel(channels, "Ambient Occlusion.R", "AO.R")  # Blender 5 names the pass in full
-    return ao, channel(channels, "Combined.A"), seconds
+    return ao, channel(channels, "Combined.A")
+
+
+def render_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int,
+                     seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+    """`write_cycles_ao`, then `read_cycles_ao`: the AO pass, alpha and the seconds."""
+    seconds = write_cycles_ao(scene, path, samples, seed)
+    return (*read_cycles_ao(path), seconds)
 
 
 def clean_pixels(covered: np.ndarray) -> np.ndarray:
@@ -86,3 +101,10 @@ def clean_pixels(covered: np.ndarray) -> np.ndarray:
         for dx in range(3):
             out &= padded[dy : dy + covered.shape[0], dx : dx + covered.shape[1]]
     return out
+
+
+def judge(image: np.ndarray, cycles_a: np.ndarray, pixels: np.ndarray) -> tuple[float, float]:
+    """`image`'s RMSE to one Cycles render over `pixels`, and how many standard errors its
+    mean difference is from 0 (a bias)."""
+    d = (image - cycles_a)[pixels]
+    return float(np.sqrt(np.mean(d**2))), float(abs(d.mean()) / (d.std() / np.sqrt(d.size)))

@@ -3,9 +3,12 @@
 Installs the extension zip with Blender's own installer into the (fresh) user
 directory named by the BLENDER_USER_* variables, renders the scene below through the
 add-on with its defaults (the panel's Render AO, then F12 with the engine into an EXR,
-without and with Denoise), and writes what the test compares to OUT_DIR: render.npz (the
-image's AO, both F12s' RGBA, the exported triangles) and render.json (camera, settings,
-how the service was started).
+without and with Denoise, then Ctrl-F12 of two frames with the box moving), and writes
+what the test compares to OUT_DIR: render.npz (the image's AO, the F12s' and frames' RGBA,
+the exported triangles), render.json (camera, settings, how the service was started) and
+the parity renders: F12 at PARITY_SPP and two Cycles AO passes at the same samples
+(cycles_11.exr, cycles_12.exr, multilayer: the test reads them with OpenEXR, which this
+Python does not have).
 Usage: python install_and_render.py ZIP OUT_DIR
 """
 
@@ -24,6 +27,8 @@ import numpy as np
 
 MODULE = "bl_ext.user_default.scenesort"
 WIDTH, HEIGHT = 32, 24
+PARITY_SPP = 256
+sys.path.insert(0, str(Path(__file__).parent))  # cycles_reference: only bpy and numpy
 
 
 def _scene() -> bpy.types.Scene:
@@ -59,10 +64,46 @@ def _f12(scene: bpy.types.Scene, path: Path) -> np.ndarray:
     scene.render.filepath = str(path)
     scene.render.use_file_extension = False
     assert bpy.ops.render.render(write_still=True) == {"FINISHED"}
+    return _read(path)
+
+
+def _read(path: Path) -> np.ndarray:
+    """A float EXR Blender wrote, through bpy: (H*W, 4) RGBA, top row first."""
     img = bpy.data.images.load(str(path), check_existing=False)
     pixels = np.empty(len(img.pixels), dtype=np.float32)
     img.pixels.foreach_get(pixels)
     return pixels.reshape(HEIGHT, WIDTH, 4)[::-1].reshape(-1, 4)
+
+
+def _ctrl_f12(scene: bpy.types.Scene, out: Path) -> np.ndarray:
+    """Ctrl-F12 of frames 1-2, the box where it is on frame 1 and 1 unit along x on frame
+    2, through Blender's own numbered output: (2, H*W, 4) RGBA."""
+    box = bpy.data.objects["Box"]
+    box.keyframe_insert("location", frame=1)
+    box.location.x += 1.0
+    box.keyframe_insert("location", frame=2)
+    scene.frame_start, scene.frame_end = 1, 2
+    scene.render.filepath = str(out / "frame_")
+    scene.render.use_file_extension = True
+    try:
+        assert bpy.ops.render.render(animation=True) == {"FINISHED"}
+    finally:
+        box.animation_data_clear()
+        box.location.x -= 1.0
+        scene.frame_set(1)
+    return np.stack([_read(out / f"frame_{f:04d}.exr") for f in (1, 2)])
+
+
+def _parity(scene: bpy.types.Scene, out: Path) -> np.ndarray:
+    """F12 at PARITY_SPP with the World's AO distance, and Cycles' AO pass twice at the
+    same samples (seeds 11 and 12) into OUT_DIR; F12's RGBA."""
+    from cycles_reference import write_cycles_ao
+
+    scene.scenesort.spp, scene.scenesort.ao_distance = PARITY_SPP, 0.0  # 0: the World's
+    scene.world.light_settings.distance = 2.0
+    for seed in (11, 12):
+        write_cycles_ao(scene, out / f"cycles_{seed}", PARITY_SPP, seed=seed)
+    return _f12(scene, out / "parity.exr")
 
 
 def main(zip_path: str, out_dir: str) -> None:
@@ -86,6 +127,8 @@ def main(zip_path: str, out_dir: str) -> None:
         f12 = _f12(scene, out / "f12.exr")
         scene.scenesort.use_denoising = True  # the denoiser the zip bundles
         denoised = _f12(scene, out / "f12-denoised.exr")
+        scene.scenesort.use_denoising = False
+        frames = _ctrl_f12(scene, out)
         depsgraph = bpy.context.evaluated_depsgraph_get()
         mesh = ext.export.export_scene(depsgraph)
         proc = ext.service._process
@@ -102,8 +145,10 @@ def main(zip_path: str, out_dir: str) -> None:
             "python": sys.executable,
             "devices": ext.devices.found(),  # probed by the first render's start
         }  # fmt: skip
+        parity = _parity(scene, out)  # last: it changes the samples and the distance
         np.savez(out / "render.npz", ao=rgba[:, 0], alpha=rgba[:, 3], f12=f12, denoised=denoised,
-                 vertices=mesh.vertices, indices=mesh.indices)  # fmt: skip
+                 frames=frames, parity=parity, vertices=mesh.vertices,
+                 indices=mesh.indices)  # fmt: skip
     finally:
         addon_utils.disable(MODULE)  # unregister: stops the service it started
     info["service_exit"] = proc.poll()

@@ -1,11 +1,13 @@
 """From a fresh Blender user directory, in each Blender Python: install the linux-x64 zip
-made for that Python, render a frame.
+made for that Python, render a frame, an animation and Cycles' AO pass.
 
 A throw-away Python environment with only `bpy` (and what bpy itself needs: numpy, as
 Blender ships it) runs tests/addon/install_and_render.py: Blender's own installer puts the
 zip's wheels into the extensions' site-packages, and the add-on, with no setting changed,
 no SCENESORT_COMMAND and no `scenesort` on PATH, starts the service with that Python and
-renders (Render AO, then F12). The image must equal a direct engine call made here. This
+renders (Render AO, F12, Ctrl-F12). The image must equal a direct engine call made here,
+and a render at 256 samples must match that Blender's own Cycles AO pass as
+tests/addon/test_shading.py's parity test does. This
 runs for Blender 4.2 and 4.5 LTS (their newest patches), 5.0 (the dev extra's bpy) and the
 newest 5.x on Python 3.13 with numpy 2; in each, every RNA property the add-on names must exist, or
 have a fallback (tests/addon/rna_audit.py).
@@ -271,3 +273,19 @@ def test_install_from_zip_then_render_with_no_other_step(
     np.testing.assert_allclose(data["denoised"][:, 0], np.where(hit, denoised.ao, 0.0),
                                atol=1e-5)  # fmt: skip
     assert np.abs(data["denoised"][hit, 0] - data["ao"][hit]).max() > 0.05  # it did denoise
+    # Ctrl-F12 through that Blender's numbered output: frame 1 is F12's image, and the box
+    # moved on frame 2.
+    first, second = data["frames"]
+    np.testing.assert_array_equal(first, data["f12"])
+    assert np.abs(second[:, 0] - first[:, 0]).max() > 0.1
+    # Parity with that Blender's Cycles AO pass (test_shading's test, at PARITY_SPP).
+    from cycles_reference import clean_pixels, judge, read_cycles_ao
+
+    cycles_a, alpha = read_cycles_ao(tmp_path / "cycles_11")
+    cycles_b, _ = read_cycles_ao(tmp_path / "cycles_12")
+    ours = data["parity"][:, 0].reshape(HEIGHT, WIDTH)
+    clean = clean_pixels((alpha == 1.0) & (data["parity"][:, 3] == 1.0).reshape(HEIGHT, WIDTH))
+    assert clean.sum() > 200
+    cycles_rmse, _ = judge(cycles_b, cycles_a, clean)
+    rmse, z = judge(ours, cycles_a, clean)
+    assert rmse <= 1.25 * cycles_rmse and z < 4.0, (rmse, cycles_rmse, z)

@@ -18,6 +18,7 @@ from pathlib import Path
 import bpy
 import pytest
 from blender_scenes import BLENDER_EXT, REPO
+from packaging.version import Version
 from scenesort.backend.tools import addon_zip
 
 ADDON = REPO / "addon"
@@ -109,6 +110,22 @@ def test_missing_source_fails_with_a_message(tmp_path: Path) -> None:
         cwd=REPO, capture_output=True, text=True, timeout=60,
     )  # fmt: skip
     assert proc.returncode == 1 and "no blender_manifest.toml" in proc.stderr
+
+
+def test_no_intel_mac_zip_and_the_reason(tmp_path: Path) -> None:
+    """Warp's last macOS x86_64 wheel is 1.9.1 (`pip download --platform
+    macosx_11_0_x86_64 warp-lang==1.19.0` finds none): asking for that zip says so and
+    what an Intel Mac can do instead, and writes nothing."""
+    proc = subprocess.run(
+        [sys.executable, "-m", "scenesort.backend.commands", "addon-zip",
+         "--platform", "macos-x64", "-o", str(tmp_path)],
+        cwd=REPO, capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 2 and not any(tmp_path.iterdir())
+    assert "no macOS x86_64 wheel after 1.9.1" in proc.stderr and "Service URL" in proc.stderr
+    pyproject = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
+    (warp,) = [d for d in pyproject["project"]["dependencies"] if d.startswith("warp-lang==")]
+    assert Version(warp.removeprefix("warp-lang==")) > Version("1.9.1")  # the reason holds
 
 
 def test_addon_and_engine_have_one_version() -> None:
