@@ -79,8 +79,9 @@ def _ctrl_f12(scene: bpy.types.Scene, out: Path) -> np.ndarray:
     """Ctrl-F12 of frames 1-2, the box where it is on frame 1 and 1 unit along x on frame
     2, through Blender's own numbered output: (2, H*W, 4) RGBA."""
     box = bpy.data.objects["Box"]
+    x = box.location.x
     box.keyframe_insert("location", frame=1)
-    box.location.x += 1.0
+    box.location.x = x + 1.0
     box.keyframe_insert("location", frame=2)
     scene.frame_start, scene.frame_end = 1, 2
     scene.render.filepath = str(out / "frame_")
@@ -89,7 +90,7 @@ def _ctrl_f12(scene: bpy.types.Scene, out: Path) -> np.ndarray:
         assert bpy.ops.render.render(animation=True) == {"FINISHED"}
     finally:
         box.animation_data_clear()
-        box.location.x -= 1.0
+        box.location.x = x
         scene.frame_set(1)
     return np.stack([_read(out / f"frame_{f:04d}.exr") for f in (1, 2)])
 
