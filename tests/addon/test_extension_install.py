@@ -8,7 +8,7 @@ no SCENESORT_COMMAND and no `scenesort` on PATH, starts the service with that Py
 renders (Render AO, F12, Ctrl-F12). The image must equal a direct engine call made here,
 and a render at 256 samples must match that Blender's own Cycles AO pass as
 tests/addon/test_shading.py's parity test does. This
-runs for Blender 4.2 and 4.5 LTS (their newest patches), 5.0 (the dev extra's bpy) and the
+runs for Blender 4.2 and 4.5 LTS (their newest patches), 5.0 (the test extra's bpy) and the
 newest 5.x on Python 3.13 with numpy 2; in each, every RNA property the add-on names must exist, or
 have a fallback (tests/addon/rna_audit.py).
 
@@ -51,7 +51,7 @@ RENDER_TIMEOUT_S = 900  # a cold Warp kernel cache compiles every module once
 PLATFORMS = ["linux-x64", "windows-x64", "macos-arm64"]
 # Blender -> (its Python, the numpy Blender ships with it, as the venv gets it). 4.2.23 and
 # 4.5.15 are the newest 4.2 and 4.5 LTS patches on the index; 5.3.0 the newest 5.x. None:
-# the dev extra's bpy.
+# the test extra's bpy.
 BLENDERS = {
     "4.2.23": ("3.11", "numpy==1.26.4"),
     "4.5.15": ("3.11", "numpy==1.26.4"),
@@ -65,10 +65,14 @@ FALLBACKS = {
 
 
 def _bpy_requirement() -> str:
-    """The dev extra's pinned bpy, so that this test and the others use one Blender."""
+    """The test extra's pinned bpy for Python 3.11, so that this test and the others use
+    one Blender."""
     pyproject = tomllib.loads((REPO / "pyproject.toml").read_text(encoding="utf-8"))
-    dev = pyproject["project"]["optional-dependencies"]["dev"]
-    return next(d for d in dev if d.startswith("bpy=="))
+    for line in pyproject["project"]["optional-dependencies"]["test"]:
+        req = Requirement(line)
+        if req.name == "bpy" and req.marker.evaluate({"python_version": "3.11"}):
+            return f"bpy{req.specifier}"
+    raise AssertionError("the test extra pins no bpy for Python 3.11")
 
 
 def _run(argv: list, timeout: float, **kwargs) -> subprocess.CompletedProcess:
