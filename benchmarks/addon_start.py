@@ -5,7 +5,8 @@
 
 `--python` is an interpreter with only `bpy` installed (`python -m venv D && D/bin/pip
 install bpy==5.0.1`), standing in for Blender. The first session installs the zip
-(default: `scenesort addon-zip --platform linux-x64` now) into a fresh Blender user
+(default: `scenesort addon-zip --platform linux-x64 --python X.Y` now, for that
+Python's version) into a fresh Blender user
 directory with an empty Warp kernel cache; each later session is a new process that
 enables the installed extension, as a later Blender session does, with the kernel
 cache the earlier ones filled. Each session times `bpy.ops.scenesort.server_start()`
@@ -61,13 +62,18 @@ def main() -> int:
     parser.add_argument("--zip", type=Path, help="the extension zip (default: build one)")
     parser.add_argument("--sessions", type=int, default=5, help="later sessions to time")
     args = parser.parse_args()
+    python = args.python.absolute()  # not resolved: a venv's python is a link
     with tempfile.TemporaryDirectory(prefix="scenesort-start-") as tmp:
         work = Path(tmp)
         zip_path = args.zip or work / "scenesort-linux-x64.zip"
-        if args.zip is None:
+        if args.zip is None:  # the zip made for that Blender's Python
+            version = subprocess.run(
+                [str(python), "-c", "import sys; print('%d.%d' % sys.version_info[:2])"],
+                capture_output=True, text=True, check=True,
+            ).stdout.strip()  # fmt: skip
             subprocess.run(
                 [sys.executable, "-m", "scenesort.backend.commands", "addon-zip", "--platform",
-                 "linux-x64", "-o", str(zip_path)], cwd=ROOT, check=True,
+                 "linux-x64", "--python", version, "-o", str(zip_path)], cwd=ROOT, check=True,
             )  # fmt: skip
         env = {"PATH": "/usr/bin:/bin", "HOME": os.environ.get("HOME", tmp),
                "WARP_CACHE_PATH": str(work / "warp-cache")}  # fmt: skip
@@ -76,7 +82,7 @@ def main() -> int:
         for session in range(1 + args.sessions):
             phase = "install" if session == 0 else "later"
             proc = subprocess.run(
-                [str(args.python), "-I", "-c", SESSION, str(zip_path), phase],
+                [str(python), "-I", "-c", SESSION, str(zip_path), phase],
                 cwd=work, env=env, capture_output=True, text=True, timeout=900,
             )  # fmt: skip
             if proc.returncode != 0:
