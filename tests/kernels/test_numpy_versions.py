@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 SCRIPT = Path(__file__).with_name("engine_digests.py")
@@ -26,6 +27,8 @@ def _digests(python: str) -> dict[str, str]:
 
 def test_numpy_2_gives_numpy_1s_answers_bit_for_bit() -> None:
     numpy2 = os.environ.get("SCENESORT_NUMPY2_PYTHON")
+    if np.__version__.startswith("2."):
+        pytest.skip("this is the numpy 2 environment: the numpy 1 run compares the two")
     if not numpy2:
         pytest.skip("set SCENESORT_NUMPY2_PYTHON to a Python with numpy 2 and this project "
                     "(.ci/run makes .venv-numpy2)")  # fmt: skip
