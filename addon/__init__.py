@@ -10,14 +10,23 @@ Relative imports only, so it also registers when imported as a plain package.
 
 from __future__ import annotations
 
-from . import animation, engine, operators, panel, prefs, props, service
+import bpy
+
+from . import animation, devices, engine, operators, panel, prefs, props, service
 
 _MODULES = (prefs, props, operators, engine, panel, animation)
+
+
+def interactive() -> bool:
+    """Blender with its UI, where someone may open the Device menu before rendering."""
+    return not bpy.app.background
 
 
 def register() -> None:
     for module in _MODULES:
         module.register()
+    if interactive():  # headless scripts probe when a render first needs the device
+        devices.find_soon()
 
 
 def unregister() -> None:

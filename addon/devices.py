@@ -3,10 +3,12 @@
 The local service's Device preference defaults to the first CUDA device where there is
 one. Finding it means importing Warp, which Blender's own process never does, so a child
 (Blender's Python with the bundled engine's path, as the service runs) lists the devices
-once. The answer is kept in Blender's config folder with the engine's folder and Warp's
-version, so only a new engine probes again. macOS has no CUDA: Warp runs on the CPU there,
-and nothing is probed. With a service command of your own nothing is probed either: the
-Device menu lists what that service reports.
+once: at enable in Blender's UI (on a thread, so that the Device menu lists the GPUs
+before the first render), else when first needed. The answer is kept in Blender's config
+folder with the engine's folder and Warp's version, so only a new engine probes again.
+macOS has no CUDA: Warp runs on the CPU there, and nothing is probed. With a service
+command of your own nothing is probed either: the Device menu lists what that service
+reports.
 """
 
 from __future__ import annotations
@@ -58,12 +60,11 @@ def _probe(root: Path) -> list[str] | None:
     return [str(d) for d in devices]
 
 
-def _cached_or_probed() -> list[str]:
+def _cached_or_probed(path: Path) -> list[str]:
     root = service.engine_root()
     if sys.platform == "darwin" or root is None:
         return ["cpu"]
     key = _key(root)
-    path = cache_path()
     with contextlib.suppress(OSError, ValueError, KeyError, TypeError):
         cached = json.loads(path.read_text(encoding="utf-8"))
         if cached["key"] == key:
@@ -77,13 +78,23 @@ def _cached_or_probed() -> list[str]:
     return devices
 
 
-def found() -> list[str]:
-    """This computer's Warp devices ('cpu', 'cuda:0', ...), probed at the first call."""
+def found(path: Path | None = None) -> list[str]:
+    """This computer's Warp devices ('cpu', 'cuda:0', ...), probed at the first call;
+    `path`: the cache file (default `cache_path()`)."""
     global _found
     with _lock:
         if _found is None:
-            _found = _cached_or_probed()
+            _found = _cached_or_probed(path or cache_path())
         return list(_found)
+
+
+def find_soon() -> threading.Thread:
+    """`found()` on a daemon thread, the cache's path taken here, on Blender's main
+    thread (bpy is not called from another one)."""
+    thread = threading.Thread(target=found, args=(cache_path(),), daemon=True,
+                              name="scenesort device probe")  # fmt: skip
+    thread.start()
+    return thread
 
 
 def known() -> list[str]:

@@ -11,7 +11,9 @@ from collections.abc import Iterator
 import bpy
 import pytest
 
+import addon
 from addon import devices, prefs, service
+from tests.waiting import until
 
 FAKE_GPUS = "print('[\"cpu\", \"cuda:0\", \"cuda:1\"]')"  # what a two-GPU machine prints
 SLEEPER = shlex.join([sys.executable, "-c", "import time; time.sleep(60)"])
@@ -86,3 +88,24 @@ def test_macos_probes_nothing_and_says_why(registered, fresh, monkeypatch) -> No
     assert devices.found() == ["cpu"]
     items = prefs._device_items(_prefs(), bpy.context)
     assert [(i[0], i[2]) for i in items] == [("cpu", devices.MACOS_REASON)]
+
+
+def test_blenders_ui_probes_at_enable_and_headless_blender_when_needed(fresh, monkeypatch):
+    """Enabling the add-on in Blender's UI finds the GPUs on a thread (the Device menu
+    lists them before any render or service start); a headless Blender probes nothing
+    until a render needs the device."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    with monkeypatch.context() as patch:
+        patch.setattr(devices.subprocess, "run", _no_child)
+        addon.register()  # headless (bpy.app.background): nothing probed
+        addon.unregister()
+    assert devices.known() == ["cpu"] and devices._found is None
+    monkeypatch.setattr(devices, "PROBE", FAKE_GPUS)
+    monkeypatch.setattr(addon, "interactive", lambda: True)
+    addon.register()
+    try:
+        until(lambda: devices.known() == ["cpu", "cuda:0", "cuda:1"], "the probe at enable")
+        assert json.loads(devices.cache_path().read_text())["devices"] == devices.known()
+        assert not service.running()
+    finally:
+        addon.unregister()
