@@ -66,6 +66,28 @@ def as_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     return origins, directions
 
 
+def as_surface_points(triangles, u, v, triangle_count: int) -> tuple[np.ndarray, ...]:
+    """Validated int32 triangle indices in [0, triangle_count) and float32 barycentric
+    weights u, v (of each triangle's second and third corner: u, v >= 0, u + v <= 1, with
+    float32 rounding's slack), all of one length."""
+    tri = np.asarray(triangles)
+    if tri.ndim != 1 or not np.issubdtype(tri.dtype, np.integer):
+        raise ValueError(f"triangles must be a 1-D integer array, got shape {tri.shape}, "
+                         f"dtype {tri.dtype}")
+    if tri.size and (int(tri.min()) < 0 or int(tri.max()) >= triangle_count):
+        raise ValueError(f"triangles must lie in [0, {triangle_count - 1}] (the mesh has "
+                         f"{triangle_count} triangles), found [{int(tri.min())}, "
+                         f"{int(tri.max())}]")
+    u = per_ray(u, len(tri), "u")
+    v = per_ray(v, len(tri), "v")
+    outside = ~((u >= 0.0) & (v >= 0.0) & (u + v <= 1.0 + 1e-6))  # NaN and inf too
+    if outside.any():
+        row = int(np.flatnonzero(outside)[0])
+        raise ValueError(f"u and v must be barycentric weights (u, v >= 0, u + v <= 1); "
+                         f"point {row} has u={u[row]}, v={v[row]}")
+    return np.ascontiguousarray(tri, dtype=np.int32), u, v
+
+
 def per_ray(value, count: int, name: str, *, keep_scalar: bool = False) -> np.ndarray:
     """A scalar or (R,) array as a float32 (R,) array, or with `keep_scalar` a scalar as a
     (1,) array for kernels that broadcast it; NaN is rejected, +-inf allowed."""

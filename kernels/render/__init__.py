@@ -4,12 +4,21 @@ setting in one `AoOptions`), and the culling of what a camera's image cannot dep
 
 from scenesort.ao_options import AO_OPTIONS, DEFAULT_MAX_SPP, AoOptions, OptionError, OptionSpec
 
-from .ao import AoRays, AoResult, AoStats, AoTimings, ambient_occlusion, default_distance, render_ao
+from .ao import (
+    AoRays,
+    AoResult,
+    AoStats,
+    AoTimings,
+    ambient_occlusion,
+    default_distance,
+    render_ao,
+    surface_ao,
+)
 from .camera import Camera
 from .cull import mesh_box, view_planes, visible_instances, visible_triangles
 
 __all__ = [
     "AO_OPTIONS", "DEFAULT_MAX_SPP", "AoOptions", "AoRays", "AoResult", "AoStats", "AoTimings",
     "Camera", "OptionError", "OptionSpec", "ambient_occlusion", "default_distance", "mesh_box",
-    "render_ao", "view_planes", "visible_instances", "visible_triangles",
+    "render_ao", "surface_ao", "view_planes", "visible_instances", "visible_triangles",
 ]

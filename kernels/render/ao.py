@@ -43,14 +43,14 @@ from scenesort.ao_options import DISTANCE_FRACTION, AoOptions
 from ..bvh.api import Bvh
 from ..core.launch import host_threads, load_modules
 from ..core.record import Record, unset
-from ..core.validate import as_rays
+from ..core.validate import as_rays, as_surface_points
 from ..dacrt.api import dacrt_warp_modules
 from ..scene.api import Placement, Scene
 from ..scene.top import WARP_MODULES as SCENE_MODULES
 from . import primary, tracers
 from .adaptive import Progress, SampleCounts, sample_rounds
 from .denoise import denoise_ao, require_denoiser
-from .primary import scene_shading, trace_primary
+from .primary import scene_shading, surface_hits, trace_primary
 from .surface import PrimaryHits
 from .tracers import check_tracer, occlusion_tracer
 
@@ -156,14 +156,9 @@ def render_ao(
     (height, width) image. `ao` is then the denoised image, `raw_ao` the render's own;
     `rmse_estimate` stays the raw render's (nothing measures the denoised error here).
     """
-    if options is not None and not isinstance(options, AoOptions):
-        raise TypeError(f"options must be an AoOptions or None, got {options!r} (spp, "
-                        f"distance and the other settings are keywords)")
-    opts = (options or AoOptions()).with_(**settings)
+    opts = _options(options, settings)
     check_tracer(bvh, opts.engine)
-    modules = (*primary.WARP_MODULES, *tracers.WARP_MODULES, *SCENE_MODULES,
-               *(dacrt_warp_modules("pool") if opts.engine == "dacrt" else ()))
-    compile_ms = load_modules(bvh.device, *modules)  # compiling is not rendering
+    compile_ms = _load(bvh, opts)
     t_start = time.perf_counter()
     if opts.denoise:
         require_denoiser()
@@ -173,7 +168,6 @@ def render_ao(
     origins, directions = as_rays(origins, directions)
     offsets = opts.terminator_offset if terminator_offset is None else terminator_offset
     scene_shading(bvh, normals, offsets)  # checked (and kept) before tracing
-    dist = default_distance(bvh) if opts.distance is None else opts.distance
     report = _monotone(progress)
     setup_ms = (time.perf_counter() - t_start) * 1e3
 
@@ -183,22 +177,86 @@ def render_ao(
                          normals, offsets)
     wp.synchronize_device(bvh.device)
     primary_ms = (time.perf_counter() - t0) * 1e3
+    return _occlusion(bvh, hits, len(origins), opts, report, image_shape,
+                      compile=compile_ms, setup=setup_ms, primary=primary_ms, start=t_start)
 
+
+def surface_ao(
+    bvh: Bvh,
+    triangles: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    options: AoOptions | None = None,
+    *,
+    normals: Any = None,
+    terminator_offset: float | np.ndarray | None = None,
+    progress: Progress | None = None,
+    **settings: Any,
+) -> AoResult:
+    """AO at given points of the mesh's own triangles, seen from the side each triangle's
+    winding faces: a bake's texels. `triangles` (P,) index the BVH's triangles in the
+    caller's order, `u` and `v` are the barycentric weights of their second and third
+    corner. The definition, sampling, error target, shading arguments and guarantees are
+    `render_ao`'s (engine "bvh", no denoising), with these points in place of the primary
+    hits; a point on a triangle without area gets AO 1.0 and no samples, as a miss does."""
+    opts = _options(options, settings)
+    if opts.engine != "bvh" or opts.denoise:
+        raise ValueError("surface_ao traces with engine='bvh' and does not denoise: drop "
+                         "engine='dacrt' and denoise=True")
+    check_tracer(bvh, opts.engine)
+    if not isinstance(bvh, Bvh):
+        raise TypeError(f"surface_ao takes a mesh's Bvh, got {type(bvh).__name__}")
+    compile_ms = _load(bvh, opts)
+    t_start = time.perf_counter()
+    triangles, u, v = as_surface_points(triangles, u, v, len(bvh.indices))
+    offsets = opts.terminator_offset if terminator_offset is None else terminator_offset
+    report = _monotone(progress)
+    setup_ms = (time.perf_counter() - t_start) * 1e3
+    report(0.0, "surface")
+    t0 = time.perf_counter()
+    hits = surface_hits(bvh, triangles, u, v, normals, offsets)
+    wp.synchronize_device(bvh.device)
+    surface_ms = (time.perf_counter() - t0) * 1e3
+    return _occlusion(bvh, hits, len(triangles), opts, report, None,
+                      compile=compile_ms, setup=setup_ms, primary=surface_ms, start=t_start)
+
+
+def _options(options: AoOptions | None, settings: dict[str, Any]) -> AoOptions:
+    if options is not None and not isinstance(options, AoOptions):
+        raise TypeError(f"options must be an AoOptions or None, got {options!r} (spp, "
+                        f"distance and the other settings are keywords)")
+    return (options or AoOptions()).with_(**settings)
+
+
+def _load(bvh: Bvh | Scene, opts: AoOptions) -> float:
+    """Load (on first use compile) the render's Warp modules: the ms it took, which is not
+    rendering."""
+    modules = (*primary.WARP_MODULES, *tracers.WARP_MODULES, *SCENE_MODULES,
+               *(dacrt_warp_modules("pool") if opts.engine == "dacrt" else ()))
+    return load_modules(bvh.device, *modules)
+
+
+def _occlusion(bvh: Bvh | Scene, hits: PrimaryHits, r: int, opts: AoOptions,
+               report: Progress, image_shape: tuple[int, int] | None, *, compile: float,
+               setup: float, primary: float, start: float) -> AoResult:
+    """The occlusion rounds from `hits` (of `r` primary rays or points), the pixels, the
+    denoiser if asked, and the result with its timings since `start`."""
+    dist = default_distance(bvh) if opts.distance is None else opts.distance
     t0 = time.perf_counter()
     nthreads = host_threads(bvh.device, opts.threads)
     counts, rounds = sample_rounds(occlusion_tracer(bvh, hits, opts, dist, nthreads),
                                    len(hits.pixels), opts, report)
     occlusion_ms = (time.perf_counter() - t0) * 1e3
 
-    ao, spp_used, shading_normals = _pixels(len(origins), hits, counts)
+    ao, spp_used, shading_normals = _pixels(r, hits, counts)
     raw_ao = denoise_ms = None
     if opts.denoise:
         t0 = time.perf_counter()
         raw_ao, ao = ao, denoise_ao(ao, shading_normals, spp_used > 0, image_shape)
         denoise_ms = (time.perf_counter() - t0) * 1e3
-    timings = AoTimings(compile=compile_ms, setup=setup_ms, primary=primary_ms,
+    timings = AoTimings(compile=compile, setup=setup, primary=primary,
                         occlusion=occlusion_ms, denoise=denoise_ms,
-                        total=(time.perf_counter() - t_start) * 1e3)
+                        total=(time.perf_counter() - start) * 1e3)
     report(1.0, "done")
     return AoResult(ao=ao, spp_used=spp_used, timings_ms=timings,
                     rays=AoRays(primary=hits.traced, occlusion=int(counts.done.sum()),

@@ -123,4 +123,26 @@ def trace_primary(bvh: Bvh | Scene, origins: np.ndarray, directions: np.ndarray,
     return PrimaryHits(pixels=cand[keep], surfaces=gather_surfaces(surfaces, keep), traced=m)
 
 
+def surface_hits(bvh: Bvh, triangles: np.ndarray, u: np.ndarray, v: np.ndarray, normals=None,
+                 terminator_offset: float | np.ndarray = DEFAULT_TERMINATOR_OFFSET,
+                 ) -> PrimaryHits:
+    """Given points on the mesh's own triangles (a bake's texels) as `Surface`s seen from
+    the side the triangle's winding faces, as a camera would see them; points on triangles
+    without area are left out (they are never hit either)."""
+    mesh = scene_mesh(bvh)
+    shading = scene_shading(bvh, normals, terminator_offset)
+    corners = bvh.vertices[bvh.indices[triangles]].astype(np.float64)
+    ng = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    keep = np.flatnonzero(np.any(ng != 0.0, axis=1)).astype(np.int32)
+    n = len(keep)
+    surfaces = wp.empty(n, dtype=Surface, device=bvh.device)
+    if n:
+        seen_from = (-ng[keep]).astype(np.float32)  # a view ray's direction onto the front
+        wp.launch(surface_kernel, dim=n, inputs=[
+            mesh.v, mesh.f, shading, wp.array(seen_from, dtype=wp.vec3, device=bvh.device),
+            *(wp.array(x[keep], device=bvh.device) for x in (triangles, u, v)),
+        ], outputs=[surfaces], device=bvh.device)
+    return PrimaryHits(pixels=keep, surfaces=surfaces, traced=0)
+
+
 WARP_MODULES = (box_candidates_kernel.module,)  # this module's kernels (load_modules)
