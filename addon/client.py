@@ -199,6 +199,17 @@ class Client:
         """`POST /v1/jobs`: queue an AO render of a camera (see camera.camera_dict)."""
         return self._json("POST", "/v1/jobs", payload, timeout=UPLOAD_TIMEOUT_S)
 
+    def create_surface_job(self, scene_id: str, points: int, body: bytes,
+                           settings: dict[str, Any]) -> dict:
+        """`POST /v1/scenes/{id}/surface-jobs`: queue AO at `points` surface points (a
+        bake's texels: P int32 triangles, P float32 u, P float32 v)."""
+        query = urllib.parse.urlencode({"points": points, **settings})
+        _, _, data = self._request(
+            "POST", f"/v1/scenes/{scene_id}/surface-jobs?{query}", body,
+            "application/octet-stream", UPLOAD_TIMEOUT_S,
+        )
+        return json.loads(data)
+
     def job_status(self, job_id: str) -> dict:
         """`GET /v1/jobs/{id}`: state, phase, progress (0..1), timings."""
         return self._json("GET", f"/v1/jobs/{job_id}", timeout=UPLOAD_TIMEOUT_S)

@@ -21,12 +21,13 @@ from __future__ import annotations
 import threading
 import time
 import traceback
+from collections.abc import Callable
 from typing import Any
 
 import bpy
 import numpy as np
 
-from . import camera, export, image, pipeline, prefs, service, timings
+from . import bake, camera, export, image, pipeline, prefs, service, timings
 from .client import ServiceError
 from .tasks import Cancelled, Task
 
@@ -91,10 +92,21 @@ class AoEngine:
             self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
 
     def render(self, depsgraph: bpy.types.Depsgraph) -> None:
+        self._guarded("Render", lambda: self._render(depsgraph))
+
+    def bake(self, depsgraph: bpy.types.Depsgraph, obj: bpy.types.Object, pass_type: str,
+             pass_filter: int, width: int, height: int) -> None:
+        """Blender's Bake of `obj` (image textures or colour attributes; see bake.py). Blender
+        writes the result whatever happened (its RE_bake_engine cannot fail): after Esc or
+        an error the covered texels get 0, as they would from Cycles stopped early."""
+        self._guarded("Bake", lambda: self._bake(depsgraph, obj, pass_type, width, height))
+
+    def _guarded(self, what: str, work: Callable[[], None]) -> None:
+        """`work`, its failures reported in words, never a traceback."""
         try:
-            self._render(depsgraph)
+            work()
         except Cancelled:
-            self._say("INFO", "Render cancelled; the service's job was cancelled")
+            self._say("INFO", f"{what} cancelled; the service's job was cancelled")
         except Exception as exc:  # noqa: BLE001 - reported in words, never a traceback
             message = str(exc)
             if not isinstance(exc, _EXPECTED):  # a bug: the console gets the traceback
@@ -119,28 +131,61 @@ class AoEngine:
                 "enabled for rendering; the image is empty",
             )
             return
-        outcome = self._run(depsgraph, mesh, view)
+        settings = pipeline.Settings.from_scene(scene)
+        target = prefs.target(bpy.context)
+        outcome = self._run(
+            lambda task: pipeline.render_job(task, target, settings, mesh, view),
+            f"{mesh.triangles:,} triangles",
+        )
         line = stats_line(outcome, mesh.triangles)
         self._write(depsgraph, image.result_passes(outcome, transparent), outcome.size, line)
         self.show(line)
         self._keep(scene, outcome)
 
+    def _bake(self, depsgraph: bpy.types.Depsgraph, obj: bpy.types.Object, pass_type: str,
+              width: int, height: int) -> None:
+        refused = bake.refusal(pass_type)
+        if refused:
+            raise ValueError(refused)
+        scene = depsgraph.scene
+        self.show("exporting the scene")
+        mesh = export.export_scene(depsgraph)
+        span = mesh.spans.get(obj.original.name)
+        if span is None:
+            raise ValueError(f"'{obj.original.name}' does not render (disabled for rendering "
+                             "or hidden), so it has no triangles to bake: enable it for "
+                             "rendering")
+        result = self.begin_result(0, 0, width, height, layer="", view="")
+        try:
+            primitive = np.empty(width * height * 3, np.float32)
+            result.layers[0].passes["BakePrimitive"].rect.foreach_get(primitive)
+            texels, triangles, u, v = bake.texel_points(primitive.reshape(-1, 3), span)
+            settings = pipeline.Settings.from_scene(scene)
+            target = prefs.target(bpy.context)
+            outcome = self._run(
+                lambda task: pipeline.bake_job(task, target, settings, mesh, triangles, u, v),
+                f"{len(texels):,} texels of '{obj.original.name}'",
+            )
+            self.fill(result, {"Combined": bake.combined(outcome.ao, texels, width * height)})
+        except BaseException:
+            self.end_result(result, cancel=True)
+            raise
+        self.end_result(result)
+        self._say("INFO", f"baked {len(texels):,} texels of '{obj.original.name}' | "
+                          + stats_line(outcome, mesh.triangles))  # fmt: skip
+        self._keep(scene, outcome)
+
     # --- steps ----------------------------------------------------------------------
 
-    def _run(
-        self, depsgraph: bpy.types.Depsgraph, mesh: export.SceneMesh | export.InstanceExport,
-        view: dict,
-    ) -> pipeline.Outcome:
-        """The job on a worker thread while this one polls Esc and shows progress."""
-        settings = pipeline.Settings.from_scene(depsgraph.scene)
-        target = prefs.target(bpy.context)
-        self.task = Task(lambda task: pipeline.render_job(task, target, settings, mesh, view))
+    def _run(self, work: Callable[[Task], pipeline.Outcome], what: str) -> pipeline.Outcome:
+        """`work` on a worker thread while this one polls Esc and shows progress."""
+        self.task = Task(work)
         self.task.start()
         while not self.task.done:
             if self.stopped():
                 self.task.cancel()
             self.update_progress(self.task.fraction)
-            self.show(f"{self.task.step} ({mesh.triangles:,} triangles)")
+            self.show(f"{self.task.step} ({what})")
             time.sleep(POLL_S)
         if self.task.error is not None:
             raise self.task.error
@@ -174,7 +219,7 @@ class AoEngine:
         props, settings = scene.original.scenesort, pipeline.Settings.from_scene(scene)
 
         def apply() -> None:
-            bpy.context.window_manager.scenesort.last_device = outcome.device
+            pipeline.remember(bpy.context.window_manager.scenesort, outcome)
             if outcome.build is not None:
                 timings.apply_build(props, outcome.build, settings.method, settings.leaf_size)
 

@@ -20,7 +20,7 @@ and 3x4 object-to-world transform: the service's instance list (docs/api.md).
 from __future__ import annotations
 
 from collections.abc import Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import bpy
 import numpy as np
@@ -48,6 +48,17 @@ def terminator_offset(obj: bpy.types.Object) -> float:
 
 
 @dataclass(frozen=True)
+class Span:
+    """An object's loop triangles among a flattened scene's: `first` and `count` of them,
+    in loop-triangle order; `mirrored`: a transform of negative determinant reversed each
+    triangle's corners (corner k is the loop triangle's corner 2 - k)."""
+
+    first: int
+    count: int
+    mirrored: bool
+
+
+@dataclass(frozen=True)
 class SceneMesh:
     """World-space triangles: vertices (N,3) float32, indices (M,3) int32; shading
     normals (M,3,3) float32 (zero corners: flat) or None when every face is flat; per
@@ -58,6 +69,9 @@ class SceneMesh:
     objects: int  # object instances that contributed triangles
     normals: np.ndarray | None = None
     terminator_offsets: np.ndarray | None = None
+    # Each real (not instanced) object's loop triangles: where a bake finds its texels'
+    # triangles. Not sent.
+    spans: dict[str, Span] = field(default_factory=dict, compare=False)
 
     @property
     def triangles(self) -> int:
@@ -211,8 +225,10 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
     index_parts: list[np.ndarray] = []
     normal_parts: list[np.ndarray | None] = []
     offset_parts: list[float] = []
+    spans: dict[str, Span] = {}
     offset = 0
     count = 0
+    triangles = 0
     for inst in _instances(depsgraph):
         obj = inst.object
         if obj.type != "MESH" and obj.type not in _CONVERTIBLE:
@@ -224,9 +240,13 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
         m = np.array(inst.matrix_world, dtype=np.float64)
         world = arrays.vertices @ m[:3, :3].T + m[:3, 3]
         normals = None if normals is None else _world_normals(normals, m[:3, :3])
-        if np.linalg.det(m[:3, :3]) < 0.0:
+        mirrored = bool(np.linalg.det(m[:3, :3]) < 0.0)
+        if mirrored:
             tris = tris[:, ::-1]  # a mirroring transform flips winding; keep faces outward
             normals = None if normals is None else normals[:, ::-1]  # corners follow
+        if not inst.is_instance:
+            spans[obj.original.name] = Span(triangles, len(tris), mirrored)
+        triangles += len(tris)
         vertex_parts.append(world.astype(np.float32))
         index_parts.append(tris + offset)
         normal_parts.append(normals)
@@ -241,6 +261,7 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
         indices,
         count,
         *_shading(index_parts, normal_parts, offset_parts),
+        spans,
     )
 
 

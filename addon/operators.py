@@ -307,13 +307,7 @@ class SCENESORT_OT_render_ao(_TaskOperator, bpy.types.Operator):
         if outcome.build is not None:
             build = "; " + _apply_build(context, outcome, self._settings)
         status = _status(context)
-        status.last_upload_bytes = outcome.uploaded_bytes
-        status.last_render_ms = outcome.render_ms
-        status.last_rmse = -1.0 if outcome.rmse_estimate is None else outcome.rmse_estimate
-        status.last_spp_mean, status.last_spp_max = outcome.spp_mean, outcome.spp_max
-        status.last_rays = outcome.rays
-        status.last_device = outcome.device
-        status.renders += 1
+        pipeline.remember(status, outcome)
         img = image.write_ao_image(outcome)
         image.show_in_image_editors(context.window_manager, img)
         return f"AO {width}x{height} in {outcome.render_ms / 1e3:.1f} s{build}"

@@ -97,6 +97,18 @@ class Outcome:
         return str(health.get("device", "unknown device"))
 
 
+def remember(status: Any, outcome: Outcome) -> None:
+    """What a render or bake achieved, for the panel's Last render box (the window
+    manager's `scenesort` status; on the main thread)."""
+    status.last_upload_bytes = outcome.uploaded_bytes
+    status.last_render_ms = outcome.render_ms
+    status.last_rmse = -1.0 if outcome.rmse_estimate is None else outcome.rmse_estimate
+    status.last_spp_mean, status.last_spp_max = outcome.spp_mean, outcome.spp_max
+    status.last_rays = outcome.rays
+    status.last_device = outcome.device
+    status.renders += 1
+
+
 def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) -> str:
     """The scene id on the service, uploading the scene only if the service lacks it."""
     if mesh.triangles == 0:
@@ -172,6 +184,33 @@ def prepare(
 JOB_POLL_S = 0.03  # a finished job waits this long at most to be seen (one small GET a poll)
 
 
+def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
+    """Poll a service job until it ends, showing its progress; cancelling the task cancels
+    the job. A job that did not finish is a ServiceError; a finished one's size, timings
+    and statistics go into `outcome`, and its last status is returned."""
+    outcome.job_id = job["job_id"]
+    while job["state"] in {"queued", "running"}:
+        if task.cancelled:
+            client.cancel_job(job["job_id"])  # then set_step raises Cancelled
+        progress = float(job["progress"])
+        task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * progress:.0f}%", progress)
+        time.sleep(JOB_POLL_S)
+        job = client.job_status(job["job_id"])
+    if job["state"] != "done":
+        raise ServiceError(
+            f"The render job {job['state']}: {job.get('error') or 'no reason given'}"
+        )
+    outcome.size = (int(job["width"]), int(job["height"]))
+    outcome.timings_ms = dict(job["timings_ms"])
+    outcome.rmse_estimate = job.get("rmse_estimate")
+    outcome.spp_mean = float(job.get("spp_mean") or 0.0)
+    outcome.spp_max = int(job.get("spp_max") or 0)
+    outcome.rays = int(job.get("rays") or 0)
+    outcome.build_report = job.get("build")
+    outcome.denoised = bool(job.get("denoised"))
+    return job
+
+
 def job_fields(settings: Settings) -> dict[str, Any]:
     """The settings' fields of a service job (POST /v1/jobs), as a frame bundle keeps them."""
     fields: dict[str, Any] = {
@@ -201,31 +240,32 @@ def render_job(
     client, outcome, scene_id = prepare(task, target, settings, mesh)
     payload = {**view, "scene_id": scene_id, **job_fields(settings)}
     start = time.perf_counter()
-    job = client.create_job(payload)
-    outcome.job_id = job["job_id"]
-    while job["state"] in {"queued", "running"}:
-        if task.cancelled:
-            client.cancel_job(job["job_id"])  # then set_step raises Cancelled
-        progress = float(job["progress"])
-        task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * progress:.0f}%", progress)
-        time.sleep(JOB_POLL_S)
-        job = client.job_status(job["job_id"])
-    if job["state"] != "done":
-        raise ServiceError(
-            f"The render job {job['state']}: {job.get('error') or 'no reason given'}"
-        )
-    outcome.size = (int(job["width"]), int(job["height"]))
-    outcome.timings_ms = dict(job["timings_ms"])
-    outcome.rmse_estimate = job.get("rmse_estimate")
-    outcome.spp_mean = float(job.get("spp_mean") or 0.0)
-    outcome.spp_max = int(job.get("spp_max") or 0)
-    outcome.rays = int(job.get("rays") or 0)
-    outcome.build_report = job.get("build")
-    outcome.denoised = bool(job.get("denoised"))
+    job = follow(task, client, client.create_job(payload), outcome)
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)
     outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")
     outcome.depth = client.job_result(job["job_id"], pixels, "depth")
+    outcome.render_ms = (time.perf_counter() - start) * 1e3
+    outcome.requests = client.requests
+    return outcome
+
+
+def bake_job(task: Task, target: Target, settings: Settings, mesh: SceneMesh,
+             triangles: np.ndarray, u: np.ndarray, v: np.ndarray) -> Outcome:
+    """A bake's path: the scene and its BVH as for a render, then a service surface job
+    for the texels' points (scene triangle, u, v) with progress; cancelling the task
+    cancels the job. `outcome.ao` holds one value per point."""
+    settings = replace(settings, engine="bvh", denoise=False)  # what surface jobs trace
+    client, outcome, scene_id = prepare(task, target, settings, mesh)
+    fields = {name: value for name, value in job_fields(settings).items()
+              if name not in ("engine", "denoise")}
+    body = b"".join(np.ascontiguousarray(a, dtype).tobytes()
+                    for a, dtype in ((triangles, "<i4"), (u, "<f4"), (v, "<f4")))
+    start = time.perf_counter()
+    task.set_step(f"sending {len(triangles):,} texels")
+    job = follow(task, client, client.create_surface_job(scene_id, len(triangles), body, fields),
+                 outcome)
+    outcome.ao = client.job_result(job["job_id"], len(triangles))
     outcome.render_ms = (time.perf_counter() - start) * 1e3
     outcome.requests = client.requests
     return outcome

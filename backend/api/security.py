@@ -46,8 +46,9 @@ OPEN_PATH = "/v1/health"  # answers without the token, and then only status and 
 # button then takes the token, which a browser could not otherwise add to /docs).
 PUBLIC_PATHS = frozenset({OPEN_PATH, "/openapi.json", "/docs"})
 AUTHORIZED = "scenesort.authorized"  # scope key the middleware sets for the routes
-# raw little-endian bodies: scenes, rays, meshes, instance lists
-_BINARY_ROUTES = re.compile(r"^/v1/(scenes(/[^/]+/ao)?|meshes/[^/]+|instance-scenes)$")
+# raw little-endian bodies: scenes, rays, surface points, meshes, instance lists
+_BINARY_ROUTES = re.compile(
+    r"^/v1/(scenes(/[^/]+/(ao|surface-jobs))?|meshes/[^/]+|instance-scenes)$")
 BODY_METHODS = frozenset({"POST", "PUT"})  # the methods whose bodies are checked and metered
 _CONTROL = re.compile(r"[\x00-\x1f\x7f-\x9f\\]")
 

@@ -359,6 +359,21 @@ def decode_rays(body: bytes, ray_count: int) -> tuple[np.ndarray, np.ndarray]:
     return origins, directions
 
 
+SURFACE_POINTS_LAYOUT = ("P little-endian int32 triangle indices (the scene's triangles in "
+                         "upload order), then P float32 u, then P float32 v: the barycentric "
+                         "weights of each triangle's second and third corner")
+
+
+def decode_surface_points(body: bytes, count: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Decode P surface points (`SURFACE_POINTS_LAYOUT`) into (triangles, u, v); whether
+    they lie on the scene's triangles the engine checks."""
+    expect_body_length("points", len(body), 12 * count, f"{count}*(int32 + 2 float32)")
+    triangles = np.frombuffer(body, I32, count).astype(np.int32)
+    uv = np.frombuffer(body, F32, 2 * count, offset=4 * count).reshape(2, count)
+    _check_finite("body (points)", uv.T, "point")
+    return triangles, uv[0].astype(np.float32), uv[1].astype(np.float32)
+
+
 def encode_f32(values: np.ndarray) -> bytes:
     """Little-endian float32 bytes of `values` (flattened, C order)."""
     return np.ascontiguousarray(values, dtype=F32).tobytes()

@@ -211,6 +211,17 @@ class AoQuery(AoSettings):
     leaf_size: LeafSize | None = None
 
 
+class SurfaceJobQuery(AoSettings):
+    """The query of POST /v1/scenes/{scene_id}/surface-jobs: the points' count, the AO
+    settings and the BVH to trace (built or reused)."""
+
+    model_config = ConfigDict(extra="ignore")
+
+    points: Annotated[int, Field(ge=1, le=2**27)]
+    method: Method = "sah"
+    leaf_size: LeafSize = 8
+
+
 class JobRequest(AoSettings):
     scene_id: Annotated[str, Field(pattern=r"^[0-9a-f]{32}$")]
     camera: CameraModel

@@ -1,22 +1,31 @@
-"""Camera renders as jobs: POST /v1/jobs queues one, GET polls it, DELETE cancels it,
+"""Renders as jobs: POST /v1/jobs queues a camera's, POST /v1/scenes/{scene_id}/surface-jobs
+one of explicit surface points (a bake's texels); GET polls a job, DELETE cancels it,
 /result fetches its image (AO, coverage, depth or PNG) and /events streams its progress as
 server-sent events."""
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator
-from typing import Literal
+from collections.abc import AsyncIterator, Callable
+from typing import Annotated, Literal
 
-from fastapi import APIRouter, Request, Response
+from fastapi import APIRouter, Query, Request, Response
 from fastapi.responses import StreamingResponse
 from scenesort.backend.api import errors, limits
 from scenesort.backend.api.openapi import COMMON_ERRORS
-from scenesort.backend.api.params import JobId
-from scenesort.backend.api.requests import server_timing
-from scenesort.backend.api.service import Shared
+from scenesort.backend.api.params import JobId, SceneId
+from scenesort.backend.api.requests import read_body, server_timing
+from scenesort.backend.api.service import Service, Shared
 from scenesort.backend.render.camera_render import job_camera, render_camera
+from scenesort.backend.render.surface_render import render_surface
 from scenesort.backend.wire import binary as wire
-from scenesort.backend.wire.models import OCTET, JobRequest, JobStatus, error_responses
+from scenesort.backend.wire.models import (
+    OCTET,
+    JobRequest,
+    JobStatus,
+    SurfaceJobQuery,
+    binary_body,
+    error_responses,
+)
 from scenesort.backend.wire.problems import ApiError, busy
 from scenesort.backend.work.jobs import Job
 from scenesort.backend.work.jobs import job_events as progress_events
@@ -55,8 +64,46 @@ async def create_job(request: JobRequest, response: Response, service: Shared) -
         render_camera(job, service.store, scene, camera, options, request.method,
                       request.leaf_size, service.settings.device)
 
+    return _queue(service, response, request.scene_id, camera.width, camera.height, work)
+
+
+@router.post(
+    "/v1/scenes/{scene_id}/surface-jobs", response_model=JobStatus, status_code=202,
+    responses=error_responses(404, *COMMON_ERRORS),
+    openapi_extra=binary_body(wire.SURFACE_POINTS_LAYOUT + ": exactly 12*P bytes."),
+)
+async def create_surface_job(
+    request: Request, scene_id: SceneId, query: Annotated[SurfaceJobQuery, Query()],
+    response: Response, service: Shared,
+) -> JobStatus:
+    """Queue AO at explicit points of a flattened scene's triangles, seen from the side
+    each triangle's winding faces (a bake's texels; kernels.surface_ao): the job's image
+    is 1 x P, its coverage 0 for points on triangles without area."""
+    options = query.options()
+    if options.engine != "bvh":
+        raise ApiError(422, "engine", "surface jobs trace with the BVH engine",
+                       "leave engine unset or set it to bvh", "invalid_parameter")
+    limits.check_work(service.settings.max_work, query.points, "points", options)
+    scene = service.scene(scene_id)
+    if isinstance(scene, wire.InstanceScene):
+        raise ApiError(422, "scene_id", "surface points index a flattened scene's triangles; "
+                       "this is an instance list", "upload the flattened scene with POST "
+                       "/v1/scenes and use its id", "invalid_parameter")  # fmt: skip
+    body = await read_body(request, 12 * query.points)
+    points = await run_in_threadpool(wire.decode_surface_points, body, query.points)
+    del body
+
+    def work(job: Job) -> None:
+        render_surface(job, service.store, scene, points, options, query.method,
+                       query.leaf_size, service.settings.device)
+
+    return _queue(service, response, scene_id, query.points, 1, work)
+
+
+def _queue(service: Service, response: Response, scene_id: str, width: int, height: int,
+           work: Callable[[Job], None]) -> JobStatus:
     try:
-        job = service.jobs.create(request.scene_id, camera.width, camera.height, work)
+        job = service.jobs.create(scene_id, width, height, work)
     except QueueFull as exc:
         raise errors.queue_full(exc) from None
     response.headers["Location"] = f"/v1/jobs/{job.job_id}"
@@ -103,9 +150,8 @@ async def job_result(
     """The finished image (AO, coverage or depth); 409 while the job is not done."""
     job = service.job(job_id)
     # One read: the manager may forget the job meanwhile.
-    layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth}.get(format)
-    png = job.png
-    if job.state != "done" or png is None or (format != "png" and layer is None):
+    layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth, "png": job.png}[format]
+    if job.state != "done" or layer is None:
         detail = f" ({job.error})" if job.error else ""
         raise ApiError(
             409,
@@ -120,7 +166,7 @@ async def job_result(
         "Server-Timing": server_timing(job.snapshot()["timings_ms"]),
     }
     if format == "png":
-        return Response(png, media_type="image/png", headers=headers)
+        return Response(layer, media_type="image/png", headers=headers)
     payload = await run_in_threadpool(wire.encode_f32, layer)
     return Response(payload, media_type=OCTET, headers=headers)
 

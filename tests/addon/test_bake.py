@@ -1,0 +1,288 @@
+"""Blender's Bake (Ambient Occlusion) with the scenesort engine, headless with a real
+service: the texels' points are Cycles' own (a position bake), image textures and colour
+attributes match Cycles' AO bake statistically, several objects in one bake, a mirrored
+object, Blender's own messages for what it refuses, other passes refused by name, Esc."""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Iterator
+from typing import ClassVar
+
+import bmesh
+import bpy
+import numpy as np
+import pytest
+from blender_scenes import add_object, grid_mesh
+from cycles_reference import judge
+
+import addon
+from addon import bake, engine, export, service
+
+SIZE = 64  # image texels per side
+SPP = 256
+
+
+class Where(engine.AoEngine, bpy.types.RenderEngine):
+    """Bakes each texel's world position, as the engine finds its point (bake.py), so that
+    Cycles' Position bake can judge the mapping."""
+
+    bl_idname = "SCENESORT_WHERE"
+    bl_label = "scenesort AO (positions)"
+    bl_use_preview = False
+
+    def bake(self, depsgraph, obj, pass_type, pass_filter, width, height) -> None:  # noqa: ANN001
+        mesh = export.export_scene(depsgraph)
+        result = self.begin_result(0, 0, width, height, layer="", view="")
+        primitive = np.empty(width * height * 3, np.float32)
+        result.layers[0].passes["BakePrimitive"].rect.foreach_get(primitive)
+        texels, tri, u, v = bake.texel_points(primitive.reshape(-1, 3),
+                                              mesh.spans[obj.original.name])  # fmt: skip
+        corners = mesh.vertices[mesh.indices[tri]].astype(np.float64)
+        w = np.stack([1.0 - u - v, u, v], 1)[:, :, None]
+        rgba = np.zeros((width * height, 4), np.float32)
+        rgba[texels, :3] = (w * corners).sum(axis=1)
+        rgba[texels, 3] = 1.0
+        self.fill(result, {"Combined": rgba})
+        self.end_result(result)
+
+
+class Stopper(engine.AoEngine, bpy.types.RenderEngine):
+    """The engine, with Esc pressed once its bake job runs."""
+
+    bl_idname = "SCENESORT_STOPPER"
+    bl_label = "scenesort AO (Esc)"
+    bl_use_preview = False
+    said: ClassVar[list[str]] = []
+
+    def stopped(self) -> bool:
+        return self.task is not None and any(s.startswith("running: ao")
+                                             for s in self.task.steps)  # fmt: skip
+
+    def show(self, text: str) -> None:
+        Stopper.said.append(text)
+        super().show(text)
+
+
+def _uv_sphere(name: str, scene: bpy.types.Scene, location, mirrored: bool = False):
+    mesh = bpy.data.meshes.new(name)
+    bm = bmesh.new()
+    bm.loops.layers.uv.new("UVMap")
+    bmesh.ops.create_uvsphere(bm, u_segments=16, v_segments=8, radius=1.0, calc_uvs=True)
+    bm.to_mesh(mesh)
+    bm.free()
+    mesh.shade_smooth()
+    obj = add_object(scene, name, mesh, location)
+    obj.modifiers.new("Subdivision", "SUBSURF").levels = 1  # render level 2: 16x the faces
+    if mirrored:
+        obj.scale.x = -1.0
+    return obj
+
+
+def _image_target(obj: bpy.types.Object, size: int = SIZE) -> bpy.types.Image:
+    """A float image in an active Image Texture node of the object's material, filled with
+    -1 so that texels no triangle covers stay -1 (use_clear=False, margin 0)."""
+    image = bpy.data.images.new(f"{obj.name} bake", size, size, float_buffer=True)
+    image.pixels.foreach_set(np.full(size * size * 4, -1.0, np.float32))
+    material = bpy.data.materials.new(obj.name)
+    if material.node_tree is None:  # Blender 4.x; 5.x materials always have nodes
+        material.use_nodes = True
+    node = material.node_tree.nodes.new("ShaderNodeTexImage")
+    node.image = image
+    material.node_tree.nodes.active = node
+    obj.data.materials.clear()
+    obj.data.materials.append(material)
+    return image
+
+
+def _pixels(image: bpy.types.Image) -> np.ndarray:
+    out = np.empty(len(image.pixels), np.float32)
+    image.pixels.foreach_get(out)
+    return out.reshape(-1, 4)
+
+
+def _select(scene: bpy.types.Scene, *objects: bpy.types.Object) -> None:
+    for obj in scene.objects:
+        obj.select_set(obj in objects)
+    bpy.context.view_layer.objects.active = objects[0]
+
+
+def _bake(scene, engine_name: str, objects, kind: str = "AO", **options) -> dict[str, np.ndarray]:
+    """Bake `objects` (fresh -1 targets) with `engine_name`: each object's texels."""
+    images = {obj.name: _image_target(obj) for obj in objects}
+    _select(scene, *objects)
+    scene.render.engine = engine_name
+    assert bpy.ops.object.bake(type=kind, use_clear=False, margin=0, **options) == {"FINISHED"}
+    return {name: _pixels(image) for name, image in images.items()}
+
+
+@pytest.fixture(scope="module")
+def scene() -> Iterator[bpy.types.Scene]:
+    """A floor (8x8 quads, unwrapped to the whole texture) under a smooth, subdivided
+    sphere resting on it and a mirrored one beside it; AO distance 1.5 from the World."""
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    addon.register()
+    for cls in (Where, Stopper):
+        bpy.utils.register_class(cls)
+    scene = bpy.context.scene
+    floor_mesh = grid_mesh("Floor", 8, 8.0)
+    floor_mesh.uv_layers.new(name="UVMap")
+    loops = np.empty(len(floor_mesh.loops), np.int32)
+    floor_mesh.loops.foreach_get("vertex_index", loops)
+    co = np.empty(len(floor_mesh.vertices) * 3, np.float32)
+    floor_mesh.vertices.foreach_get("co", co)
+    uv = (co.reshape(-1, 3)[loops, :2] + 4.0) / 8.0
+    floor_mesh.uv_layers["UVMap"].data.foreach_set("uv", uv.ravel())
+    add_object(scene, "Floor", floor_mesh)
+    _uv_sphere("Ball", scene, (0.0, 0.0, 1.0))
+    _uv_sphere("Mirrored", scene, (2.6, 0.0, 1.0), mirrored=True)
+    scene.world = bpy.data.worlds.new("World")
+    scene.world.light_settings.distance = 1.5
+    scene.scenesort.ao_distance, scene.scenesort.spp = 0.0, SPP  # 0: the World's distance
+    scene.cycles.device, scene.cycles.samples = "CPU", SPP
+    scene.cycles.use_adaptive_sampling, scene.cycles.use_denoising = False, False
+    try:
+        yield scene
+    finally:
+        proc = service._process
+        for cls in (Stopper, Where):
+            bpy.utils.unregister_class(cls)
+        addon.unregister()
+        assert proc is None or proc.poll() is not None
+
+
+def test_the_texels_points_are_cycles_own(scene) -> None:
+    """Each texel's point, as the engine finds it from Blender's bake pass, is the world
+    position Cycles bakes there (its Position pass at 1 sample: the texel centre), for the
+    floor, a smooth subdivided sphere and a mirrored one, in one bake."""
+    objects = [scene.objects[n] for n in ("Floor", "Ball", "Mirrored")]
+    scene.cycles.samples = 1
+    try:
+        cycles = _bake(scene, "CYCLES", objects, "POSITION")
+    finally:
+        scene.cycles.samples = SPP
+    ours = _bake(scene, Where.bl_idname, objects)
+    for name in cycles:
+        covered = cycles[name][:, 3] > 0.0
+        assert covered.sum() > 1000, name
+        np.testing.assert_array_equal(ours[name][:, 3] > 0.0, covered)  # the same texels
+        np.testing.assert_allclose(ours[name][covered, :3], cycles[name][covered, :3],
+                                   atol=2e-5, err_msg=name)  # fmt: skip
+
+
+def _interior(covered: np.ndarray) -> np.ndarray:
+    """Texels whose 3x3 neighbourhood is covered: away from the UV islands' borders."""
+    grid = covered.reshape(SIZE, SIZE)
+    padded = np.pad(grid, 1)
+    out = np.ones_like(grid)
+    for dy in range(3):
+        for dx in range(3):
+            out &= padded[dy:dy + SIZE, dx:dx + SIZE]
+    return out.ravel()
+
+
+def test_image_bakes_match_cycles_ao_bake(scene) -> None:
+    """On interior texels of the floor and both spheres, scenesort's RMSE to one Cycles AO
+    bake is within 1.25x Cycles' own between two seeds, with no bias (4 standard errors);
+    the sphere's underside, against the floor, is dark."""
+    objects = [scene.objects[n] for n in ("Floor", "Ball", "Mirrored")]
+    scene.cycles.seed = 11
+    cycles_a = _bake(scene, "CYCLES", objects)
+    scene.cycles.seed = 12
+    cycles_b = _bake(scene, "CYCLES", objects)
+    ours = _bake(scene, "SCENESORT", objects)
+    for name in cycles_a:
+        covered = cycles_a[name][:, 3] >= 0.0
+        np.testing.assert_array_equal(ours[name][:, 3] >= 0.0, covered)
+        inner = _interior(covered)
+        assert inner.sum() > 500, name
+        cycles_rmse, _ = judge(cycles_b[name][:, 0], cycles_a[name][:, 0], inner)
+        rmse, z = judge(ours[name][:, 0], cycles_a[name][:, 0], inner)
+        assert rmse <= 1.25 * cycles_rmse and z < 4.0, (name, rmse, cycles_rmse, z)
+    ball = ours["Ball"][:, 0][ours["Ball"][:, 3] >= 0.0]
+    assert ball.min() < 0.2 and ball.max() > 0.9
+
+
+def test_colour_attribute_bakes_match_cycles(scene) -> None:
+    """A colour-attribute bake (one texel per face corner) of the sphere against Cycles'
+    own, the same statistics per corner."""
+    ball = scene.objects["Ball"]
+    attribute = ball.data.color_attributes.new("AO", "FLOAT_COLOR", "CORNER")
+    ball.data.color_attributes.active_color = attribute
+    _select(scene, ball)
+    values = {}
+    try:
+        for engine_name, seed in (("CYCLES", 11), ("CYCLES", 12), ("SCENESORT", 0)):
+            scene.render.engine, scene.cycles.seed = engine_name, seed
+            assert bpy.ops.object.bake(type="AO", target="VERTEX_COLORS") == {"FINISHED"}
+            colours = np.empty(len(ball.data.loops) * 4, np.float32)
+            ball.data.color_attributes["AO"].data.foreach_get("color", colours)
+            values[engine_name, seed] = colours.reshape(-1, 4)[:, 0]
+    finally:
+        ball.data.color_attributes.remove(ball.data.color_attributes["AO"])
+    every = np.ones(len(ball.data.loops), bool)
+    cycles_rmse, _ = judge(values["CYCLES", 12], values["CYCLES", 11], every)
+    rmse, z = judge(values["SCENESORT", 0], values["CYCLES", 11], every)
+    assert rmse <= 1.25 * cycles_rmse and z < 4.0, (rmse, cycles_rmse, z)
+
+
+def test_other_passes_are_refused_by_name(scene) -> None:
+    ball = scene.objects["Ball"]
+    _image_target(ball)
+    _select(scene, ball)
+    scene.render.engine = "SCENESORT"
+    with pytest.raises(RuntimeError, match="scenesort AO bakes Ambient Occlusion only, not "
+                                           "Normal"):  # fmt: skip
+        bpy.ops.object.bake(type="NORMAL")
+
+
+def test_blender_refuses_an_object_without_uvs_with_its_own_message(scene) -> None:
+    mesh = grid_mesh("NoUV", 2, 1.0)
+    obj = add_object(scene, "NoUV", mesh, (5.0, 5.0, 0.0))
+    try:
+        _image_target(obj)
+        _select(scene, obj)
+        scene.render.engine = "SCENESORT"
+        with pytest.raises(RuntimeError, match="No active UV layer found in the object"):
+            bpy.ops.object.bake(type="AO")
+    finally:
+        bpy.data.objects.remove(obj)
+
+
+def test_esc_cancels_the_bake_and_its_job(scene) -> None:
+    """test_break() turning true while the bake's job runs cancels the job (benchmarks/
+    bake.py measures how soon)."""
+    ball = scene.objects["Ball"]
+    image = _image_target(ball, 512)
+    _select(scene, ball)
+    scene.render.engine, scene.scenesort.spp = Stopper.bl_idname, 4096
+    Stopper.said.clear()
+    try:
+        bpy.ops.object.bake(type="AO", use_clear=False, margin=0)
+    finally:
+        scene.scenesort.spp = SPP
+    assert any("Bake cancelled" in line for line in Stopper.said), Stopper.said[-3:]
+    assert re.search(r"DELETE /v1/jobs/[0-9a-f]+", service.log_path().read_text())
+    # Blender writes whatever the engine left (RE_bake_engine cannot fail): 0 on the
+    # covered texels, the rest untouched.
+    assert set(np.unique(_pixels(image))) == {-1.0, 0.0}
+
+
+def test_the_info_line_says_what_the_bake_achieved(scene) -> None:
+    ball = scene.objects["Ball"]
+    _image_target(ball)
+    _select(scene, ball)
+    scene.render.engine = Stopper.bl_idname
+    Stopper.said.clear()
+    scene.scenesort.spp = 16
+    try:
+        Stopper.stopped = lambda self: False  # type: ignore[method-assign]
+        assert bpy.ops.object.bake(type="AO") == {"FINISHED"}
+    finally:
+        del Stopper.stopped
+        scene.scenesort.spp = SPP
+    line = Stopper.said[-1]
+    assert re.match(r"baked [\d,]+ texels of 'Ball' \| [\d,]+ triangles \| .*est\. RMSE "
+                    r"[\d.]+ \| spp 16\.0 mean, 16 max \| .* \| cpu$", line), line
+    assert math.isclose(bpy.context.window_manager.scenesort.last_spp_mean, 16.0)
