@@ -241,14 +241,22 @@ class SCENESORT_RE_ao(AoEngine, bpy.types.RenderEngine):
     bl_use_preview = False
 
 
+# Cycles' Bake panel and its sub-panels (bake type, Selected to Active, output, margin):
+# Blender's bake settings, which the engine's bake reads as Cycles' does. (Influence is
+# for Combined and lighting passes, which this engine does not bake.)
+BAKE_PANELS = ("CYCLES_RENDER_PT_bake", "CYCLES_RENDER_PT_bake_selected_to_active",
+               "CYCLES_RENDER_PT_bake_output", "CYCLES_RENDER_PT_bake_output_margin")
+
+
 def _compatible_panels() -> list[type]:
     """Blender's panels that work with any engine (output, format, color management...),
-    as Blender's render-engine template finds them."""
-    return [
+    as Blender's render-engine template finds them, and Cycles' Bake panels."""
+    found = [
         panel
         for panel in bpy.types.Panel.__subclasses__()
         if "BLENDER_RENDER" in getattr(panel, "COMPAT_ENGINES", ())
     ]
+    return found + [p for p in (getattr(bpy.types, n, None) for n in BAKE_PANELS) if p]
 
 
 _added_to: list[type] = []

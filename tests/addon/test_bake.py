@@ -227,6 +227,50 @@ def test_colour_attribute_bakes_match_cycles(scene) -> None:
     assert rmse <= 1.25 * cycles_rmse and z < 4.0, (rmse, cycles_rmse, z)
 
 
+def test_selected_to_active_bakes_the_high_poly_onto_the_low_poly(scene) -> None:
+    """A coarse flat-shaded sphere (the active object) takes the AO of the smooth,
+    subdivided ball inside its cage (Selected to Active, extrusion 0.2): Blender maps the
+    texels to the high-poly surface and hides the low-poly from the bake; the result
+    matches Cycles' own such bake."""
+    low_mesh = bpy.data.meshes.new("Low")
+    bm = bmesh.new()
+    bm.loops.layers.uv.new("UVMap")
+    bmesh.ops.create_uvsphere(bm, u_segments=8, v_segments=4, radius=1.0, calc_uvs=True)
+    bm.to_mesh(low_mesh)
+    bm.free()
+    low = add_object(scene, "Low", low_mesh, (0.0, 0.0, 1.0))
+    ball = scene.objects["Ball"]
+    options = dict(use_selected_to_active=True, cage_extrusion=0.2)
+    try:
+        runs = {}
+        for engine_name, seed in (("CYCLES", 11), ("CYCLES", 12), ("SCENESORT", 0)):
+            image = _image_target(low)
+            _select(scene, low, ball)
+            scene.render.engine, scene.cycles.seed = engine_name, seed
+            assert bpy.ops.object.bake(type="AO", use_clear=False, margin=0,
+                                       **options) == {"FINISHED"}  # fmt: skip
+            runs[engine_name, seed] = _pixels(image)
+    finally:
+        bpy.data.objects.remove(low)
+    covered = runs["CYCLES", 11][:, 3] >= 0.0
+    np.testing.assert_array_equal(runs["SCENESORT", 0][:, 3] >= 0.0, covered)
+    inner = _interior(covered)
+    assert inner.sum() > 500
+    cycles_rmse, _ = judge(runs["CYCLES", 12][:, 0], runs["CYCLES", 11][:, 0], inner)
+    rmse, z = judge(runs["SCENESORT", 0][:, 0], runs["CYCLES", 11][:, 0], inner)
+    assert rmse <= 1.25 * cycles_rmse and z < 4.0, (rmse, cycles_rmse, z)
+
+
+def test_cycles_bake_panels_show_for_the_engine(scene) -> None:
+    """Render Properties > Bake (type, Selected to Active, output, margin) is Cycles'
+    own panel, shown for this engine too; given back at unregister (test_engine)."""
+    scene.render.engine = "SCENESORT"
+    for name in engine.BAKE_PANELS:
+        panel = getattr(bpy.types, name)
+        assert "SCENESORT" in panel.COMPAT_ENGINES and panel.poll(bpy.context), name
+    assert "SCENESORT" not in bpy.types.CYCLES_RENDER_PT_bake_influence.COMPAT_ENGINES
+
+
 def test_other_passes_are_refused_by_name(scene) -> None:
     ball = scene.objects["Ball"]
     _image_target(ball)

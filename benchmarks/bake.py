@@ -1,0 +1,236 @@
+"""scenesort's AO bake against Cycles' AO bake, in one headless Blender (bpy) session,
+the service running (the add-on starts it): parity, speed and the error target.
+
+    .venv/bin/python benchmarks/bake.py            # parity at N = 64 and 256, 1024^2 speed
+    .venv/bin/python benchmarks/bake.py --quick    # N = 64 only, 512^2 speed, 1 round
+    .venv/bin/python benchmarks/bake.py --no-docs  # print only
+
+The scene: a floor, a torus lying on it and a smooth UV sphere of 256 x 200 segments
+(101,888 triangles, UVs from its parametrisation) resting in the torus; the sphere is baked
+into an image, World AO distance 1.5.
+
+Parity (image 128^2): on interior texels (the texel and its 8 neighbours covered), the RMSE
+of scenesort at N spp against a Cycles bake at 16N spp must be at most 1.25x the RMSE of
+Cycles at N spp (another seed) against the same reference.
+Speed: a 1024^2 bake at 64 spp. Each round moves the sphere by 1 mm (the scene is new to
+the service: exported, uploaded, built), bakes it again unchanged (the scene and BVH are
+cached), then bakes with Cycles on the CPU; medians of the interleaved rounds. Floors:
+first bake at most 0.2x Cycles', the second at most 0.15x.
+Error target (image 256^2): with target_error E (0.05, 0.02, 0.01), the achieved RMSE over
+the covered texels against scenesort at 4096 spp (the converged texels) must lie within
+[0.7, 1.0] x E.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]  # not `cycles`
+
+import bpy  # noqa: E402  (before bmesh, which only bpy makes importable)
+import numpy as np  # noqa: E402
+
+REPO = HERE.parent
+sys.path.insert(0, str(REPO))
+sys.path.insert(0, str(REPO / "tests" / "addon"))
+
+import bmesh  # noqa: E402
+from blender_scenes import add_object, grid_mesh  # noqa: E402
+from cycles_reference import judge  # noqa: E402
+
+import addon  # noqa: E402
+from addon import service  # noqa: E402
+from benchmarks.docs_section import write_section  # noqa: E402
+
+PARITY_SIZE, TARGET_SIZE = 128, 256
+FIRST_RATIO, LATER_RATIO = 0.2, 0.15
+TARGETS = (0.05, 0.02, 0.01)
+
+
+def new_scene() -> tuple[bpy.types.Scene, bpy.types.Object]:
+    bpy.ops.wm.read_factory_settings(use_empty=True)
+    addon.register()
+    scene = bpy.context.scene
+    add_object(scene, "Floor", grid_mesh("Floor", 8, 8.0))
+    torus = bpy.data.meshes.new("Torus")
+    bm = bmesh.new()
+    bmesh.ops.create_cone(bm, cap_ends=False, segments=48, radius1=1.6, radius2=1.6, depth=0.6)
+    bm.to_mesh(torus)
+    bm.free()
+    add_object(scene, "Ring", torus, (0.0, 0.0, 0.3))
+    mesh = bpy.data.meshes.new("Sphere")
+    bm = bmesh.new()
+    bm.loops.layers.uv.new("UVMap")
+    bmesh.ops.create_uvsphere(bm, u_segments=256, v_segments=200, radius=1.0, calc_uvs=True)
+    bm.to_mesh(mesh)
+    bm.free()
+    mesh.shade_smooth()
+    sphere = add_object(scene, "Sphere", mesh, (0.0, 0.0, 1.0))
+    scene.world = bpy.data.worlds.new("World")
+    scene.world.light_settings.distance = 1.5
+    scene.scenesort.ao_distance = 0.0  # the World's
+    cycles = scene.cycles
+    cycles.device, cycles.use_adaptive_sampling, cycles.use_denoising = "CPU", False, False
+    for obj in scene.objects:
+        obj.select_set(obj is sphere)
+    bpy.context.view_layer.objects.active = sphere
+    return scene, sphere
+
+
+def target(sphere: bpy.types.Object, size: int) -> bpy.types.Image:
+    """A fresh float image (texels no triangle covers stay -1) in the sphere's active
+    Image Texture node."""
+    image = bpy.data.images.new(f"bake {size}", size, size, float_buffer=True)
+    image.pixels.foreach_set(np.full(size * size * 4, -1.0, np.float32))
+    material = bpy.data.materials.new("Sphere")
+    if material.node_tree is None:
+        material.use_nodes = True
+    node = material.node_tree.nodes.new("ShaderNodeTexImage")
+    node.image = image
+    material.node_tree.nodes.active = node
+    sphere.data.materials.clear()
+    sphere.data.materials.append(material)
+    return image
+
+
+def bake(scene, sphere, engine: str, size: int, spp: int, seed: int = 0,
+         target_error: float = 0.0) -> tuple[np.ndarray, float]:
+    """The sphere's texels (size^2, 4) baked by `engine`, and the bake's seconds."""
+    image = target(sphere, size)
+    scene.render.engine = engine
+    scene.cycles.samples, scene.cycles.seed = spp, seed
+    props = scene.scenesort
+    props.spp, props.seed, props.target_error = spp, seed, target_error
+    if target_error:
+        props.spp = 1
+    start = time.perf_counter()
+    assert bpy.ops.object.bake(type="AO", use_clear=False, margin=0) == {"FINISHED"}
+    seconds = time.perf_counter() - start
+    pixels = np.empty(len(image.pixels), np.float32)
+    image.pixels.foreach_get(pixels)
+    bpy.data.images.remove(image)
+    return pixels.reshape(-1, 4), seconds
+
+
+def interior(covered: np.ndarray, size: int) -> np.ndarray:
+    grid = covered.reshape(size, size)
+    padded = np.pad(grid, 1)
+    out = np.ones_like(grid)
+    for dy in range(3):
+        for dx in range(3):
+            out &= padded[dy:dy + size, dx:dx + size]
+    return out.ravel()
+
+
+def parity(scene, sphere, ns: list[int]) -> tuple[list[str], bool]:
+    rows, ok = [], True
+    for n in ns:
+        ref, ref_s = bake(scene, sphere, "CYCLES", PARITY_SIZE, 16 * n, seed=1)
+        cycles, _ = bake(scene, sphere, "CYCLES", PARITY_SIZE, n, seed=2)
+        ours, _ = bake(scene, sphere, "SCENESORT", PARITY_SIZE, n, seed=3)
+        mask = interior(ref[:, 3] >= 0.0, PARITY_SIZE)
+        cycles_rmse, _ = judge(cycles[:, 0], ref[:, 0], mask)
+        rmse, z = judge(ours[:, 0], ref[:, 0], mask)
+        ratio = rmse / cycles_rmse
+        ok &= ratio <= 1.25
+        rows.append(f"| {n} | {16 * n} | {int(mask.sum())} | {rmse:.4f} | {cycles_rmse:.4f} | "
+                    f"{ratio:.2f} | {z:.1f} | {'met' if ratio <= 1.25 else 'NOT met'} |")
+        print(rows[-1], f"(reference {ref_s:.1f} s)", flush=True)
+    return rows, ok
+
+
+def speed(scene, sphere, size: int, rounds: int) -> tuple[list[str], bool, list[str]]:
+    times: dict[str, list[float]] = {"first": [], "later": [], "cycles": []}
+    log = []
+    for r in range(rounds):
+        sphere.location.x = 1e-3 * (r + 1)  # a scene new to the service
+        times["first"].append(bake(scene, sphere, "SCENESORT", size, 64, seed=r)[1])
+        times["later"].append(bake(scene, sphere, "SCENESORT", size, 64, seed=r)[1])
+        times["cycles"].append(bake(scene, sphere, "CYCLES", size, 64, seed=r)[1])
+        log.append(f"round {r}: " + ", ".join(f"{k} {v[-1]:.2f} s" for k, v in times.items())
+                   + f" (load {os.getloadavg()[0]:.2f})")
+        print(log[-1], flush=True)
+    med = {k: statistics.median(v) for k, v in times.items()}
+    rows, ok = [], True
+    for key, label, floor in (("first", "first bake (export, upload, build)", FIRST_RATIO),
+                              ("later", "second bake (unchanged scene)", LATER_RATIO)):
+        ratio = med[key] / med["cycles"]
+        ok &= ratio <= floor
+        rows.append(f"| {label} | {med[key]:.2f} | {med['cycles']:.2f} | {ratio:.3f} | "
+                    f"{floor} | {'met' if ratio <= floor else 'NOT met'} |")
+    return rows, ok, log
+
+
+def error_target(scene, sphere) -> tuple[list[str], bool]:
+    truth, _ = bake(scene, sphere, "SCENESORT", TARGET_SIZE, 4096, seed=9)
+    covered = truth[:, 3] >= 0.0
+    rows, ok = [], True
+    for goal in TARGETS:
+        got, seconds = bake(scene, sphere, "SCENESORT", TARGET_SIZE, 1, seed=4,
+                            target_error=goal)  # fmt: skip
+        achieved = float(np.sqrt(np.mean((got[covered, 0] - truth[covered, 0]) ** 2)))
+        status = bpy.context.window_manager.scenesort
+        ratio = achieved / goal
+        ok &= 0.7 <= ratio <= 1.0
+        rows.append(f"| {goal} | {achieved:.4f} | {ratio:.2f} | {status.last_rmse:.4f} | "
+                    f"{status.last_spp_mean:.1f} | {status.last_spp_max} | {seconds:.2f} | "
+                    f"{'met' if 0.7 <= ratio <= 1.0 else 'NOT met'} |")
+        print(rows[-1], flush=True)
+    return rows, ok
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="N = 64, 512^2 speed, 1 round")
+    parser.add_argument("--rounds", type=int, default=None,
+                        help="interleaved speed rounds (default 3; quick: 1)")
+    parser.add_argument("--no-docs", action="store_true", help="print only")
+    args = parser.parse_args(argv)
+    rounds = args.rounds or (1 if args.quick else 3)
+    size = 512 if args.quick else 1024
+    command = " ".join(["benchmarks/bake.py", *(argv if argv is not None else sys.argv[1:])])
+    scene, sphere = new_scene()
+    try:
+        bake(scene, sphere, "SCENESORT", 16, 1)  # starts the service, loads its kernels
+        parity_rows, parity_ok = parity(scene, sphere, [64] if args.quick else [64, 256])
+        speed_rows, speed_ok, log = speed(scene, sphere, size, rounds)
+        target_rows, target_ok = error_target(scene, sphere)
+    finally:
+        assert service.running()
+        addon.unregister()
+    triangles = 256 * 200 * 2 - 2 * 256
+    load = os.getloadavg()
+    body = "\n\n".join([
+        "## AO bakes against Cycles' AO bake",
+        "Produced by `benchmarks/bake.py` (scene and rules in its docstring): a smooth sphere "
+        f"of {triangles:,} triangles in a ring on a floor, baked to an image; Cycles on the "
+        "CPU, no adaptive sampling, no denoising.",
+        f"Command: `.venv/bin/python {command}`; {os.cpu_count()} cores, load average "
+        f"{load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} at the end of the run.",
+        f"### Parity: RMSE against a 16N-spp Cycles bake, {PARITY_SIZE}^2, interior texels",
+        "| N spp | reference spp | texels | scenesort RMSE | Cycles RMSE | ratio | bias z | "
+        "floor (ratio <= 1.25) |\n|---:|---:|---:|---:|---:|---:|---:|---|\n"
+        + "\n".join(parity_rows),
+        f"### Speed: {size}^2 at 64 spp; medians of {rounds} interleaved rounds (seconds)",
+        "| bake | scenesort s | Cycles s | ratio | floor | |\n|---|---:|---:|---:|---:|---|\n"
+        + "\n".join(speed_rows),
+        "```\n" + "\n".join(log) + "\n```",
+        f"### Error target: {TARGET_SIZE}^2, achieved RMSE against scenesort at 4096 spp",
+        "| target | achieved RMSE | achieved / target | estimate | mean spp | max spp | "
+        "seconds | floor ([0.7, 1.0]) |\n|---:|---:|---:|---:|---:|---:|---:|---|\n"
+        + "\n".join(target_rows),
+    ])
+    print(body)
+    if not args.no_docs:
+        write_section("bake", body)
+    return 0 if parity_ok and speed_ok and target_ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
