@@ -261,6 +261,27 @@ def test_selected_to_active_bakes_the_high_poly_onto_the_low_poly(scene) -> None
     assert rmse <= 1.25 * cycles_rmse and z < 4.0, (rmse, cycles_rmse, z)
 
 
+def test_a_second_bake_of_the_unchanged_scene_sends_only_the_texels(scene) -> None:
+    """The service's cache serves the scene and its BVH: the second bake asks for the
+    scene by its hash (HEAD), uploads nothing and builds nothing new."""
+    ball = scene.objects["Ball"]
+    scene.render.engine = "SCENESORT"
+    scene.scenesort.spp = 8
+    log = service.log_path()
+    try:
+        for _ in range(2):
+            _image_target(ball)
+            _select(scene, ball)
+            before = len(log.read_text())
+            assert bpy.ops.object.bake(type="AO") == {"FINISHED"}
+            requests = log.read_text()[before:]
+    finally:
+        scene.scenesort.spp = SPP
+    assert re.search(r"HEAD /v1/scenes/[0-9a-f]+ -> 200", requests), requests
+    assert not re.search(r"POST /v1/scenes\?", requests), requests  # no upload
+    assert re.search(r"POST /v1/scenes/[0-9a-f]+/surface-jobs\?points=\d+", requests)
+
+
 def test_cycles_bake_panels_show_for_the_engine(scene) -> None:
     """Render Properties > Bake (type, Selected to Active, output, margin) is Cycles'
     own panel, shown for this engine too; given back at unregister (test_engine)."""
