@@ -16,6 +16,8 @@ if TYPE_CHECKING:
 COMMANDS: dict[str, tuple[str, str]] = {
     "render": ("scenesort.backend.commands.render",
                "render a scene (default: the built-in scene) and print timings"),
+    "bake": ("scenesort.backend.commands.bake",
+             "bake ambient occlusion into a texture of a mesh with UVs (no Blender)"),
     "render-frames": ("scenesort.backend.commands.render_frames",
                       "render a frame bundle (File > Export > scenesort animation)"),
     "bench": ("scenesort.backend.tools.bench",
