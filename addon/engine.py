@@ -155,7 +155,7 @@ class AoEngine:
             raise ValueError(f"'{obj.original.name}' does not render (disabled for rendering "
                              "or hidden), so it has no triangles to bake: enable it for "
                              "rendering")
-        result = self.begin_result(0, 0, width, height, layer="", view="")
+        result = self.begin_result(0, 0, width, height, layer=self._bake_layer(), view="")
         try:
             primitive = np.empty(width * height * 3, np.float32)
             result.layers[0].passes["BakePrimitive"].rect.foreach_get(primitive)
@@ -176,6 +176,15 @@ class AoEngine:
         self._keep(scene, outcome)
 
     # --- steps ----------------------------------------------------------------------
+
+    _images_baked = 0  # of this engine instance: Blender makes one per baked object
+
+    def _bake_layer(self) -> str:
+        """A layer name of its own for each image of the object (Blender calls `bake` once
+        per image, UDIM tile or colour attribute, and files each result under the first
+        image whose layer has that name)."""
+        self._images_baked += 1
+        return f"scenesort bake {self._images_baked}"
 
     def _run(self, work: Callable[[Task], pipeline.Outcome], what: str) -> pipeline.Outcome:
         """`work` on a worker thread while this one polls Esc and shows progress."""

@@ -34,7 +34,7 @@ class Where(engine.AoEngine, bpy.types.RenderEngine):
 
     def bake(self, depsgraph, obj, pass_type, pass_filter, width, height) -> None:  # noqa: ANN001
         mesh = export.export_scene(depsgraph)
-        result = self.begin_result(0, 0, width, height, layer="", view="")
+        result = self.begin_result(0, 0, width, height, layer=self._bake_layer(), view="")
         primitive = np.empty(width * height * 3, np.float32)
         result.layers[0].passes["BakePrimitive"].rect.foreach_get(primitive)
         texels, tri, u, v = bake.texel_points(primitive.reshape(-1, 3),
@@ -80,11 +80,14 @@ def _uv_sphere(name: str, scene: bpy.types.Scene, location, mirrored: bool = Fal
     return obj
 
 
-def _image_target(obj: bpy.types.Object, size: int = SIZE) -> bpy.types.Image:
-    """A float image in an active Image Texture node of the object's material, filled with
-    -1 so that texels no triangle covers stay -1 (use_clear=False, margin 0)."""
-    image = bpy.data.images.new(f"{obj.name} bake", size, size, float_buffer=True)
-    image.pixels.foreach_set(np.full(size * size * 4, -1.0, np.float32))
+def _image_target(obj: bpy.types.Object, size: int = SIZE,
+                  image: bpy.types.Image | None = None) -> bpy.types.Image:
+    """`image`, or a float image filled with -1 so that texels no triangle covers stay -1
+    (use_clear=False, margin 0), in an active Image Texture node of the object's
+    material."""
+    if image is None:
+        image = bpy.data.images.new(f"{obj.name} bake", size, size, float_buffer=True)
+        image.pixels.foreach_set(np.full(size * size * 4, -1.0, np.float32))
     material = bpy.data.materials.new(obj.name)
     if material.node_tree is None:  # Blender 4.x; 5.x materials always have nodes
         material.use_nodes = True
@@ -280,6 +283,62 @@ def test_a_second_bake_of_the_unchanged_scene_sends_only_the_texels(scene) -> No
     assert re.search(r"HEAD /v1/scenes/[0-9a-f]+ -> 200", requests), requests
     assert not re.search(r"POST /v1/scenes\?", requests), requests  # no upload
     assert re.search(r"POST /v1/scenes/[0-9a-f]+/surface-jobs\?points=\d+", requests)
+
+
+def _udim_tiles(image: bpy.types.Image, folder) -> dict[int, np.ndarray]:  # noqa: ANN001
+    """Each tile of a tiled image, saved as EXR and read back: (texels, 4) per number."""
+    image.filepath_raw = str(folder / "tile.<UDIM>.exr")
+    image.file_format = "OPEN_EXR"
+    image.save()
+    tiles = {}
+    for tile in image.tiles:
+        loaded = bpy.data.images.load(str(folder / f"tile.{tile.number}.exr"))
+        tiles[tile.number] = _pixels(loaded)
+        bpy.data.images.remove(loaded)
+    return tiles
+
+
+def test_a_udim_image_is_baked_tile_by_tile(scene, tmp_path) -> None:
+    """A floor whose right half lies in UDIM tile 1002: each tile's texels get the points
+    of Cycles' Position bake, and AO."""
+    floor = scene.objects["Floor"]
+    layer = floor.data.uv_layers["UVMap"].data
+    uv = np.empty(len(layer) * 2, np.float32)
+    layer.foreach_get("uv", uv)
+    moved = uv.reshape(-1, 2).copy()
+    right = np.repeat(moved.reshape(-1, 4, 2)[:, :, 0].mean(axis=1) > 0.5, 4)  # per quad
+    moved[right, 0] += 1.0
+    layer.foreach_set("uv", moved.ravel())
+    try:
+        baked = {}
+        for engine_name, kind in (("CYCLES", "POSITION"), (Where.bl_idname, "AO"),
+                                  ("SCENESORT", "AO")):  # fmt: skip
+            image = bpy.data.images.new(f"udim {engine_name}", SIZE, SIZE, float_buffer=True,
+                                        tiled=True)  # fmt: skip
+            image.tiles.new(tile_number=1002)
+            for tile in image.tiles:
+                image.tiles.active = tile
+                with bpy.context.temp_override(edit_image=image):
+                    bpy.ops.image.tile_fill(color=(-1, -1, -1, -1), width=SIZE, height=SIZE,
+                                            float=True)  # fmt: skip
+            _image_target(floor, image=image)
+            _select(scene, floor)
+            scene.render.engine, scene.cycles.samples = engine_name, 1
+            assert bpy.ops.object.bake(type=kind, use_clear=False, margin=0) == {"FINISHED"}
+            folder = tmp_path / engine_name
+            folder.mkdir()
+            baked[engine_name] = _udim_tiles(image, folder)
+    finally:
+        layer.foreach_set("uv", uv)
+        scene.cycles.samples = SPP
+    for number in (1001, 1002):
+        cycles, where = baked["CYCLES"][number], baked[Where.bl_idname][number]
+        covered = cycles[:, 3] > 0.0
+        assert covered.sum() > 1000, number
+        np.testing.assert_array_equal(where[:, 3] > 0.0, covered)
+        np.testing.assert_allclose(where[covered, :3], cycles[covered, :3], atol=2e-5)
+        ao = baked["SCENESORT"][number]
+        assert np.all((ao[covered, 0] >= 0.0) & (ao[covered, 0] <= 1.0)), number
 
 
 def test_cycles_bake_panels_show_for_the_engine(scene) -> None:
