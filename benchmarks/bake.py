@@ -43,8 +43,8 @@ sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests" / "addon"))
 
 import bmesh  # noqa: E402
-from blender_scenes import add_object, grid_mesh  # noqa: E402
-from cycles_reference import judge  # noqa: E402
+from blender_scenes import add_object, bake_target, grid_mesh, uv_sphere_mesh  # noqa: E402
+from cycles_reference import clean_pixels, judge  # noqa: E402
 
 import addon  # noqa: E402
 from addon import engine, service  # noqa: E402
@@ -67,14 +67,8 @@ def new_scene() -> tuple[bpy.types.Scene, bpy.types.Object]:
     bm.to_mesh(torus)
     bm.free()
     add_object(scene, "Ring", torus, (0.0, 0.0, 0.3))
-    mesh = bpy.data.meshes.new("Sphere")
-    bm = bmesh.new()
-    bm.loops.layers.uv.new("UVMap")
-    bmesh.ops.create_uvsphere(bm, u_segments=256, v_segments=200, radius=1.0, calc_uvs=True)
-    bm.to_mesh(mesh)
-    bm.free()
-    mesh.shade_smooth()
-    sphere = add_object(scene, "Sphere", mesh, (0.0, 0.0, 1.0))
+    sphere = add_object(scene, "Sphere", uv_sphere_mesh("Sphere", 256, 200, smooth=True),
+                        (0.0, 0.0, 1.0))  # fmt: skip
     scene.world = bpy.data.worlds.new("World")
     scene.world.light_settings.distance = 1.5
     scene.scenesort.ao_distance = 0.0  # the World's
@@ -86,26 +80,10 @@ def new_scene() -> tuple[bpy.types.Scene, bpy.types.Object]:
     return scene, sphere
 
 
-def target(sphere: bpy.types.Object, size: int) -> bpy.types.Image:
-    """A fresh float image (texels no triangle covers stay -1) in the sphere's active
-    Image Texture node."""
-    image = bpy.data.images.new(f"bake {size}", size, size, float_buffer=True)
-    image.pixels.foreach_set(np.full(size * size * 4, -1.0, np.float32))
-    material = bpy.data.materials.new("Sphere")
-    if material.node_tree is None:
-        material.use_nodes = True
-    node = material.node_tree.nodes.new("ShaderNodeTexImage")
-    node.image = image
-    material.node_tree.nodes.active = node
-    sphere.data.materials.clear()
-    sphere.data.materials.append(material)
-    return image
-
-
 def bake(scene, sphere, engine: str, size: int, spp: int, seed: int = 0,
          target_error: float = 0.0) -> tuple[np.ndarray, float]:
     """The sphere's texels (size^2, 4) baked by `engine`, and the bake's seconds."""
-    image = target(sphere, size)
+    image = bake_target(sphere, size)
     scene.render.engine = engine
     scene.cycles.samples, scene.cycles.seed = spp, seed
     props = scene.scenesort
@@ -121,23 +99,13 @@ def bake(scene, sphere, engine: str, size: int, spp: int, seed: int = 0,
     return pixels.reshape(-1, 4), seconds
 
 
-def interior(covered: np.ndarray, size: int) -> np.ndarray:
-    grid = covered.reshape(size, size)
-    padded = np.pad(grid, 1)
-    out = np.ones_like(grid)
-    for dy in range(3):
-        for dx in range(3):
-            out &= padded[dy:dy + size, dx:dx + size]
-    return out.ravel()
-
-
 def parity(scene, sphere, ns: list[int]) -> tuple[list[str], bool]:
     rows, ok = [], True
     for n in ns:
         ref, ref_s = bake(scene, sphere, "CYCLES", PARITY_SIZE, 16 * n, seed=1)
         cycles, _ = bake(scene, sphere, "CYCLES", PARITY_SIZE, n, seed=2)
         ours, _ = bake(scene, sphere, "SCENESORT", PARITY_SIZE, n, seed=3)
-        mask = interior(ref[:, 3] >= 0.0, PARITY_SIZE)
+        mask = clean_pixels((ref[:, 3] >= 0.0).reshape(PARITY_SIZE, PARITY_SIZE)).ravel()
         cycles_rmse, _ = judge(cycles[:, 0], ref[:, 0], mask)
         rmse, z = judge(ours[:, 0], ref[:, 0], mask)
         ratio = rmse / cycles_rmse

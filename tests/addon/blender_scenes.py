@@ -155,3 +155,38 @@ def animated_scene(scene: bpy.types.Scene) -> bpy.types.Scene:
     scene.scenesort.spp, scene.scenesort.seed, scene.scenesort.ao_distance = 4, 3, 1.5
     scene.frame_set(2)
     return scene
+
+
+def bake_target(obj: bpy.types.Object, size: int,
+                image: bpy.types.Image | None = None) -> bpy.types.Image:
+    """`image`, or a float image filled with -1 so that texels no triangle covers stay -1
+    (bake with use_clear=False, margin 0), in an active Image Texture node of the object's
+    only material."""
+    if image is None:
+        image = bpy.data.images.new(f"{obj.name} bake", size, size, float_buffer=True)
+        image.pixels.foreach_set(np.full(size * size * 4, -1.0, np.float32))
+    material = bpy.data.materials.new(obj.name)
+    if material.node_tree is None:  # Blender 4.x; 5.x materials always have nodes
+        material.use_nodes = True
+    node = material.node_tree.nodes.new("ShaderNodeTexImage")
+    node.image = image
+    material.node_tree.nodes.active = node
+    obj.data.materials.clear()
+    obj.data.materials.append(material)
+    return image
+
+
+def uv_sphere_mesh(name: str, segments: int, rings: int, smooth: bool) -> bpy.types.Mesh:
+    """A UV sphere of radius 1 with its texture coordinates (a UV map named UVMap)."""
+    import bmesh  # only importable once bpy is
+
+    mesh = bpy.data.meshes.new(name)
+    bm = bmesh.new()
+    bm.loops.layers.uv.new("UVMap")
+    bmesh.ops.create_uvsphere(bm, u_segments=segments, v_segments=rings, radius=1.0,
+                              calc_uvs=True)  # fmt: skip
+    bm.to_mesh(mesh)
+    bm.free()
+    if smooth:
+        mesh.shade_smooth()
+    return mesh

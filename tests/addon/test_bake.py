@@ -10,12 +10,11 @@ import re
 from collections.abc import Iterator
 from typing import ClassVar
 
-import bmesh
 import bpy
 import numpy as np
 import pytest
-from blender_scenes import add_object, grid_mesh
-from cycles_reference import judge
+from blender_scenes import add_object, bake_target, grid_mesh, uv_sphere_mesh
+from cycles_reference import clean_pixels, judge
 
 import addon
 from addon import bake, engine, export, service
@@ -66,14 +65,7 @@ class Stopper(engine.AoEngine, bpy.types.RenderEngine):
 
 
 def _uv_sphere(name: str, scene: bpy.types.Scene, location, mirrored: bool = False):
-    mesh = bpy.data.meshes.new(name)
-    bm = bmesh.new()
-    bm.loops.layers.uv.new("UVMap")
-    bmesh.ops.create_uvsphere(bm, u_segments=16, v_segments=8, radius=1.0, calc_uvs=True)
-    bm.to_mesh(mesh)
-    bm.free()
-    mesh.shade_smooth()
-    obj = add_object(scene, name, mesh, location)
+    obj = add_object(scene, name, uv_sphere_mesh(name, 16, 8, smooth=True), location)
     obj.modifiers.new("Subdivision", "SUBSURF").levels = 1  # render level 2: 16x the faces
     if mirrored:
         obj.scale.x = -1.0
@@ -82,21 +74,7 @@ def _uv_sphere(name: str, scene: bpy.types.Scene, location, mirrored: bool = Fal
 
 def _image_target(obj: bpy.types.Object, size: int = SIZE,
                   image: bpy.types.Image | None = None) -> bpy.types.Image:
-    """`image`, or a float image filled with -1 so that texels no triangle covers stay -1
-    (use_clear=False, margin 0), in an active Image Texture node of the object's
-    material."""
-    if image is None:
-        image = bpy.data.images.new(f"{obj.name} bake", size, size, float_buffer=True)
-        image.pixels.foreach_set(np.full(size * size * 4, -1.0, np.float32))
-    material = bpy.data.materials.new(obj.name)
-    if material.node_tree is None:  # Blender 4.x; 5.x materials always have nodes
-        material.use_nodes = True
-    node = material.node_tree.nodes.new("ShaderNodeTexImage")
-    node.image = image
-    material.node_tree.nodes.active = node
-    obj.data.materials.clear()
-    obj.data.materials.append(material)
-    return image
+    return bake_target(obj, size, image)
 
 
 def _pixels(image: bpy.types.Image) -> np.ndarray:
@@ -176,13 +154,7 @@ def test_the_texels_points_are_cycles_own(scene) -> None:
 
 def _interior(covered: np.ndarray) -> np.ndarray:
     """Texels whose 3x3 neighbourhood is covered: away from the UV islands' borders."""
-    grid = covered.reshape(SIZE, SIZE)
-    padded = np.pad(grid, 1)
-    out = np.ones_like(grid)
-    for dy in range(3):
-        for dx in range(3):
-            out &= padded[dy:dy + SIZE, dx:dx + SIZE]
-    return out.ravel()
+    return clean_pixels(covered.reshape(SIZE, SIZE)).ravel()
 
 
 def test_image_bakes_match_cycles_ao_bake(scene) -> None:
@@ -235,13 +207,7 @@ def test_selected_to_active_bakes_the_high_poly_onto_the_low_poly(scene) -> None
     subdivided ball inside its cage (Selected to Active, extrusion 0.2): Blender maps the
     texels to the high-poly surface and hides the low-poly from the bake; the result
     matches Cycles' own such bake."""
-    low_mesh = bpy.data.meshes.new("Low")
-    bm = bmesh.new()
-    bm.loops.layers.uv.new("UVMap")
-    bmesh.ops.create_uvsphere(bm, u_segments=8, v_segments=4, radius=1.0, calc_uvs=True)
-    bm.to_mesh(low_mesh)
-    bm.free()
-    low = add_object(scene, "Low", low_mesh, (0.0, 0.0, 1.0))
+    low = add_object(scene, "Low", uv_sphere_mesh("Low", 8, 4, smooth=False), (0.0, 0.0, 1.0))
     ball = scene.objects["Ball"]
     options = dict(use_selected_to_active=True, cage_extrusion=0.2)
     try:
