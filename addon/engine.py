@@ -61,7 +61,6 @@ def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
     )
 
 
-
 class AoEngine:
     """What the engine does; a mixin, so that a subclass can register as an engine of
     its own (Blender maps one registered class to one RNA type).
@@ -148,8 +147,10 @@ class AoEngine:
         if refused:
             raise ValueError(refused)
         scene = depsgraph.scene
-        self.show("exporting the scene")
-        mesh = export.export_scene(depsgraph)
+        if self._baked_scene is None:  # once per object, whatever its images
+            self.show("exporting the scene")
+            self._baked_scene = export.export_scene(depsgraph)
+        mesh = self._baked_scene
         span = mesh.spans.get(obj.original.name)
         if span is None:
             raise ValueError(f"'{obj.original.name}' does not render (disabled for rendering "
@@ -177,7 +178,10 @@ class AoEngine:
 
     # --- steps ----------------------------------------------------------------------
 
-    _images_baked = 0  # of this engine instance: Blender makes one per baked object
+    # Of this engine instance: Blender makes one per baked object and calls `bake` once
+    # per image of it.
+    _images_baked = 0
+    _baked_scene: export.SceneMesh | None = None
 
     def _bake_layer(self) -> str:
         """A layer name of its own for each image of the object (Blender calls `bake` once
@@ -223,8 +227,9 @@ class AoEngine:
             self.get_result().stamp_data_add_field("scenesort", note)
 
     def _keep(self, scene: bpy.types.Scene, outcome: pipeline.Outcome) -> None:
-        """The device for the Sampling panel and the build's timings for the panel's
-        table, on the main thread."""
+        """What the render or bake achieved (the panel's Last render box, the Sampling
+        panel's device) and the build's timings for the panel's table, on the main
+        thread."""
         props, settings = scene.original.scenesort, pipeline.Settings.from_scene(scene)
 
         def apply() -> None:
