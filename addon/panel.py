@@ -187,6 +187,9 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
 
     def draw(self, context: bpy.types.Context) -> None:
         _EnginePanel.draw(self, context)  # type: ignore[arg-type]
+        world = context.scene.world
+        if world is not None:  # what AO Distance 0 means (Cycles' panel for it is Fast GI's)
+            self.layout.prop(world.light_settings, "distance", text="World AO Distance")
         device = context.window_manager.scenesort.last_device
         if device:  # the service's device, which the Device preference may have changed
             self.layout.label(text=f"Last render on {device}", icon="DESKTOP")

@@ -502,6 +502,27 @@ def test_engine_panels_draw_the_scenes_settings(live) -> None:
                      "film_transparent": live.render}  # fmt: skip
 
 
+def test_sampling_panel_shows_the_worlds_ao_distance(live) -> None:
+    """AO Distance 0 means the World's: the Sampling panel shows that one too when the
+    scene has a World (Cycles shows it in its Fast GI panel, not drawn for this engine)."""
+    from addon import panel
+
+    cls = panel.SCENESORT_PT_sampling
+
+    def drawn() -> dict[str, object]:
+        layout = _Layout()
+        cls.draw(SimpleNamespace(layout=layout, source=cls.source, groups=cls.groups),
+                 bpy.context)  # fmt: skip
+        return {name: owner for owner, name, _ in layout.props if owner is not None}
+
+    assert live.world is None and "distance" not in drawn()
+    live.world = bpy.data.worlds.new("World")
+    try:
+        assert drawn()["distance"] == live.world.light_settings
+    finally:
+        bpy.data.worlds.remove(live.world)
+
+
 def test_sampling_panel_names_the_device_of_the_last_f12(live, tmp_path) -> None:
     """After F12 the Sampling panel says which device traced it (the service's, which the
     Device preference decides); before any render it says nothing."""
