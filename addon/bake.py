@@ -1,4 +1,4 @@
-"""Blender's Bake (type Ambient Occlusion) with the scenesort engine.
+"""Blender's Bake (types Ambient Occlusion and Normal) with the scenesort engine.
 
 Blender hands `RenderEngine.bake` a result whose BakePrimitive pass holds, per texel, two
 barycentric weights and then the loop triangle of the baked object's evaluated mesh (an
@@ -19,18 +19,22 @@ from __future__ import annotations
 
 import numpy as np
 
-from .export import Span
+from .export import SceneMesh, Span
 
 PASS = "AO"
+# Normal needs no service: the engine hands Blender world-space shading normals and
+# Blender turns them into the panel's space (tangent, object, world) and swizzle, as it
+# does for Cycles' (object_bake_api's RE_bake_normal_world_to_*).
+NORMAL = "NORMAL"
 
 
 def refusal(pass_type: str) -> str | None:
     """Why the engine does not bake `pass_type` (None: it does)."""
-    if pass_type == PASS:
+    if pass_type in (PASS, NORMAL):
         return None
     name = pass_type.replace("_", " ").title()
-    return (f"scenesort AO bakes Ambient Occlusion only, not {name}: choose Ambient "
-            "Occlusion, or Cycles for the other passes")
+    return (f"scenesort AO bakes Ambient Occlusion and Normal only, not {name}: choose "
+            "one of those, or Cycles for the other passes")
 
 
 def texel_points(primitive: np.ndarray, span: Span) -> tuple[np.ndarray, ...]:
@@ -52,10 +56,28 @@ def texel_points(primitive: np.ndarray, span: Span) -> tuple[np.ndarray, ...]:
             u.astype(np.float32), v.astype(np.float32))
 
 
-def combined(ao: np.ndarray, texels: np.ndarray, count: int) -> np.ndarray:
-    """The Combined pass Blender copies into the target: AO as grey, alpha 1, on the
-    covered texels; 0 elsewhere (Blender's margin fills from the covered ones)."""
+def texel_normals(mesh: SceneMesh, triangles: np.ndarray, u: np.ndarray,
+                  v: np.ndarray) -> np.ndarray:
+    """World-space unit shading normals ((texels, 3) float32) at the points `texel_points`
+    gives: smooth triangles' corner normals interpolated, flat ones' geometric normal (the
+    scene's corner order keeps it outward on mirrored objects too)."""
+    corners = mesh.vertices[mesh.indices[triangles]].astype(np.float64)
+    normal = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    if mesh.normals is not None:
+        w = np.stack([1.0 - u - v, u, v], 1).astype(np.float64)[:, :, None]
+        smooth_corners = mesh.normals[triangles].astype(np.float64)
+        smooth = np.abs(smooth_corners).sum(axis=(1, 2)) > 0.0  # zero corners: flat
+        normal[smooth] = (w[smooth] * smooth_corners[smooth]).sum(axis=1)
+    length = np.linalg.norm(normal, axis=1, keepdims=True)
+    return (normal / np.where(length > 0.0, length, 1.0)).astype(np.float32)
+
+
+def combined(values: np.ndarray, texels: np.ndarray, count: int) -> np.ndarray:
+    """The Combined pass Blender copies into the target: AO ((texels,)) as grey or
+    normals ((texels, 3)) as RGB, alpha 1, on the covered texels; 0 elsewhere (Blender's
+    margin fills from the covered ones)."""
     rgba = np.zeros((count, 4), np.float32)
-    rgba[texels, :3] = np.asarray(ao, np.float32)[:, None]
+    values = np.asarray(values, np.float32)
+    rgba[texels, :3] = values[:, None] if values.ndim == 1 else values
     rgba[texels, 3] = 1.0
     return rgba

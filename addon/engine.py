@@ -161,17 +161,26 @@ class AoEngine:
             primitive = np.empty(width * height * 3, np.float32)
             result.layers[0].passes["BakePrimitive"].rect.foreach_get(primitive)
             texels, triangles, u, v = bake.texel_points(primitive.reshape(-1, 3), span)
-            settings = pipeline.Settings.from_scene(scene)
-            target = prefs.target(bpy.context)
-            outcome = self._run(
-                lambda task: pipeline.bake_job(task, target, settings, mesh, triangles, u, v),
-                f"{len(texels):,} texels of '{obj.original.name}'",
-            )
-            self.fill(result, {"Combined": bake.combined(outcome.ao, texels, width * height)})
+            if pass_type == bake.NORMAL:
+                values = bake.texel_normals(mesh, triangles, u, v)
+            else:
+                settings = pipeline.Settings.from_scene(scene)
+                target = prefs.target(bpy.context)
+                outcome = self._run(
+                    lambda task: pipeline.bake_job(task, target, settings, mesh, triangles,
+                                                   u, v),  # fmt: skip
+                    f"{len(texels):,} texels of '{obj.original.name}'",
+                )
+                values = outcome.ao
+            self.fill(result, {"Combined": bake.combined(values, texels, width * height)})
         except BaseException:
             self.end_result(result, cancel=True)
             raise
         self.end_result(result)
+        if pass_type == bake.NORMAL:
+            self._say("INFO", f"baked the normals of {len(texels):,} texels of "
+                              f"'{obj.original.name}'")  # fmt: skip
+            return
         self._say("INFO", f"baked {len(texels):,} texels of '{obj.original.name}' | "
                           + stats_line(outcome, mesh.triangles))  # fmt: skip
         self._keep(scene, outcome)

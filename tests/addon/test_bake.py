@@ -317,14 +317,35 @@ def test_cycles_bake_panels_show_for_the_engine(scene) -> None:
     assert "SCENESORT" not in bpy.types.CYCLES_RENDER_PT_bake_influence.COMPAT_ENGINES
 
 
+@pytest.mark.parametrize("space", ["TANGENT", "OBJECT"])
+def test_normal_bakes_are_cycles_own(scene, space: str) -> None:
+    """A Normal bake in tangent and in object space (with a swizzle) is Cycles' texel for
+    texel on the floor, the smooth subdivided sphere and the mirrored one: the engine
+    hands Blender world-space normals and Blender converts them for both engines."""
+    objects = [scene.objects[n] for n in ("Floor", "Ball", "Mirrored")]
+    options = {"normal_space": space, "normal_r": "NEG_Y", "normal_g": "POS_X"}
+    scene.cycles.samples = 1
+    try:
+        cycles = _bake(scene, "CYCLES", objects, "NORMAL", **options)
+    finally:
+        scene.cycles.samples = SPP
+    ours = _bake(scene, "SCENESORT", objects, "NORMAL", **options)
+    for name in cycles:
+        covered = cycles[name][:, 3] >= 0.0
+        assert covered.sum() > 1000, name
+        np.testing.assert_array_equal(ours[name][:, 3] >= 0.0, covered)
+        np.testing.assert_allclose(ours[name][covered, :3], cycles[name][covered, :3],
+                                   atol=1e-3, err_msg=name)  # fmt: skip
+
+
 def test_other_passes_are_refused_by_name(scene) -> None:
     ball = scene.objects["Ball"]
     _image_target(ball)
     _select(scene, ball)
     scene.render.engine = "SCENESORT"
-    with pytest.raises(RuntimeError, match="scenesort AO bakes Ambient Occlusion only, not "
-                                           "Normal"):  # fmt: skip
-        bpy.ops.object.bake(type="NORMAL")
+    with pytest.raises(RuntimeError, match="scenesort AO bakes Ambient Occlusion and Normal "
+                                           "only, not Emit"):  # fmt: skip
+        bpy.ops.object.bake(type="EMIT")
 
 
 def test_blender_refuses_an_object_without_uvs_with_its_own_message(scene) -> None:
