@@ -338,6 +338,32 @@ def test_normal_bakes_are_cycles_own(scene, space: str) -> None:
                                    atol=1e-3, err_msg=name)  # fmt: skip
 
 
+def test_selected_to_active_normal_bake_is_cycles_own(scene) -> None:
+    """High to low poly, the usual normal bake: a coarse flat-shaded sphere takes the
+    smooth ball's normals in its own tangent space, as Cycles bakes them."""
+    low = add_object(scene, "Low", uv_sphere_mesh("Low", 8, 4, smooth=False), (0.0, 0.0, 1.0))
+    ball = scene.objects["Ball"]
+    scene.cycles.samples = 1
+    try:
+        runs = {}
+        for engine_name in ("CYCLES", "SCENESORT"):
+            image = _image_target(low)
+            _select(scene, low, ball)
+            scene.render.engine = engine_name
+            assert bpy.ops.object.bake(type="NORMAL", use_clear=False, margin=0,
+                                       use_selected_to_active=True,
+                                       cage_extrusion=0.2) == {"FINISHED"}  # fmt: skip
+            runs[engine_name] = _pixels(image)
+    finally:
+        scene.cycles.samples = SPP
+        bpy.data.objects.remove(low)
+    covered = runs["CYCLES"][:, 3] >= 0.0
+    assert covered.sum() > 1000
+    np.testing.assert_array_equal(runs["SCENESORT"][:, 3] >= 0.0, covered)
+    np.testing.assert_allclose(runs["SCENESORT"][covered, :3], runs["CYCLES"][covered, :3],
+                               atol=1e-3)  # fmt: skip
+
+
 def test_other_passes_are_refused_by_name(scene) -> None:
     ball = scene.objects["Ball"]
     _image_target(ball)
