@@ -37,6 +37,14 @@ def refusal(pass_type: str) -> str | None:
             "one of those, or Cycles for the other passes")
 
 
+def bent_normal_materials(obj) -> list[str]:  # noqa: ANN001 - a bpy.types.Object
+    """The names of `obj`'s materials whose nodes bend the shading normal (a link into a
+    Normal input: Bump, Normal Map): Cycles' Normal bake applies those, this one does not."""
+    return [slot.material.name for slot in obj.material_slots
+            if slot.material is not None and slot.material.node_tree is not None
+            and any(link.to_socket.name == "Normal" for link in slot.material.node_tree.links)]
+
+
 def texel_points(primitive: np.ndarray, span: Span) -> tuple[np.ndarray, ...]:
     """From the BakePrimitive pass ((texels, 3) float32) of an object whose loop triangles
     are `span` in the flattened scene: the covered texels' indices and their points as

@@ -180,6 +180,11 @@ class AoEngine:
         if pass_type == bake.NORMAL:
             self._say("INFO", f"baked the normals of {len(texels):,} texels of "
                               f"'{obj.original.name}'")  # fmt: skip
+            bent = bake.bent_normal_materials(obj.original)
+            if bent:
+                self._say("WARNING", f"the Normal bake ignores the Bump and Normal Map nodes "
+                                     f"of {', '.join(bent)}: bake with Cycles to include "
+                                     "them")  # fmt: skip
             return
         self._say("INFO", f"baked {len(texels):,} texels of '{obj.original.name}' | "
                           + stats_line(outcome, mesh.triangles))  # fmt: skip

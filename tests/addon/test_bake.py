@@ -364,6 +364,34 @@ def test_selected_to_active_normal_bake_is_cycles_own(scene) -> None:
                                atol=1e-3)  # fmt: skip
 
 
+def test_a_normal_bake_warns_of_bump_nodes_it_ignores(scene) -> None:
+    """Cycles' Normal bake applies a material's Bump node (here it moves the texels'
+    normals by far more than 1e-3); this one does not, and says so."""
+    ball = scene.objects["Ball"]
+    image = _image_target(ball)
+    tree = ball.data.materials[0].node_tree
+    bump, noise = tree.nodes.new("ShaderNodeBump"), tree.nodes.new("ShaderNodeTexNoise")
+    noise.inputs["Scale"].default_value = 40.0
+    bump.inputs["Distance"].default_value = 1.0
+    tree.links.new(noise.outputs["Fac"], bump.inputs["Height"])
+    tree.links.new(bump.outputs["Normal"], tree.nodes["Principled BSDF"].inputs["Normal"])
+    _select(scene, ball)
+    scene.render.engine, scene.cycles.samples = "CYCLES", 1
+    try:
+        assert bpy.ops.object.bake(type="NORMAL", use_clear=False, margin=0) == {"FINISHED"}
+    finally:
+        scene.cycles.samples = SPP
+    cycles = _pixels(image).copy()
+    scene.render.engine = Stopper.bl_idname
+    Stopper.said.clear()
+    assert bpy.ops.object.bake(type="NORMAL", use_clear=False, margin=0) == {"FINISHED"}
+    covered = cycles[:, 3] >= 0.0
+    assert np.abs(_pixels(image)[covered, :3] - cycles[covered, :3]).max() > 0.1
+    assert Stopper.said[-1] == (f"the Normal bake ignores the Bump and Normal Map nodes of "
+                                f"{ball.data.materials[0].name}: bake with Cycles to "
+                                "include them")  # fmt: skip
+
+
 def test_other_passes_are_refused_by_name(scene) -> None:
     ball = scene.objects["Ball"]
     _image_target(ball)
