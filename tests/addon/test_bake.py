@@ -338,6 +338,31 @@ def test_normal_bakes_are_cycles_own(scene, space: str) -> None:
                                    atol=1e-3, err_msg=name)  # fmt: skip
 
 
+def test_a_colour_attribute_normal_bake_is_cycles_own(scene) -> None:
+    """One normal per face corner of the subdivided smooth sphere, in object space (in
+    its own tangent space every corner is (0.5, 0.5, 1), which would check nothing), as
+    Cycles bakes them."""
+    ball = scene.objects["Ball"]
+    attribute = ball.data.color_attributes.new("N", "FLOAT_COLOR", "CORNER")
+    ball.data.color_attributes.active_color = attribute
+    _select(scene, ball)
+    scene.cycles.samples = 1
+    values = {}
+    try:
+        for engine_name in ("CYCLES", "SCENESORT"):
+            scene.render.engine = engine_name
+            assert bpy.ops.object.bake(type="NORMAL", target="VERTEX_COLORS",
+                                       normal_space="OBJECT") == {"FINISHED"}  # fmt: skip
+            colours = np.empty(len(ball.data.loops) * 4, np.float32)
+            ball.data.color_attributes["N"].data.foreach_get("color", colours)
+            values[engine_name] = colours.reshape(-1, 4)[:, :3]
+    finally:
+        scene.cycles.samples = SPP
+        ball.data.color_attributes.remove(ball.data.color_attributes["N"])
+    assert np.ptp(values["CYCLES"], axis=0).min() > 0.5  # normals all round, not one
+    np.testing.assert_allclose(values["SCENESORT"], values["CYCLES"], atol=1e-3)
+
+
 def test_selected_to_active_normal_bake_is_cycles_own(scene) -> None:
     """High to low poly, the usual normal bake: a coarse flat-shaded sphere takes the
     smooth ball's normals in its own tangent space, as Cycles bakes them."""
