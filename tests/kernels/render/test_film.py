@@ -1,0 +1,129 @@
+"""The Film's pixel filter (kernels/render/film.py): Cycles' inverted-CDF table and the
+sub-pixel positions drawn from it, checked against the filter's own normalised profile."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+
+from kernels.render.film import (
+    FILTER_TABLE_SIZE,
+    PIXEL_FILTERS,
+    filter_position,
+    filter_profile,
+    filter_table,
+)
+from kernels.render.sampling import SAMPLERS, pixel_key
+
+PIXELS = 256
+SAMPLES = 256  # a power of two: each pixel's Sobol points are a complete net
+
+
+@wp.kernel
+def _positions(
+    table: wp.array(dtype=float), sampler: int, seed: int, out: wp.array2d(dtype=wp.vec2)
+):
+    pixel, index = wp.tid()
+    out[pixel, index] = filter_position(table, sampler, pixel_key(pixel, seed), index)
+
+
+def positions(kind: str, width: float, sampler: str, device: str) -> np.ndarray:
+    """(PIXELS, SAMPLES, 2) offsets from the pixel centre, in pixels."""
+    table = wp.array(filter_table(kind, width), dtype=float, device=device)
+    out = wp.empty((PIXELS, SAMPLES), dtype=wp.vec2, device=device)
+    wp.launch(_positions, dim=out.shape, inputs=[table, SAMPLERS[sampler], 7, out], device=device)
+    return out.numpy() - 0.5
+
+
+def profile_probabilities(kind: str, width: float, edges: np.ndarray) -> np.ndarray:
+    """The filter's probability per bin: its profile integrated finely, normalised."""
+    fine = np.linspace(edges[0], edges[-1], 200 * (edges.size - 1) + 1)
+    mass = np.diff(np.concatenate(([0.0], np.cumsum(filter_profile(kind, width, fine)))))
+    mass = np.add.reduceat(mass[1:], np.arange(0, fine.size - 1, 200))
+    return mass / mass.sum()
+
+
+FILTERS = [("BLACKMAN_HARRIS", 1.5), ("GAUSSIAN", 1.5), ("BOX", 1.0), ("BOX", 2.5)]
+
+
+def support(kind: str, width: float) -> float:
+    """Half the span of the table's offsets (film.py): w / 2."""
+    return {"BOX": 0.5, "GAUSSIAN": 1.5, "BLACKMAN_HARRIS": 1.0}[kind] * width
+
+
+def table_probabilities(kind: str, width: float, edges: np.ndarray) -> np.ndarray:
+    """The probability per bin of the table read with linear interpolation at uniform u."""
+    table = filter_table(kind, width).astype(np.float64) - 0.5
+    return np.diff(np.interp(edges, table, np.linspace(0.0, 1.0, FILTER_TABLE_SIZE)))
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize(("kind", "width"), FILTERS)
+def test_table_distribution_is_the_normalised_profile(kind, width):
+    """The table's distribution differs from the filter's profile by no more than its
+    resolution: total variation under 3/1023 (Cycles' table spreads its last 1/1023 of u
+    linearly over the tails, where Blackman-Harris and the Gaussian have almost no mass)."""
+    edges = np.linspace(-support(kind, width), support(kind, width), 25)
+    p_table = table_probabilities(kind, width, edges)
+    p_profile = profile_probabilities(kind, width, edges)
+    assert 0.5 * np.abs(p_table - p_profile).sum() < 3.0 / 1023
+    assert np.sum(p_table) == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(("kind", "width"), FILTERS)
+@pytest.mark.parametrize("sampler", ["sobol", "random"])
+def test_offsets_follow_the_table(kind, width, sampler, device):
+    """Histograms of the x and y offsets drawn on the device match the table's distribution
+    within 4 binomial sigmas per bin (and so the profile, by the test above)."""
+    xy = positions(kind, width, sampler, device)
+    s = support(kind, width)
+    edges = np.linspace(-s, s, 25)
+    p = table_probabilities(kind, width, edges)
+    n = PIXELS * SAMPLES
+    sigma = np.sqrt(n * p * (1 - p)) + 1.0
+    for axis in (0, 1):
+        v = xy[..., axis].ravel()
+        assert np.all(np.abs(v) <= s + 1e-5)
+        counts, _ = np.histogram(v, bins=edges)
+        z = (counts - n * p) / sigma
+        assert np.max(np.abs(z)) < 4.0, (axis, np.round(z, 1))
+
+
+def test_gaussian_is_cycles_sigma_of_a_quarter_width(device):
+    """Cycles' Gaussian of width 1.5 px is exp(-2 (6v / 4.5)^2): sigma 0.375 px. Checked by
+    the median of |offset| (0.6745 sigma), which the table's thin tails cannot move."""
+    xy = positions("GAUSSIAN", 1.5, "sobol", device)
+    assert np.median(np.abs(xy)) == pytest.approx(0.6744898 * 0.375, rel=0.01)
+    assert np.mean(xy) == pytest.approx(0.0, abs=0.003)
+
+
+def test_sobol_positions_are_stratified(device):
+    """With Owen-scrambled Sobol, every pixel's 256 positions put exactly 16 in each of 16
+    equal-probability bins of x: the filter's inverse CDF keeps the strata of u."""
+    table = filter_table("BLACKMAN_HARRIS", 1.5)
+    xy = positions("BLACKMAN_HARRIS", 1.5, "sobol", device) + 0.5
+    quantiles = np.interp(np.linspace(0, 1, 17), np.linspace(0, 1, FILTER_TABLE_SIZE), table)
+    for pixel in xy[:16]:
+        counts, _ = np.histogram(pixel[:, 0], bins=quantiles)
+        assert np.all(np.abs(counts - 16) <= 1), counts  # +-1: table interpolation at a bin edge
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize("kind", PIXEL_FILTERS)
+def test_table_is_monotone_and_symmetric(kind):
+    t = filter_table(kind, 1.5).astype(np.float64)
+    assert np.all(np.diff(t) >= 0.0)
+    np.testing.assert_allclose(t[:1023] + t[1022::-1], 1.0, atol=1e-6)
+    assert t[511] == pytest.approx(0.5)
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize(
+    ("kind", "width", "field"),
+    [("MITCHELL", 1.5, "pixel_filter"), ("BOX", 0.0, "filter_width"),
+     ("BOX", float("nan"), "filter_width"), ("GAUSSIAN", 11.0, "filter_width")],
+)
+def test_bad_filter_names_the_field(kind, width, field):
+    with pytest.raises(ValueError, match=field):
+        filter_table(kind, width)
