@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 import warp as wp
 
+import kernels
+from kernels.render.camera import Camera
 from kernels.render.film import (
     FILTER_TABLE_SIZE,
     PIXEL_FILTERS,
@@ -14,6 +16,7 @@ from kernels.render.film import (
     filter_profile,
     filter_table,
 )
+from kernels.render.filtered import render_film
 from kernels.render.sampling import SAMPLERS, pixel_key
 
 PIXELS = 256
@@ -127,3 +130,67 @@ def test_table_is_monotone_and_symmetric(kind):
 def test_bad_filter_names_the_field(kind, width, field):
     with pytest.raises(ValueError, match=field):
         filter_table(kind, width)
+
+
+def half_plane(edge_x: float) -> kernels.Bvh:
+    """The plane z = 0 over x < edge_x (world units), facing +z."""
+    v = np.array([[-100, -100, 0], [edge_x, -100, 0], [edge_x, 100, 0], [-100, 100, 0]],
+                 dtype=np.float32)
+    return kernels.build_bvh(v, np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32))
+
+
+def ortho_camera(width: int, height: int) -> Camera:
+    """Looking down -z from z = 5, one world unit per pixel: raster x = world x + width / 2."""
+    m = np.eye(4)
+    m[2, 3] = 5.0
+    return Camera(matrix_world=m, width=width, height=height, type="ORTHO",
+                  ortho_scale=float(width))
+
+
+@pytest.mark.parametrize(("kind", "width"), [("BLACKMAN_HARRIS", 1.5), ("GAUSSIAN", 1.5),
+                                             ("BOX", 1.0)])
+def test_edge_alpha_is_the_filtered_coverage(kind, width):
+    """A straight silhouette between two pixel centres: each pixel's alpha is the filter's
+    mass left of the edge (brute force from the table), within 4 binomial sigmas; the open
+    plane's AO is exactly 1 and pixels beyond the filter's reach are exactly 0 or 1."""
+    w, h, spp = 16, 4, 256
+    edge = 7.3  # raster x of the edge
+    r = render_film(half_plane(edge - w / 2), ortho_camera(w, h), spp=spp,
+                    pixel_filter=kind, filter_width=width)
+    table = filter_table(kind, width).astype(np.float64)
+    expected = np.interp(edge - np.arange(w), table, np.linspace(0.0, 1.0, FILTER_TABLE_SIZE))
+    sigma = np.sqrt(expected * (1 - expected) / spp) + 1.0 / spp
+    assert np.all(np.abs(r.alpha - expected) <= 4 * sigma), (r.alpha[0], expected)
+    exact = (expected == 0.0) | (expected == 1.0)
+    assert np.array_equal(r.alpha[:, exact], np.broadcast_to(expected[exact], (h, exact.sum())))
+    assert exact.sum() >= w - 6  # the widest (Gaussian 1.5: +-2.25 px) reaches 5 pixels
+    assert np.all(r.ao == 1.0)
+
+
+def test_width_zero_is_the_pixel_centre_render(shared_scene):
+    """filter_width=0 is render_ao over Camera.rays(), bit for bit, alpha its hit mask."""
+    scene = shared_scene("sponza")
+    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 24, 16)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    film = render_film(bvh, cam, spp=8, filter_width=0)
+    o, d, t0, t1 = cam.rays()
+    ref = kernels.render_ao(bvh, o, d, spp=8, tmin=t0, tmax=t1)
+    assert np.array_equal(film.ao.ravel(), ref.ao)
+    assert np.array_equal(film.alpha.ravel(), (ref.spp_used > 0).astype(np.float32))
+
+
+def test_filtered_render_does_not_depend_on_threads(shared_scene):
+    scene = shared_scene("sponza")
+    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 24, 16)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    a = render_film(bvh, cam, spp=8, threads=1)
+    b = render_film(bvh, cam, spp=8, threads=2)
+    assert np.array_equal(a.ao, b.ao) and np.array_equal(a.alpha, b.alpha)
+
+
+@pytest.mark.parametrize(("settings", "field"), [
+    ({"target_error": 0.02}, "target_error"), ({"pixel_filter": "MITCHELL"}, "pixel_filter"),
+    ({"filter_width": -1.0}, "filter_width")])
+def test_bad_film_arguments_name_the_field(settings, field):
+    with pytest.raises(ValueError, match=field):
+        render_film(half_plane(0.0), ortho_camera(4, 4), **settings)
