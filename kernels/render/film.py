@@ -16,9 +16,9 @@ read with linear interpolation. Built as Cycles builds it:
   samples spread over [-w/2, w/2] pixels about its centre (Blackman-Harris 1.5: +-1.5 px,
   the lobe's tails; Gaussian 1.5: sigma 0.375 px; Box 1: the pixel itself).
 
-The sub-pixel pair of sample i is point i of the pixel's Owen-scrambled Sobol sequence with
-its own scramble key (sampling.py), so it is stratified over the samples as the occlusion
-directions are, and decorrelated from them.
+The sub-pixel pair of sample i is a point of the pixel's Owen-scrambled Sobol sequence with
+its own scramble key and a shuffled index (Burley 2020, sec. 4), so it is stratified over
+the samples as the occlusion directions are, and decorrelated from them.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ import numpy as np
 import warp as wp
 
 from ..core.compile_options import MODULE_OPTIONS
-from .sampling import pcg_hash, sample_2d
+from .sampling import owen_scramble, pcg_hash, sample_2d_at
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -119,5 +119,11 @@ def filter_position(
 ) -> wp.vec2:
     """Sample `index`'s raster offset (x right, y down) from the corner of the pixel whose
     occlusion samples use `key`."""
-    u = sample_2d(sampler, pcg_hash(key ^ FILTER_KEY), index)
+    seed = pcg_hash(key ^ FILTER_KEY)
+    # Burley 2020 (JCGT 9(4)), sec. 4: the index is Owen-scrambled too, else the filter's
+    # point i and the occlusion direction's point i share their strata (the same Sobol
+    # dimensions under two scrambles: the top bits agree or differ for every sample of a
+    # pixel) and each pixel's estimate keeps a bias that more samples never remove. The
+    # first 2^m indices go to an aligned block of 2^m, which is still a (0, m, 2)-net.
+    u = sample_2d_at(sampler, seed, owen_scramble(wp.uint32(index), pcg_hash(seed)))
     return wp.vec2(table_read(table, u[0]), table_read(table, u[1]))

@@ -17,7 +17,7 @@ from kernels.render.film import (
     filter_table,
 )
 from kernels.render.filtered import render_film
-from kernels.render.sampling import SAMPLERS, pixel_key
+from kernels.render.sampling import SAMPLERS, pixel_key, sample_2d
 
 PIXELS = 256
 SAMPLES = 256  # a power of two: each pixel's Sobol points are a complete net
@@ -110,6 +110,27 @@ def test_sobol_positions_are_stratified(device):
     for pixel in xy[:16]:
         counts, _ = np.histogram(pixel[:, 0], bins=quantiles)
         assert np.all(np.abs(counts - 16) <= 1), counts  # +-1: table interpolation at a bin edge
+
+
+@wp.kernel
+def _strata(table: wp.array(dtype=float), seed: int, out: wp.array2d(dtype=int)):
+    pixel, index = wp.tid()
+    key = pixel_key(pixel, seed)
+    right = filter_position(table, 1, key, index)[0] > 0.5
+    upper = sample_2d(1, key, index)[0] >= 0.5  # the occlusion direction's first coordinate
+    out[pixel, index] = wp.where(right == upper, 1, 0)
+
+
+def test_filter_and_occlusion_strata_are_independent(device):
+    """Regression: with the filter's Sobol index unshuffled, sample i's sub-pixel half and
+    its occlusion direction's half agreed for all or none of a pixel's samples, which left
+    each filtered pixel a bias (RMSE against Cycles stuck at 0.027 from 64 to 256 spp).
+    Now they agree for about half of each pixel's samples."""
+    table = wp.array(filter_table("BOX", 1.0), dtype=float, device=device)
+    out = wp.empty((PIXELS, SAMPLES), dtype=int, device=device)
+    wp.launch(_strata, dim=out.shape, inputs=[table, 3, out], device=device)
+    agree = out.numpy().mean(axis=1)
+    assert np.all((agree > 0.3) & (agree < 0.7)), np.sort(agree)[[0, -1]]
 
 
 @pytest.mark.host_only
