@@ -9,8 +9,8 @@ samples, so they converge to the filter-weighted integrals Cycles' film converge
 Sample i of pixel k uses point i of the pixel's Sobol (or random) sequence for its
 sub-pixel position (with the filter's own scramble) and for its occlusion direction.
 
-Scope today: a fixed `spp` (no error target), engine "bvh", no denoising; one launch over
-the pixels, so the result is bit-identical for any `threads`. `filter_width=0` is today's
+Scope today: a fixed `spp` (no error target), engine "bvh", no denoising; each pixel is one
+thread's, so the result is bit-identical for any `threads`. `filter_width=0` is today's
 pixel-centre render: `render_ao` over `Camera.rays()`, alpha 0 or 1.
 """
 
@@ -25,15 +25,19 @@ import warp as wp
 from scenesort.ao_options import AoOptions
 
 from ..bvh.api import Bvh
+from ..bvh.node import BvhArrays
 from ..core.compile_options import MODULE_OPTIONS
+from ..core.launch import PARTS_PER_THREAD, host_threads, part_launcher, run_parts
+from ..core.mesh import Shading
 from ..scene.api import Scene
+from ..scene.top import SceneArrays, SceneShading
 from .ao import default_distance, render_ao
 from .camera import Camera
 from .film import check_filter, filter_position, filter_table
 from .primary import scene_shading
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import occlusion_origin
-from .tracers import MeshTracer, check_tracer, closest_surface, occluded, scene_mesh
+from .tracers import PART_RAYS, MeshTracer, check_tracer, closest_surface, occluded, scene_mesh
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -79,10 +83,12 @@ def film_kernel(
     sampler: int,
     seed: int,
     distance: float,
+    pixel0: int,  # the first pixel of this launch (the outputs start there)
     out_open: wp.array(dtype=int),  # per pixel: samples whose value is 1
     out_hit: wp.array(dtype=int),  # per pixel: samples whose camera ray hit
 ):
-    k = wp.tid()
+    t = wp.tid()
+    k = pixel0 + t
     key = pixel_key(k, seed)
     row = k / width
     col = k - row * width
@@ -99,8 +105,13 @@ def film_kernel(
                 n_open += 1
         else:
             n_open += 1
-    out_open[k] = n_open
-    out_hit[k] = n_hit
+    out_open[t] = n_open
+    out_hit[t] = n_hit
+
+
+for _tracer, _shading, _bvh in ((MeshTracer, Shading, BvhArrays),
+                                (SceneArrays, SceneShading, SceneArrays)):
+    wp.overload(film_kernel, {"tracer": _tracer, "shading": _shading, "bvh": _bvh})
 
 
 @dataclass
@@ -166,9 +177,21 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
     out_hit = wp.empty(n, dtype=int, device=device)
     dist = default_distance(bvh) if opts.distance is None else opts.distance
     table = wp.array(filter_table(pixel_filter, filter_width), dtype=float, device=device)
-    wp.launch(film_kernel, dim=n, inputs=[
+    # Contiguous runs of pixels in host threads (a CPU launch is serial); more parts than
+    # threads, taken in turn, since sky and geometry cost very different amounts.
+    nthreads = host_threads(device, opts.threads)
+    parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
+                       n * opts.spp // PART_RAYS, n))
+    bounds = np.linspace(0, n, parts + 1).astype(int)
+    launch = part_launcher(film_kernel, [
         tracer, shading, arrays, device_camera(camera), camera.width, table, opts.spp,
-        SAMPLERS[opts.sampler], opts.seed, dist], outputs=[out_open, out_hit], device=device)
+        SAMPLERS[opts.sampler], opts.seed, dist, 0, out_open, out_hit], device)
+
+    def run(p: int) -> None:
+        a, b = int(bounds[p]), int(bounds[p + 1])
+        launch(b - a, {10: a, 11: out_open[a:b], 12: out_hit[a:b]})
+
+    run_parts(run, parts, nthreads)
     shape = (camera.height, camera.width)
     return FilmResult(ao=(out_open.numpy() / opts.spp).astype(np.float32).reshape(shape),
                       alpha=(out_hit.numpy() / opts.spp).astype(np.float32).reshape(shape),

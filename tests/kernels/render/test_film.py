@@ -201,8 +201,9 @@ def test_width_zero_is_the_pixel_centre_render(shared_scene):
 
 
 def test_filtered_render_does_not_depend_on_threads(shared_scene):
+    """96x64 pixels at 8 spp: 12 parts of pixels, run by 1 or 2 host threads."""
     scene = shared_scene("sponza")
-    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 24, 16)
+    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 96, 64)
     bvh = kernels.build_bvh(scene.vertices, scene.indices)
     a = render_film(bvh, cam, spp=8, threads=1)
     b = render_film(bvh, cam, spp=8, threads=2)
@@ -215,3 +216,15 @@ def test_filtered_render_does_not_depend_on_threads(shared_scene):
 def test_bad_film_arguments_name_the_field(settings, field):
     with pytest.raises(ValueError, match=field):
         render_film(half_plane(0.0), ortho_camera(4, 4), **settings)
+
+
+def test_two_level_scene_renders_as_its_mesh():
+    """The same half plane as a mesh and as a two-level scene's one instance (the
+    identity): the same filtered coverage and AO, sample for sample."""
+    w, h = 16, 4
+    bvh = half_plane(7.3 - w / 2)
+    scene = kernels.build_scene([bvh], np.array([0]), np.eye(4, dtype=np.float32)[None, :3])
+    a = render_film(bvh, ortho_camera(w, h), spp=64)
+    b = render_film(scene, ortho_camera(w, h), spp=64)
+    assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
+    assert 0.0 < a.alpha[0, 7] < 1.0
