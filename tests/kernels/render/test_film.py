@@ -3,6 +3,8 @@ sub-pixel positions drawn from it, checked against the filter's own normalised p
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import warp as wp
@@ -16,7 +18,7 @@ from kernels.render.film import (
     filter_profile,
     filter_table,
 )
-from kernels.render.filtered import render_film
+from kernels.render.filtered import FilmCamera, camera_ray, device_camera, render_film
 from kernels.render.sampling import SAMPLERS, pixel_key, sample_2d
 
 PIXELS = 256
@@ -228,3 +230,38 @@ def test_two_level_scene_renders_as_its_mesh():
     b = render_film(scene, ortho_camera(w, h), spp=64)
     assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
     assert 0.0 < a.alpha[0, 7] < 1.0
+
+
+@wp.kernel
+def _centre_rays(cam: FilmCamera, width: int, out: wp.array2d(dtype=float)):
+    k = wp.tid()
+    row = k / width
+    o, d, t0, t1 = camera_ray(cam, float(k - row * width) + 0.5, float(row) + 0.5)
+    for j in range(3):
+        out[k, j] = o[j]
+        out[k, 3 + j] = d[j]
+    out[k, 6] = t0
+    out[k, 7] = t1
+
+
+@pytest.mark.parametrize("settings", [
+    {"type": "PERSP", "lens": 35.0, "sensor_fit": "AUTO", "shift_x": 0.1, "clip_start": 0.5},
+    {"type": "PERSP", "sensor_fit": "VERTICAL", "shift_y": -0.2, "clip_end": 50.0},
+    {"type": "ORTHO", "ortho_scale": 4.0, "sensor_fit": "HORIZONTAL", "shift_x": -0.3},
+])
+def test_device_camera_is_the_camera_model(settings, device):
+    """The kernel's camera ray through each pixel centre is Camera.rays()'s (float32)."""
+    angle = 0.3
+    m = np.eye(4)
+    m[:3, :3] = [[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
+                 [-math.sin(angle), 0, math.cos(angle)]]
+    m[:3, 3] = (1.0, -2.0, 3.0)
+    cam = Camera(matrix_world=m, width=12, height=20, **settings)
+    out = wp.empty((cam.width * cam.height, 8), dtype=float, device=device)
+    wp.launch(_centre_rays, dim=out.shape[0], inputs=[device_camera(cam), cam.width, out],
+              device=device)
+    got = out.numpy()
+    for i, ref in enumerate(cam.rays()):
+        ref = np.asarray(ref, dtype=np.float64).reshape(len(got), -1)
+        cols = slice(3 * i, 3 * i + 3) if i < 2 else slice(4 + i, 5 + i)
+        np.testing.assert_allclose(got[:, cols], ref, rtol=1e-5, atol=1e-5)
