@@ -183,6 +183,7 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
     parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
                        n * opts.spp // PART_RAYS, n))
     bounds = np.linspace(0, n, parts + 1).astype(int)
+    wp.load_module(film_kernel.module, device=device)  # once, not in every thread at once
     launch = part_launcher(film_kernel, [
         tracer, shading, arrays, device_camera(camera), camera.width, table, opts.spp,
         SAMPLERS[opts.sampler], opts.seed, dist, 0, out_open, out_hit], device)
