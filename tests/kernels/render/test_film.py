@@ -8,18 +8,18 @@ import math
 import numpy as np
 import pytest
 import warp as wp
-
-import kernels
-from kernels.render.camera import Camera
-from kernels.render.film import (
+from scenesort.kernels.render.camera import Camera
+from scenesort.kernels.render.film import (
     FILTER_TABLE_SIZE,
     PIXEL_FILTERS,
     filter_position,
     filter_profile,
     filter_table,
 )
-from kernels.render.filtered import FilmCamera, camera_ray, device_camera, render_film
-from kernels.render.sampling import SAMPLERS, pixel_key, sample_2d
+from scenesort.kernels.render.filtered import FilmCamera, camera_ray, device_camera, render_film
+from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d
+
+from scenesort import kernels
 
 PIXELS = 256
 SAMPLES = 256  # a power of two: each pixel's Sobol points are a complete net
