@@ -18,6 +18,7 @@ from .render import (
     ambient_occlusion,
     mesh_box,
     render_ao,
+    render_film,
     surface_ao,
     visible_instances,
     visible_triangles,
@@ -27,6 +28,6 @@ from .scene import Scene, build_scene, place_instances, trace
 __all__ = [
     "REBUILD_RATIO", "AoOptions", "AoResult", "Bvh", "Camera", "DacrtStats", "Hits",
     "PoolError", "Scene", "ambient_occlusion", "build_bvh", "build_scene", "dacrt_trace",
-    "mesh_box", "place_instances", "refit_bvh", "render_ao", "surface_ao", "trace",
+    "mesh_box", "place_instances", "refit_bvh", "render_ao", "render_film", "surface_ao", "trace",
     "visible_instances", "visible_triangles",
 ]

@@ -103,7 +103,12 @@ def to_unit(x: wp.uint32) -> float:
 def sample_2d(sampler: int, key: wp.uint32, index: int) -> wp.vec2:
     """Point `index` of the pixel's sequence: independent hashes, or Owen-scrambled Sobol
     (each pixel its own scramble, so pixels are decorrelated and each point uniform)."""
-    k = wp.uint32(index)
+    return sample_2d_at(sampler, key, wp.uint32(index))
+
+
+@wp.func
+def sample_2d_at(sampler: int, key: wp.uint32, k: wp.uint32) -> wp.vec2:
+    """`sample_2d` at a 32-bit sequence position (a shuffled index: film.py)."""
     if sampler == SAMPLER_SOBOL:
         x = owen_scramble(reverse_bits(k), key)
         y = owen_scramble(sobol_dim1(k), pcg_hash(key))

@@ -44,10 +44,12 @@ def channel(channels: dict[str, np.ndarray], *names: str) -> np.ndarray:
     raise KeyError(f"none of {names} in {sorted(channels)}")
 
 
-def write_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int, seed: int = 0) -> float:
+def write_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int, seed: int = 0,
+                    film: tuple[str, float] = ("GAUSSIAN", 0.01)) -> float:
     """F12 with Cycles (`SETTINGS`, max bounces 0) into the multilayer EXR `path` (.exr
     added); the seconds the F12 took (scene sync, BVH, render and file). The scene's render
-    settings are restored afterwards. Needs only bpy (Blender 4.2 to 5.x), so that a Python
+    settings are restored afterwards. `film`: the pixel filter (type, width); Cycles'
+    default is ("BLACKMAN_HARRIS", 1.5). Needs only bpy (Blender 4.2 to 5.x), so that a Python
     with nothing else can write what OpenEXR reads elsewhere."""
     render, cycles, layer = scene.render, scene.cycles, scene.view_layers[0]
     fmt = render.image_settings
@@ -64,7 +66,7 @@ def write_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int, seed: int 
     render.engine, render.film_transparent = "CYCLES", True
     cycles.device, cycles.samples, cycles.seed, cycles.max_bounces = "CPU", samples, seed, 0
     cycles.use_adaptive_sampling, cycles.use_denoising = False, False
-    cycles.pixel_filter_type, cycles.filter_width = "GAUSSIAN", 0.01
+    cycles.pixel_filter_type, cycles.filter_width = film
     layer.use_pass_ambient_occlusion = True
     setattr(*kind)
     fmt.color_depth = "32"
@@ -86,10 +88,11 @@ def read_cycles_ao(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return ao, channel(channels, "Combined.A")
 
 
-def render_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int,
-                     seed: int = 0) -> tuple[np.ndarray, np.ndarray, float]:
+def render_cycles_ao(scene: bpy.types.Scene, path: Path, samples: int, seed: int = 0,
+                     film: tuple[str, float] = ("GAUSSIAN", 0.01),
+                     ) -> tuple[np.ndarray, np.ndarray, float]:
     """`write_cycles_ao`, then `read_cycles_ao`: the AO pass, alpha and the seconds."""
-    seconds = write_cycles_ao(scene, path, samples, seed)
+    seconds = write_cycles_ao(scene, path, samples, seed, film)
     return (*read_cycles_ao(path), seconds)
 
 

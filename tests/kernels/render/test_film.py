@@ -1,0 +1,267 @@
+"""The Film's pixel filter (kernels/render/film.py): Cycles' inverted-CDF table and the
+sub-pixel positions drawn from it, checked against the filter's own normalised profile."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+from scenesort.kernels.render.camera import Camera
+from scenesort.kernels.render.film import (
+    FILTER_TABLE_SIZE,
+    PIXEL_FILTERS,
+    filter_position,
+    filter_profile,
+    filter_table,
+)
+from scenesort.kernels.render.filtered import FilmCamera, camera_ray, device_camera, render_film
+from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d
+
+from scenesort import kernels
+
+PIXELS = 256
+SAMPLES = 256  # a power of two: each pixel's Sobol points are a complete net
+
+
+@wp.kernel
+def _positions(
+    table: wp.array(dtype=float), sampler: int, seed: int, out: wp.array2d(dtype=wp.vec2)
+):
+    pixel, index = wp.tid()
+    out[pixel, index] = filter_position(table, sampler, pixel_key(pixel, seed), index)
+
+
+def positions(kind: str, width: float, sampler: str, device: str) -> np.ndarray:
+    """(PIXELS, SAMPLES, 2) offsets from the pixel centre, in pixels."""
+    table = wp.array(filter_table(kind, width), dtype=float, device=device)
+    out = wp.empty((PIXELS, SAMPLES), dtype=wp.vec2, device=device)
+    wp.launch(_positions, dim=out.shape, inputs=[table, SAMPLERS[sampler], 7, out], device=device)
+    return out.numpy() - 0.5
+
+
+def profile_probabilities(kind: str, width: float, edges: np.ndarray) -> np.ndarray:
+    """The filter's probability per bin: its profile integrated finely, normalised."""
+    fine = np.linspace(edges[0], edges[-1], 200 * (edges.size - 1) + 1)
+    mass = np.diff(np.concatenate(([0.0], np.cumsum(filter_profile(kind, width, fine)))))
+    mass = np.add.reduceat(mass[1:], np.arange(0, fine.size - 1, 200))
+    return mass / mass.sum()
+
+
+FILTERS = [("BLACKMAN_HARRIS", 1.5), ("GAUSSIAN", 1.5), ("BOX", 1.0), ("BOX", 2.5)]
+
+
+def support(kind: str, width: float) -> float:
+    """Half the span of the table's offsets (film.py): w / 2."""
+    return {"BOX": 0.5, "GAUSSIAN": 1.5, "BLACKMAN_HARRIS": 1.0}[kind] * width
+
+
+def table_probabilities(kind: str, width: float, edges: np.ndarray) -> np.ndarray:
+    """The probability per bin of the table read with linear interpolation at uniform u."""
+    table = filter_table(kind, width).astype(np.float64) - 0.5
+    return np.diff(np.interp(edges, table, np.linspace(0.0, 1.0, FILTER_TABLE_SIZE)))
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize(("kind", "width"), FILTERS)
+def test_table_distribution_is_the_normalised_profile(kind, width):
+    """The table's distribution differs from the filter's profile by no more than its
+    resolution: total variation under 3/1023 (Cycles' table spreads its last 1/1023 of u
+    linearly over the tails, where Blackman-Harris and the Gaussian have almost no mass)."""
+    edges = np.linspace(-support(kind, width), support(kind, width), 25)
+    p_table = table_probabilities(kind, width, edges)
+    p_profile = profile_probabilities(kind, width, edges)
+    assert 0.5 * np.abs(p_table - p_profile).sum() < 3.0 / 1023
+    assert np.sum(p_table) == pytest.approx(1.0, abs=1e-6)
+
+
+@pytest.mark.parametrize(("kind", "width"), FILTERS)
+@pytest.mark.parametrize("sampler", ["sobol", "random"])
+def test_offsets_follow_the_table(kind, width, sampler, device):
+    """Histograms of the x and y offsets drawn on the device match the table's distribution
+    within 4 binomial sigmas per bin (and so the profile, by the test above)."""
+    xy = positions(kind, width, sampler, device)
+    s = support(kind, width)
+    edges = np.linspace(-s, s, 25)
+    p = table_probabilities(kind, width, edges)
+    n = PIXELS * SAMPLES
+    sigma = np.sqrt(n * p * (1 - p)) + 1.0
+    for axis in (0, 1):
+        v = xy[..., axis].ravel()
+        assert np.all(np.abs(v) <= s + 1e-5)
+        counts, _ = np.histogram(v, bins=edges)
+        z = (counts - n * p) / sigma
+        assert np.max(np.abs(z)) < 4.0, (axis, np.round(z, 1))
+
+
+def test_gaussian_is_cycles_sigma_of_a_quarter_width(device):
+    """Cycles' Gaussian of width 1.5 px is exp(-2 (6v / 4.5)^2): sigma 0.375 px. Checked by
+    the median of |offset| (0.6745 sigma), which the table's thin tails cannot move."""
+    xy = positions("GAUSSIAN", 1.5, "sobol", device)
+    assert np.median(np.abs(xy)) == pytest.approx(0.6744898 * 0.375, rel=0.01)
+    assert np.mean(xy) == pytest.approx(0.0, abs=0.003)
+
+
+def test_sobol_positions_are_stratified(device):
+    """With Owen-scrambled Sobol, every pixel's 256 positions put exactly 16 in each of 16
+    equal-probability bins of x: the filter's inverse CDF keeps the strata of u."""
+    table = filter_table("BLACKMAN_HARRIS", 1.5)
+    xy = positions("BLACKMAN_HARRIS", 1.5, "sobol", device) + 0.5
+    quantiles = np.interp(np.linspace(0, 1, 17), np.linspace(0, 1, FILTER_TABLE_SIZE), table)
+    for pixel in xy[:16]:
+        counts, _ = np.histogram(pixel[:, 0], bins=quantiles)
+        assert np.all(np.abs(counts - 16) <= 1), counts  # +-1: table interpolation at a bin edge
+
+
+@wp.kernel
+def _strata(table: wp.array(dtype=float), seed: int, out: wp.array2d(dtype=int)):
+    pixel, index = wp.tid()
+    key = pixel_key(pixel, seed)
+    right = filter_position(table, 1, key, index)[0] > 0.5
+    upper = sample_2d(1, key, index)[0] >= 0.5  # the occlusion direction's first coordinate
+    out[pixel, index] = wp.where(right == upper, 1, 0)
+
+
+def test_filter_and_occlusion_strata_are_independent(device):
+    """Regression: with the filter's Sobol index unshuffled, sample i's sub-pixel half and
+    its occlusion direction's half agreed for all or none of a pixel's samples, which left
+    each filtered pixel a bias (RMSE against Cycles stuck at 0.027 from 64 to 256 spp).
+    Now they agree for about half of each pixel's samples."""
+    table = wp.array(filter_table("BOX", 1.0), dtype=float, device=device)
+    out = wp.empty((PIXELS, SAMPLES), dtype=int, device=device)
+    wp.launch(_strata, dim=out.shape, inputs=[table, 3, out], device=device)
+    agree = out.numpy().mean(axis=1)
+    assert np.all((agree > 0.3) & (agree < 0.7)), np.sort(agree)[[0, -1]]
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize("kind", PIXEL_FILTERS)
+def test_table_is_monotone_and_symmetric(kind):
+    t = filter_table(kind, 1.5).astype(np.float64)
+    assert np.all(np.diff(t) >= 0.0)
+    np.testing.assert_allclose(t[:1023] + t[1022::-1], 1.0, atol=1e-6)
+    assert t[511] == pytest.approx(0.5)
+
+
+@pytest.mark.host_only
+@pytest.mark.parametrize(
+    ("kind", "width", "field"),
+    [("MITCHELL", 1.5, "pixel_filter"), ("BOX", 0.0, "filter_width"),
+     ("BOX", float("nan"), "filter_width"), ("GAUSSIAN", 11.0, "filter_width")],
+)
+def test_bad_filter_names_the_field(kind, width, field):
+    with pytest.raises(ValueError, match=field):
+        filter_table(kind, width)
+
+
+def half_plane(edge_x: float) -> kernels.Bvh:
+    """The plane z = 0 over x < edge_x (world units), facing +z."""
+    v = np.array([[-100, -100, 0], [edge_x, -100, 0], [edge_x, 100, 0], [-100, 100, 0]],
+                 dtype=np.float32)
+    return kernels.build_bvh(v, np.array([[0, 1, 2], [0, 2, 3]], dtype=np.int32))
+
+
+def ortho_camera(width: int, height: int) -> Camera:
+    """Looking down -z from z = 5, one world unit per pixel: raster x = world x + width / 2."""
+    m = np.eye(4)
+    m[2, 3] = 5.0
+    return Camera(matrix_world=m, width=width, height=height, type="ORTHO",
+                  ortho_scale=float(width))
+
+
+@pytest.mark.parametrize(("kind", "width"), [("BLACKMAN_HARRIS", 1.5), ("GAUSSIAN", 1.5),
+                                             ("BOX", 1.0)])
+def test_edge_alpha_is_the_filtered_coverage(kind, width):
+    """A straight silhouette between two pixel centres: each pixel's alpha is the filter's
+    mass left of the edge (brute force from the table), within 4 binomial sigmas; the open
+    plane's AO is exactly 1 and pixels beyond the filter's reach are exactly 0 or 1."""
+    w, h, spp = 16, 4, 256
+    edge = 7.3  # raster x of the edge
+    r = render_film(half_plane(edge - w / 2), ortho_camera(w, h), spp=spp,
+                    pixel_filter=kind, filter_width=width)
+    table = filter_table(kind, width).astype(np.float64)
+    expected = np.interp(edge - np.arange(w), table, np.linspace(0.0, 1.0, FILTER_TABLE_SIZE))
+    sigma = np.sqrt(expected * (1 - expected) / spp) + 1.0 / spp
+    assert np.all(np.abs(r.alpha - expected) <= 4 * sigma), (r.alpha[0], expected)
+    exact = (expected == 0.0) | (expected == 1.0)
+    assert np.array_equal(r.alpha[:, exact], np.broadcast_to(expected[exact], (h, exact.sum())))
+    assert exact.sum() >= w - 6  # the widest (Gaussian 1.5: +-2.25 px) reaches 5 pixels
+    assert np.all(r.ao == 1.0)
+
+
+def test_width_zero_is_the_pixel_centre_render(shared_scene):
+    """filter_width=0 is render_ao over Camera.rays(), bit for bit, alpha its hit mask."""
+    scene = shared_scene("sponza")
+    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 24, 16)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    film = render_film(bvh, cam, spp=8, filter_width=0)
+    o, d, t0, t1 = cam.rays()
+    ref = kernels.render_ao(bvh, o, d, spp=8, tmin=t0, tmax=t1)
+    assert np.array_equal(film.ao.ravel(), ref.ao)
+    assert np.array_equal(film.alpha.ravel(), (ref.spp_used > 0).astype(np.float32))
+
+
+def test_filtered_render_does_not_depend_on_threads(shared_scene):
+    """96x64 pixels at 8 spp: 12 parts of pixels, run by 1 or 2 host threads."""
+    scene = shared_scene("sponza")
+    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 96, 64)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    a = render_film(bvh, cam, spp=8, threads=1)
+    b = render_film(bvh, cam, spp=8, threads=2)
+    assert np.array_equal(a.ao, b.ao) and np.array_equal(a.alpha, b.alpha)
+
+
+@pytest.mark.parametrize(("settings", "field"), [
+    ({"target_error": 0.02}, "target_error"), ({"pixel_filter": "MITCHELL"}, "pixel_filter"),
+    ({"filter_width": -1.0}, "filter_width")])
+def test_bad_film_arguments_name_the_field(settings, field):
+    with pytest.raises(ValueError, match=field):
+        render_film(half_plane(0.0), ortho_camera(4, 4), **settings)
+
+
+def test_two_level_scene_renders_as_its_mesh():
+    """The same half plane as a mesh and as a two-level scene's one instance (the
+    identity): the same filtered coverage and AO, sample for sample."""
+    w, h = 16, 4
+    bvh = half_plane(7.3 - w / 2)
+    scene = kernels.build_scene([bvh], np.array([0]), np.eye(4, dtype=np.float32)[None, :3])
+    a = render_film(bvh, ortho_camera(w, h), spp=64)
+    b = render_film(scene, ortho_camera(w, h), spp=64)
+    assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
+    assert 0.0 < a.alpha[0, 7] < 1.0
+
+
+@wp.kernel
+def _centre_rays(cam: FilmCamera, width: int, out: wp.array2d(dtype=float)):
+    k = wp.tid()
+    row = k / width
+    o, d, t0, t1 = camera_ray(cam, float(k - row * width) + 0.5, float(row) + 0.5)
+    for j in range(3):
+        out[k, j] = o[j]
+        out[k, 3 + j] = d[j]
+    out[k, 6] = t0
+    out[k, 7] = t1
+
+
+@pytest.mark.parametrize("settings", [
+    {"type": "PERSP", "lens": 35.0, "sensor_fit": "AUTO", "shift_x": 0.1, "clip_start": 0.5},
+    {"type": "PERSP", "sensor_fit": "VERTICAL", "shift_y": -0.2, "clip_end": 50.0},
+    {"type": "ORTHO", "ortho_scale": 4.0, "sensor_fit": "HORIZONTAL", "shift_x": -0.3},
+])
+def test_device_camera_is_the_camera_model(settings, device):
+    """The kernel's camera ray through each pixel centre is Camera.rays()'s (float32)."""
+    angle = 0.3
+    m = np.eye(4)
+    m[:3, :3] = [[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
+                 [-math.sin(angle), 0, math.cos(angle)]]
+    m[:3, 3] = (1.0, -2.0, 3.0)
+    cam = Camera(matrix_world=m, width=12, height=20, **settings)
+    out = wp.empty((cam.width * cam.height, 8), dtype=float, device=device)
+    wp.launch(_centre_rays, dim=out.shape[0], inputs=[device_camera(cam), cam.width, out],
+              device=device)
+    got = out.numpy()
+    for i, ref in enumerate(cam.rays()):
+        ref = np.asarray(ref, dtype=np.float64).reshape(len(got), -1)
+        cols = slice(3 * i, 3 * i + 3) if i < 2 else slice(4 + i, 5 + i)
+        np.testing.assert_allclose(got[:, cols], ref, rtol=1e-5, atol=1e-5)
