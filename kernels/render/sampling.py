@@ -100,15 +100,12 @@ def to_unit(x: wp.uint32) -> float:
 
 
 @wp.func
-def sample_2d(sampler: int, key: wp.uint32, index: int) -> wp.vec2:
-    """Point `index` of the pixel's sequence: independent hashes, or Owen-scrambled Sobol
-    (each pixel its own scramble, so pixels are decorrelated and each point uniform)."""
-    return sample_2d_at(sampler, key, wp.uint32(index))
-
-
-@wp.func
 def sample_2d_at(sampler: int, key: wp.uint32, k: wp.uint32) -> wp.vec2:
-    """`sample_2d` at a 32-bit sequence position (a shuffled index: film.py)."""
+    """Point k of the pixel's sequence (k a 32-bit position: a sample index, or film.py's
+    shuffled one): independent hashes, or Owen-scrambled Sobol (each pixel its own
+    scramble, so pixels are decorrelated and each point uniform). Callers pass the
+    position themselves: a wrapper taking an int cost 1-2% of a one-thread AO render
+    (benchmarks/paired.py, ao1)."""
     if sampler == SAMPLER_SOBOL:
         x = owen_scramble(reverse_bits(k), key)
         y = owen_scramble(sobol_dim1(k), pcg_hash(key))
@@ -174,5 +171,5 @@ def frame_y(n: wp.vec3) -> wp.vec3:
 @wp.func
 def cosine_direction(n: wp.vec3, sampler: int, key: wp.uint32, index: int) -> wp.vec3:
     """Sample `index` of the pixel with `key`: a cosine-weighted unit direction about n."""
-    w = cosine_hemisphere(sample_2d(sampler, key, index))
+    w = cosine_hemisphere(sample_2d_at(sampler, key, wp.uint32(index)))
     return frame_x(n) * w[0] + frame_y(n) * w[1] + n * w[2]

@@ -17,7 +17,7 @@ from scenesort.kernels.render.film import (
     filter_table,
 )
 from scenesort.kernels.render.filtered import FilmCamera, camera_ray, device_camera, render_film
-from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d
+from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d_at
 
 from scenesort import kernels
 
@@ -119,7 +119,8 @@ def _strata(table: wp.array(dtype=float), seed: int, out: wp.array2d(dtype=int))
     pixel, index = wp.tid()
     key = pixel_key(pixel, seed)
     right = filter_position(table, 1, key, index)[0] > 0.5
-    upper = sample_2d(1, key, index)[0] >= 0.5  # the occlusion direction's first coordinate
+    # the occlusion direction's first coordinate
+    upper = sample_2d_at(1, key, wp.uint32(index))[0] >= 0.5
     out[pixel, index] = wp.where(right == upper, 1, 0)
 
 
