@@ -118,8 +118,15 @@ class AoEngine:
         transparent = scene.render.film_transparent
         view = camera.view(scene, depsgraph, self.camera_override)
         self.show("exporting the scene")
-        instanced = self.is_animation and scene.scenesort.engine == "bvh"
+        # Instance lists for the BVH engine where they pay (instances, shared meshes) or
+        # carry what a flattened scene cannot (ray visibility, holdout); every frame of an
+        # animation, so that unchanged meshes are never sent twice.
+        instanced = scene.scenesort.engine == "bvh" and (
+            self.is_animation or export.has_instances(depsgraph))
         mesh = (export.export_instances if instanced else export.export_scene)(depsgraph)
+        if not instanced and export.custom_visibility(depsgraph):
+            self._say("WARNING", "Ray visibility and holdout are ignored by the DACRT engine: "
+                                 "choose the BVH engine to honour them")
         if mesh.triangles == 0:
             frame = view["window"] or view["camera"]
             size = (frame["width"], frame["height"])

@@ -14,7 +14,8 @@ differs from Blender's default (the service's default).
 
 `export_instances` reads the same depsgraph without flattening it: each distinct mesh once,
 in its own space (a `SceneMesh` whose content hash is its id), and per instance its mesh
-and 3x4 object-to-world transform: the service's instance list (docs/api.md).
+and 3x4 object-to-world transform: the service's instance list (docs/api.md), with each
+instance's ray visibility (camera, shadow, holdout) where some differs from the default.
 """
 
 from __future__ import annotations
@@ -34,6 +35,10 @@ _CONVERTIBLE = {"CURVE", "SURFACE", "FONT", "META"}
 # The service's (the engine's) default, Object.shadow_terminator_geometry_offset's too: a
 # scene whose objects all have it sends no offsets.
 DEFAULT_TERMINATOR_OFFSET = AO_OPTIONS["terminator_offset"]["default"]
+# An instance's ray visibility mask, the service's bits (docs/api.md): seen by the camera,
+# occluding (Cycles' AO rays are shadow rays), held out.
+CAMERA, SHADOW, HOLDOUT = 1, 2, 4
+DEFAULT_VISIBILITY = CAMERA | SHADOW
 
 
 def terminator_offset(obj: bpy.types.Object) -> float:
@@ -229,10 +234,8 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
     offset = 0
     count = 0
     triangles = 0
-    for inst in _instances(depsgraph):
+    for inst in _rendered(depsgraph):
         obj = inst.object
-        if obj.type != "MESH" and obj.type not in _CONVERTIBLE:
-            continue
         arrays = _source_arrays(obj, cache)
         tris, normals = arrays.indices, arrays.normals
         if len(tris) == 0:
@@ -291,6 +294,7 @@ class InstanceExport:
     meshes: dict[str, SceneMesh]
     mesh_index: np.ndarray
     transforms: np.ndarray
+    visibility: np.ndarray | None = None  # (N,) uint8 masks; None: all DEFAULT_VISIBILITY
 
     @property
     def triangles(self) -> int:
@@ -302,11 +306,19 @@ class InstanceExport:
     def objects(self) -> int:
         return len(self.mesh_index)
 
+    @property
+    def holdouts(self) -> bool:
+        """Whether the camera may see a holdout (the job then has a holdout image)."""
+        return self.visibility is not None and bool(
+            np.any((self.visibility & CAMERA != 0) & (self.visibility & HOLDOUT != 0)))
+
     def body(self) -> bytes:
-        """The body of `POST /v1/instance-scenes`: K*32 hex ids, N int32, N*12 float32."""
+        """The body of `POST /v1/instance-scenes`: K*32 hex ids, N int32, N*12 float32,
+        then N uint8 masks when `visibility` (its `visibility=true`)."""
         ids = "".join(self.meshes).encode("ascii")
+        masks = b"" if self.visibility is None else self.visibility.astype(np.uint8).tobytes()
         return (ids + np.ascontiguousarray(self.mesh_index, "<i4").tobytes()
-                + np.ascontiguousarray(self.transforms, "<f4").tobytes())
+                + np.ascontiguousarray(self.transforms, "<f4").tobytes() + masks)
 
     @property
     def scene_id(self) -> str:
@@ -329,19 +341,70 @@ def mesh_id(mesh: SceneMesh) -> str:
     return content_id(len(mesh.vertices), mesh.triangles, mesh.body())
 
 
+def ray_visibility(inst: bpy.types.DepsgraphObjectInstance, view_layer: bpy.types.ViewLayer,
+                   ) -> int:
+    """The instance's mask as Cycles reads it: Ray Visibility > Camera and Shadow of its
+    object and, for an instance, of its instancer too; holdout (the object's Mask >
+    Holdout or a holdout collection) of the instancer, else of the object."""
+    obj = inst.object
+    owner = inst.parent if inst.is_instance and inst.parent is not None else obj
+    mask = 0
+    if obj.visible_camera and owner.visible_camera:
+        mask |= CAMERA
+    if obj.visible_shadow and owner.visible_shadow:
+        mask |= SHADOW
+    if owner.original.holdout_get(view_layer=view_layer):
+        mask |= HOLDOUT
+    return mask
+
+
+def _rendered(depsgraph: bpy.types.Depsgraph,
+              ) -> Iterator[bpy.types.DepsgraphObjectInstance]:
+    """`_instances` that have mesh-like geometry."""
+    for inst in _instances(depsgraph):
+        if inst.object.type == "MESH" or inst.object.type in _CONVERTIBLE:
+            yield inst
+
+
+def custom_visibility(depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether some object's ray visibility or holdout is not the default."""
+    view_layer = depsgraph.view_layer
+    return any(ray_visibility(inst, view_layer) != DEFAULT_VISIBILITY
+               for inst in _rendered(depsgraph))
+
+
+def has_instances(depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether the scene renders best as an instance list: some geometry is instanced
+    (collection instances, instancing by vertices or faces, geometry nodes), mesh data is
+    shared by several objects, or an object's ray visibility or holdout is not the
+    default (only an instance list carries them). Reads no mesh."""
+    view_layer = depsgraph.view_layer
+    seen: set[int] = set()
+    for inst in _rendered(depsgraph):
+        obj = inst.object
+        data = obj.data.as_pointer() if obj.type == "MESH" and obj.data else None
+        if inst.is_instance or data in seen or ray_visibility(
+                inst, view_layer) != DEFAULT_VISIBILITY:
+            return True
+        if data is not None:
+            seen.add(data)
+    return False
+
+
 def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
     """What `export_scene` renders, as meshes and instances: instanced meshes are read and
-    hashed once, not expanded; instances scaled to nothing (no area) are left out."""
+    hashed once, not expanded; instances scaled to nothing (no area) are left out; each
+    instance's `ray_visibility`."""
     cache: dict[int, _MeshArrays] = {}
     local: dict[tuple[int, float], str] = {}  # (arrays, terminator offset) -> mesh id
     meshes: dict[str, SceneMesh] = {}
     position: dict[str, int] = {}  # mesh id -> its place in `meshes`
     index: list[int] = []
     transforms: list[np.ndarray] = []
-    for inst in _instances(depsgraph):
+    masks: list[int] = []
+    view_layer = depsgraph.view_layer
+    for inst in _rendered(depsgraph):
         obj = inst.object
-        if obj.type != "MESH" and obj.type not in _CONVERTIBLE:
-            continue
         arrays = _source_arrays(obj, cache)
         m = np.array(inst.matrix_world, dtype=np.float32)[:3]
         if len(arrays.indices) == 0 or np.linalg.det(m[:, :3].astype(np.float64)) == 0.0:
@@ -354,8 +417,11 @@ def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
             meshes.setdefault(local[key], mesh)
         index.append(position[local[key]])
         transforms.append(m)
+        masks.append(ray_visibility(inst, view_layer))
+    visibility = np.asarray(masks, np.uint8)
     return InstanceExport(
         meshes,
         np.asarray(index, np.int32),
         np.asarray(transforms, np.float32).reshape(-1, 3, 4),
+        None if (visibility == DEFAULT_VISIBILITY).all() else visibility,
     )

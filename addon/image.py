@@ -19,6 +19,8 @@ def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
     ao = outcome.ao.reshape(height, width)[::-1].reshape(-1, 1) * coverage
     depth = outcome.depth.reshape(height, width)[::-1].reshape(-1, 1)
     alpha = coverage if transparent else np.ones_like(coverage)
+    if outcome.holdout is not None:  # a holdout is transparent whatever the film says
+        alpha = alpha * (1.0 - outcome.holdout.reshape(height, width)[::-1].reshape(-1, 1))
     return {"Combined": np.hstack([ao, ao, ao, alpha]), "AO": ao, "Depth": depth}
 
 

@@ -77,6 +77,7 @@ class Outcome:
     ao: np.ndarray | None = None  # height*width float32, row 0 at the top (1 on a miss)
     coverage: np.ndarray | None = None  # 1 where the camera ray hit, 0 where it missed
     depth: np.ndarray | None = None  # camera-space Z, 1e10 on a miss
+    holdout: np.ndarray | None = None  # 1 where the camera sees a holdout (None: nowhere)
     timings_ms: dict[str, float] = field(default_factory=dict)  # the job's phases
     render_ms: float = 0.0
     # what the render achieved (the job's status): estimated RMSE (None: unknown), spp, rays
@@ -147,7 +148,8 @@ def ensure_instances(task: Task, client: Client, scene: InstanceExport,
     if not client.has_scene(scene_id):
         task.set_step(f"sending {scene.objects:,} instances")
         body = scene.body()
-        client.upload_instances(len(scene.meshes), scene.objects, body)
+        client.upload_instances(len(scene.meshes), scene.objects, body,
+                                scene.visibility is not None)
         outcome.uploaded_bytes += len(body)
     outcome.scene_id = scene_id
     return scene_id
@@ -245,6 +247,8 @@ def render_job(
     outcome.ao = client.job_result(job["job_id"], pixels)
     outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")
     outcome.depth = client.job_result(job["job_id"], pixels, "depth")
+    if isinstance(mesh, InstanceExport) and mesh.holdouts:
+        outcome.holdout = client.job_result(job["job_id"], pixels, "holdout")
     outcome.render_ms = (time.perf_counter() - start) * 1e3
     outcome.requests = client.requests
     return outcome

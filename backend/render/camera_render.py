@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 from scenesort.backend.render.ao import shading
-from scenesort.backend.render.bvhs import scene_bvh
+from scenesort.backend.render.bvhs import Views, scene_views
 from scenesort.backend.render.framing import framed
 from scenesort.backend.render.visibility import View
 from scenesort.backend.wire.binary import encode_png
@@ -51,42 +51,50 @@ def render_camera(
         return out
 
     view = View(camera, options.distance) if cull else None
-    bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device,
-                                                    view))
+    views, job.build = timed("bvh", lambda: scene_views(store, scene, method, leaf_size, device,
+                                                        view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
-        job.add_timing("bvh.compile", float(bvh.stats.compile_ms))
+        job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
     result = timed(
-        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, options, shape)
+        "ao", lambda: _render_ao(job, views, scene, origins, directions, tmin, tmax, options,
+                                 shape)
     )
     job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
-    job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0 spp
+    # misses and holdouts: 0 spp
+    job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)
+    if getattr(scene, "visibility", None) is not None:  # an instance list with masks
+        held = np.zeros(shape, bool) if result.holdout is None else result.holdout
+        job.holdout = held.astype(np.float32).reshape(shape)
     stats = result.stats()
     job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
     job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
     job.denoised = stats.denoised
-    depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
+    depth = timed("depth", lambda: camera_depth(views, camera, origins, directions, tmin, tmax))
     job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
 
 
 def camera_depth(
-    bvh: Any, camera: Any, origins: np.ndarray, directions: np.ndarray,
+    views: Views, camera: Any, origins: np.ndarray, directions: np.ndarray,
     tmin: np.ndarray, tmax: np.ndarray,
 ) -> np.ndarray:
-    """Cycles' Z pass: the closest hit's camera-space depth `t * dot(d, forward)` per ray,
-    BACKGROUND_DEPTH where the ray misses (the same closest-hit query as AO's primary rays)."""
+    """Cycles' Z pass: the closest seen hit's (a holdout's too) camera-space depth
+    `t * dot(d, forward)` per ray, BACKGROUND_DEPTH where the ray misses (the same
+    closest-hit query as AO's primary rays)."""
     from scenesort import kernels
 
-    hits = kernels.trace(bvh, origins, directions, tmin, tmax)
-    z = hits.t.astype(np.float64) * (directions.astype(np.float64) @ camera.forward)
-    return np.where(hits.hit, z, BACKGROUND_DEPTH).astype(np.float32)
+    t = kernels.trace(views.camera, origins, directions, tmin, tmax).t
+    if views.holdout is not None:
+        t = np.minimum(t, kernels.trace(views.holdout, origins, directions, tmin, tmax).t)
+    z = t.astype(np.float64) * (directions.astype(np.float64) @ camera.forward)
+    return np.where(np.isfinite(t), z, BACKGROUND_DEPTH).astype(np.float32)
 
 
 def _render_ao(
     job: Job,
-    bvh: Any,
+    views: Views,
     scene: Any,
     origins: np.ndarray,
     directions: np.ndarray,
@@ -103,8 +111,10 @@ def _render_ao(
     def progress(fraction: float, phase: str) -> None:
         job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
 
-    result = kernels.render_ao(bvh, origins, directions, options, tmin=tmin, tmax=tmax,
-                               progress=progress, image_shape=shape, **shading(scene))
+    occluders = None if views.occluders is views.camera else views.occluders
+    result = kernels.render_ao(views.camera, origins, directions, options, tmin=tmin,
+                               tmax=tmax, progress=progress, image_shape=shape,
+                               occluders=occluders, holdout=views.holdout, **shading(scene))
     for name, ms in result.timings_ms.to_dict().items():
         job.add_timing(f"ao.{name}", float(ms))
     return result

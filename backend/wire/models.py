@@ -74,6 +74,10 @@ class InstanceSceneInfo(Strict):
     triangles: int = Field(description="triangles the instances stand for (not stored again)")
     bounds: list[list[float]] = Field(description="[[xmin, ymin, zmin], [xmax, ymax, zmax]]")
     bytes: int = Field(description="bytes of the instance list (the meshes are apart)")
+    visibility: dict[str, int] = Field(
+        description="instances by ray visibility: camera (seen), shadow (occluding), holdout "
+                    "(seen as holdout); every instance counts in camera and shadow when the "
+                    "list was sent without masks")
 
 
 class BuildReport(Strict):

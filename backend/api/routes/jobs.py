@@ -138,19 +138,23 @@ async def cancel_job(job_id: JobId, service: Shared) -> JobStatus:
             "description": "format=f32: height*width little-endian float32 AO, row 0 "
             "at the top; format=coverage: the same layout, 1.0 where the camera ray "
             "hit and 0.0 where it missed; format=depth: the same layout, the hit's "
-            "camera-space depth (Cycles' Z pass), 1e10 where it missed; format=png: "
+            "camera-space depth (Cycles' Z pass), 1e10 where it missed; format=holdout: "
+            "the same layout, 1.0 where the camera sees a holdout instance (alpha 0, AO 0) "
+            "and 0.0 elsewhere (a scene sent with visibility masks); format=png: "
             "8-bit grayscale PNG of the AO. X-Width/X-Height headers.",
         },
         **error_responses(404, 409, 422),
     },
 )
 async def job_result(
-    job_id: JobId, service: Shared, format: Literal["f32", "coverage", "depth", "png"] = "f32"
+    job_id: JobId, service: Shared,
+    format: Literal["f32", "coverage", "depth", "holdout", "png"] = "f32",
 ) -> Response:
-    """The finished image (AO, coverage or depth); 409 while the job is not done."""
+    """The finished image (AO, coverage, depth or holdout); 409 while the job is not done."""
     job = service.job(job_id)
     # One read: the manager may forget the job meanwhile.
-    layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth, "png": job.png}[format]
+    layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth,
+             "holdout": job.holdout, "png": job.png}[format]
     if job.state != "done" or layer is None:
         detail = f" ({job.error})" if job.error else ""
         raise ApiError(
