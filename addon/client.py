@@ -223,8 +223,9 @@ class Client:
         return self._json("DELETE", f"/v1/jobs/{job_id}", timeout=UPLOAD_TIMEOUT_S)
 
     def job_result(self, job_id: str, pixels: int, layer: str = "f32") -> np.ndarray:
-        """`GET /v1/jobs/{id}/result?format=f32|coverage|depth|holdout`: `pixels` float32
-        (AO, coverage, depth or holdout), row 0 at the top."""
+        """`GET /v1/jobs/{id}/result?format=...` (f32, coverage, depth, holdout, normal,
+        position, object): `pixels` float32 values (pixels times the layer's channels),
+        row 0 at the top."""
         _, _, data = self._request(
             "GET", f"/v1/jobs/{job_id}/result?format={layer}", timeout=UPLOAD_TIMEOUT_S
         )

@@ -13,7 +13,9 @@ service then builds only what changed (backend/render/bvhs.py). F12 sends the fl
 
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
 alpha = coverage with Film > Transparent and 1 without; `AO` (one channel, 0 on
-background); `Depth` (camera-space Z, 1e10 on background).
+background); `Depth` (camera-space Z, 1e10 on background); and those the view layer turns
+on (`image.OPTIONAL_PASSES`): Normal, Position, Object Index and the Denoising Normal,
+Albedo and Depth of Cycles' Denoising Data, so that the compositor's Denoise node works.
 """
 
 from __future__ import annotations
@@ -89,6 +91,8 @@ class AoEngine:
     def update_render_passes(self, scene: Any = None, renderlayer: Any = None) -> None:
         for name, channels, chan_id, kind in PASSES:
             self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
+        for extra in image.wanted_passes(renderlayer):
+            self.register_pass(scene, renderlayer, *extra.blender)
 
     def render(self, depsgraph: bpy.types.Depsgraph) -> None:
         self._guarded("Render", lambda: self._render(depsgraph))
@@ -121,8 +125,10 @@ class AoEngine:
         # Instance lists for the BVH engine where they pay (instances, shared meshes) or
         # carry what a flattened scene cannot (ray visibility, holdout); every frame of an
         # animation, so that unchanged meshes are never sent twice.
+        extras = image.wanted_passes(depsgraph.view_layer)
         instanced = scene.scenesort.engine == "bvh" and (
-            self.is_animation or export.has_instances(depsgraph))
+            self.is_animation or export.has_instances(depsgraph)
+            or any(extra.per_object for extra in extras))
         mesh = (export.export_instances if instanced else export.export_scene)(depsgraph)
         if not instanced and export.custom_visibility(depsgraph):
             self._say("WARNING", "Ray visibility and holdout are ignored by the DACRT engine: "
@@ -140,11 +146,14 @@ class AoEngine:
         settings = pipeline.Settings.from_scene(scene)
         target = prefs.target(bpy.context)
         outcome = self._run(
-            lambda task: pipeline.render_job(task, target, settings, mesh, view),
+            lambda task: pipeline.render_job(task, target, settings, mesh, view,
+                                             image.service_passes(extras)),
             f"{mesh.triangles:,} triangles",
         )
         line = stats_line(outcome, mesh.triangles)
-        self._write(depsgraph, image.result_passes(outcome, transparent), outcome.size, line)
+        passes = image.result_passes(outcome, transparent)
+        passes.update(image.extra_passes(outcome, extras, mesh))
+        self._write(depsgraph, passes, outcome.size, line)
         self.show(line)
         self._keep(scene, outcome)
 

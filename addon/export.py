@@ -295,6 +295,9 @@ class InstanceExport:
     mesh_index: np.ndarray
     transforms: np.ndarray
     visibility: np.ndarray | None = None  # (N,) uint8 masks; None: all DEFAULT_VISIBILITY
+    # (N,) float32 each instance's object's Pass Index (the Object Index pass); not sent
+    pass_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32),
+                                   compare=False)
 
     @property
     def triangles(self) -> int:
@@ -402,6 +405,7 @@ def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
     index: list[int] = []
     transforms: list[np.ndarray] = []
     masks: list[int] = []
+    pass_index: list[int] = []
     view_layer = depsgraph.view_layer
     for inst in _rendered(depsgraph):
         obj = inst.object
@@ -418,10 +422,12 @@ def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
         index.append(position[local[key]])
         transforms.append(m)
         masks.append(ray_visibility(inst, view_layer))
+        pass_index.append(obj.pass_index)
     visibility = np.asarray(masks, np.uint8)
     return InstanceExport(
         meshes,
         np.asarray(index, np.int32),
         np.asarray(transforms, np.float32).reshape(-1, 3, 4),
         None if (visibility == DEFAULT_VISIBILITY).all() else visibility,
+        np.asarray(pass_index, np.float32),
     )

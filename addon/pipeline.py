@@ -78,6 +78,8 @@ class Outcome:
     coverage: np.ndarray | None = None  # 1 where the camera ray hit, 0 where it missed
     depth: np.ndarray | None = None  # camera-space Z, 1e10 on a miss
     holdout: np.ndarray | None = None  # 1 where the camera sees a holdout (None: nowhere)
+    # the job's extra passes by name (JobRequest.passes), each pixels * channels float32
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)  # the job's phases
     render_ms: float = 0.0
     # what the render achieved (the job's status): estimated RMSE (None: unknown), spp, rays
@@ -234,13 +236,16 @@ def job_fields(settings: Settings) -> dict[str, Any]:
 
 def render_job(
     task: Task, target: Target, settings: Settings, mesh: SceneMesh | InstanceExport,
-    view: dict,
+    view: dict, passes: tuple[str, ...] = (),
 ) -> Outcome:
     """The one render path (F12, animations, the panel's Render AO, scripts): scene, BVH,
     then a service job for `view` (`camera.view()`: camera, window, pixel aspect) with
-    progress; cancelling the task cancels the job on the service."""
+    progress, keeping the extra `passes` (JobRequest.passes); cancelling the task cancels
+    the job on the service."""
     client, outcome, scene_id = prepare(task, target, settings, mesh)
     payload = {**view, "scene_id": scene_id, **job_fields(settings)}
+    if passes:
+        payload["passes"] = list(passes)
     start = time.perf_counter()
     job = follow(task, client, client.create_job(payload), outcome)
     pixels = outcome.size[0] * outcome.size[1]
@@ -249,6 +254,9 @@ def render_job(
     outcome.depth = client.job_result(job["job_id"], pixels, "depth")
     if isinstance(mesh, InstanceExport) and mesh.holdouts:
         outcome.holdout = client.job_result(job["job_id"], pixels, "holdout")
+    for name in passes:
+        channels = 1 if name == "object" else 3
+        outcome.extras[name] = client.job_result(job["job_id"], pixels * channels, name)
     outcome.render_ms = (time.perf_counter() - start) * 1e3
     outcome.requests = client.requests
     return outcome

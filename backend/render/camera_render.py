@@ -5,7 +5,7 @@ AO with progress, the primary hits' depth and coverage, and the PNG."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
@@ -38,10 +38,11 @@ def render_camera(
     leaf_size: int,
     device: str,
     cull: bool = True,
+    passes: Sequence[str] = (),
 ) -> None:
     """Render `camera`'s pixels into `job` (its ao, coverage, depth, png, build and
-    statistics), reporting each phase; with `cull`, of an instance list only what the
-    camera may see is built (render/bvhs.py)."""
+    statistics, and the extra `passes`: JobRequest.passes), reporting each phase; with
+    `cull`, of an instance list only what the camera may see is built (render/bvhs.py)."""
 
     def timed(phase: str, fn: Callable[[], Any]) -> Any:
         job.report(phase)  # also the cancellation point between phases
@@ -71,25 +72,36 @@ def render_camera(
     job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
     job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
     job.denoised = stats.denoised
-    depth = timed("depth", lambda: camera_depth(views, camera, origins, directions, tmin, tmax))
-    job.depth = depth.reshape(shape)
+    t, instance = timed("depth", lambda: seen_hits(views, origins, directions, tmin, tmax))
+    hit = np.isfinite(t)
+    t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]
+    z = t64[:, 0] * (directions.astype(np.float64) @ camera.forward)
+    job.depth = np.where(hit, z, BACKGROUND_DEPTH).astype(np.float32).reshape(shape)
+    extras = {  # made only when asked for (JobRequest.passes)
+        "normal": lambda: result.normals.reshape(*shape, 3),
+        "position": lambda: np.where(hit[:, None], origins + t64 * directions,
+                                     0.0).reshape(*shape, 3),
+        "object": lambda: np.where(job.coverage.ravel() > 0, instance, -1).reshape(shape),
+    }
+    job.extras = {name: extras[name]().astype(np.float32) for name in passes}
     job.png = timed("png", lambda: encode_png(job.ao))
 
 
-def camera_depth(
-    views: Views, camera: Any, origins: np.ndarray, directions: np.ndarray,
-    tmin: np.ndarray, tmax: np.ndarray,
-) -> np.ndarray:
-    """Cycles' Z pass: the closest seen hit's (a holdout's too) camera-space depth
-    `t * dot(d, forward)` per ray, BACKGROUND_DEPTH where the ray misses (the same
-    closest-hit query as AO's primary rays)."""
+def seen_hits(
+    views: Views, origins: np.ndarray, directions: np.ndarray, tmin: np.ndarray,
+    tmax: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray the closest seen hit's t (a holdout's too; inf on a miss) and the instance
+    hit (a single mesh's 0): the same closest-hit query as AO's primary rays."""
     from scenesort import kernels
 
-    t = kernels.trace(views.camera, origins, directions, tmin, tmax).t
+    hits = kernels.trace(views.camera, origins, directions, tmin, tmax)
+    t, instance = hits.t, hits.instance
     if views.holdout is not None:
-        t = np.minimum(t, kernels.trace(views.holdout, origins, directions, tmin, tmax).t)
-    z = t.astype(np.float64) * (directions.astype(np.float64) @ camera.forward)
-    return np.where(np.isfinite(t), z, BACKGROUND_DEPTH).astype(np.float32)
+        held = kernels.trace(views.holdout, origins, directions, tmin, tmax)
+        nearer = held.t < t
+        t, instance = np.where(nearer, held.t, t), np.where(nearer, held.instance, instance)
+    return t, instance
 
 
 def _render_ao(

@@ -16,6 +16,8 @@ from scenesort.ao_options import AO_OPTIONS, AoOptions, OptionError
 
 OCTET = "application/octet-stream"
 Method = Literal["sah", "median"]  # the BVH builders
+ExtraPass = Literal["normal", "position", "object"]  # a job's images beside AO, coverage, depth
+EXTRA_PASSES = ("normal", "position", "object")
 LeafSize = Annotated[int, Field(ge=1, le=64)]
 
 
@@ -238,6 +240,11 @@ class JobRequest(AoSettings):
     method: Method = "sah"
     leaf_size: LeafSize = 8
     denoise: ao_setting("denoise")
+    passes: list[ExtraPass] = Field(
+        default_factory=list, max_length=len(EXTRA_PASSES),
+        description="extra images to keep for GET .../result: normal (world-space shading "
+                    "normal, xyz), position (world-space hit point, xyz), object (the "
+                    "instance index the camera ray hit, -1 on background and holdouts)")
 
 
 class JobStatus(Strict):

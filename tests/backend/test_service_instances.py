@@ -368,3 +368,46 @@ def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
     assert not np.frombuffer(coverage.content, "<f4")[held > 0].any()
     depth = api.client.get(f"/v1/jobs/{first['job_id']}/result", params={"format": "depth"})
     assert (np.frombuffer(depth.content, "<f4")[held > 0] < 1e9).all()  # the holdout's
+
+
+def test_extra_passes_are_kept_when_asked_for(api, meshes) -> None:  # noqa: ANN001
+    """A job's passes: the shading normals render_ao found, the hit points (on the
+    instances' world triangles), the instance each camera ray hit (-1 on background);
+    a pass not asked for is a 409 naming `format`."""
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
+
+    ids = [meshes["floor"], meshes["cube"]]
+    placed = transforms((0, 0, 0), (0.3, 0.0, 0.3), scale=0.5)
+    placed[0, :, :3] = np.eye(3)
+    scene_id = post_instances(api, ids, [0, 1], placed).json()["scene_id"]
+    camera = Camera.look_at((0.0, 2.0, 2.0), (0, 0, 0), (0, 1, 0), 50.0, 24, 18).to_dict()
+    job = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera, "spp": 4,
+                                            "seed": 2, "distance": 0.5,
+                                            "passes": ["normal", "position", "object"]})
+    assert job.status_code == 202, job.text
+    status = job_ended(api.client, job.json()["job_id"])
+
+    def layer(name: str, channels: int = 1) -> np.ndarray:
+        got = api.client.get(f"/v1/jobs/{status['job_id']}/result", params={"format": name})
+        assert got.status_code == 200, got.text
+        return np.frombuffer(got.content, "<f4").reshape(-1, channels)
+
+    (fv, fi), (cv, ci) = floor_and_box(), cube()
+    scene = kernels.build_scene([kernels.build_bvh(fv, fi), kernels.build_bvh(cv, ci)],
+                                [0, 1], placed)
+    o, d, tmin, tmax = Camera.from_dict(camera).rays()
+    direct = kernels.render_ao(scene, o, d, spp=4, seed=2, distance=0.5, tmin=tmin, tmax=tmax)
+    hits = kernels.trace(scene, o, d, tmin, tmax)
+    np.testing.assert_array_equal(layer("normal", 3), direct.normals)
+    np.testing.assert_array_equal(layer("object")[:, 0], np.where(hits.hit, hits.instance, -1))
+    assert {0, 1} <= set(hits.instance.tolist())
+    expected = np.where(hits.hit[:, None], o + hits.t[:, None].astype(np.float64) * d, 0.0)
+    np.testing.assert_allclose(layer("position", 3), expected, rtol=1e-6, atol=1e-6)
+    plain = _job(api, scene_id, camera)
+    missing = api.client.get(f"/v1/jobs/{plain['job_id']}/result", params={"format": "normal"})
+    assert missing.status_code == 409 and missing.json()["parameter"] == "format"
+    bad = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera,
+                                            "passes": ["albedo"]})
+    assert bad.status_code == 422 and "passes" in bad.json()["parameter"]
