@@ -9,7 +9,10 @@ and shows the step in the status bar. Blender writes the files of Ctrl-F12 itsel
 Frame ranges (Ctrl-F12) with the BVH engine send the scene as an instance list
 (`export.export_instances`): per frame each mesh is asked for by its hash (HEAD) and sent
 only when the service lacks it, and the list of instances is sent when it changed; the
-service then builds only what changed (backend/render/bvhs.py). F12 sends the flattened scene.
+service then builds only what changed (backend/render/bvhs.py). F12 does the same when the
+scene has instances, ray visibility or holdouts, or an Object Index pass (what only an
+instance list carries), else sends the flattened scene. The Rendered viewport's
+`view_update`/`view_draw` hand the work to a `viewport.ViewSession`.
 
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
 alpha = coverage with Film > Transparent and 1 without; `AO` (one channel, 0 on
@@ -29,7 +32,7 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import bake, camera, export, image, pipeline, prefs, service, timings
+from . import bake, camera, export, image, pipeline, prefs, service, timings, viewport
 from .client import ServiceError
 from .tasks import Cancelled, Task
 
@@ -96,6 +99,48 @@ class AoEngine:
 
     def render(self, depsgraph: bpy.types.Depsgraph) -> None:
         self._guarded("Render", lambda: self._render(depsgraph))
+
+    # --- the Rendered viewport (viewport.py does the work) ----------------------------
+
+    view_session: viewport.ViewSession | None = None
+
+    def view_update(self, context: bpy.types.Context, depsgraph: bpy.types.Depsgraph) -> None:
+        """Blender's call after a change: the session reads what changed and restarts."""
+        first = self.view_session is None
+        if first:
+            self.view_session = viewport.ViewSession(prefs.target(context))
+        self.view_session.update_scene(depsgraph, first)
+
+    def view_draw(self, context: bpy.types.Context, depsgraph: bpy.types.Depsgraph) -> None:
+        """Blender's call to draw the region: the latest round's image, and another redraw
+        while the rounds go on."""
+        session = self.view_session
+        if session is None:
+            return
+        region, space = context.region, context.region_data
+        scale = context.preferences.system.pixel_size
+        try:
+            session.look(viewport.region_view(space.view_matrix, space.window_matrix,
+                                              region.width, region.height,
+                                              viewport.pixel_size(depsgraph.scene, scale)))
+        except ValueError as exc:
+            session.error = str(exc)
+        frame = session.frame()
+        if frame is not None:
+            self.bind_display_space_shader(depsgraph.scene)
+            viewport.draw_frame(frame, region.width, region.height)
+            self.unbind_display_space_shader()
+        self.update_stats("", viewport.status_text(session))
+        if session.refining:
+            self.tag_redraw()
+
+    def __del__(self) -> None:
+        try:
+            session = self.view_session
+        except ReferenceError:  # Blender already freed the engine's data
+            return
+        if session is not None:
+            session.stop()
 
     def bake(self, depsgraph: bpy.types.Depsgraph, obj: bpy.types.Object, pass_type: str,
              pass_filter: int, width: int, height: int) -> None:

@@ -181,6 +181,7 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
     groups = (
         (("spp", "Samples"), ("target_error", "Target Error"),
          ("max_pixel_error", "Max Pixel Error")),
+        (("viewport_spp", "Viewport Samples"),),
         (("use_denoising", "Denoise"),),
         (("ao_distance", "AO Distance"), ("seed", "Seed")),
     )

@@ -186,6 +186,8 @@ def prepare(
 
 
 JOB_POLL_S = 0.03  # a finished job waits this long at most to be seen (one small GET a poll)
+FIRST_POLL_S = 0.002  # the first waits, doubling up to JOB_POLL_S: a short job (a viewport
+# round) is seen within a few ms of its end
 
 
 def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
@@ -193,12 +195,14 @@ def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
     the job. A job that did not finish is a ServiceError; a finished one's size, timings
     and statistics go into `outcome`, and its last status is returned."""
     outcome.job_id = job["job_id"]
+    wait = FIRST_POLL_S
     while job["state"] in {"queued", "running"}:
         if task.cancelled:
             client.cancel_job(job["job_id"])  # then set_step raises Cancelled
         progress = float(job["progress"])
         task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * progress:.0f}%", progress)
-        time.sleep(JOB_POLL_S)
+        time.sleep(wait)
+        wait = min(2.0 * wait, JOB_POLL_S)
         job = client.job_status(job["job_id"])
     if job["state"] != "done":
         raise ServiceError(
@@ -243,7 +247,18 @@ def render_job(
     progress, keeping the extra `passes` (JobRequest.passes); cancelling the task cancels
     the job on the service."""
     client, outcome, scene_id = prepare(task, target, settings, mesh)
+    holdouts = isinstance(mesh, InstanceExport) and mesh.holdouts
+    return camera_job(task, client, outcome, scene_id, settings, view, passes, holdouts)
+
+
+def camera_job(task: Task, client: Client, outcome: Outcome, scene_id: str,
+               settings: Settings, view: dict, passes: tuple[str, ...] = (),
+               holdouts: bool = False, depth: bool = True) -> Outcome:
+    """`render_job`'s job, of a scene the service holds (`prepare`'s id): its images into
+    `outcome` (the holdout layer with `holdouts`; no depth without `depth`)."""
     payload = {**view, "scene_id": scene_id, **job_fields(settings)}
+    if not depth:
+        payload["depth"] = False
     if passes:
         payload["passes"] = list(passes)
     start = time.perf_counter()
@@ -251,8 +266,9 @@ def render_job(
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)
     outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")
-    outcome.depth = client.job_result(job["job_id"], pixels, "depth")
-    if isinstance(mesh, InstanceExport) and mesh.holdouts:
+    if depth:
+        outcome.depth = client.job_result(job["job_id"], pixels, "depth")
+    if holdouts:
         outcome.holdout = client.job_result(job["job_id"], pixels, "holdout")
     for name in passes:
         channels = 1 if name == "object" else 3

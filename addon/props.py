@@ -109,6 +109,15 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
         max=_top(MAX_PIXEL_ERROR),
         precision=4,
     )
+    viewport_spp: IntProperty(  # type: ignore[valid-type]
+        name="Viewport samples",
+        description=("AO rays per pixel the Rendered viewport refines to (as Cycles' "
+                     "Viewport samples: apart from the final render's). The first image "
+                     "comes after 1"),
+        default=32,
+        min=1,
+        max=SPP["soft_high"],
+    )
     use_denoising: BoolProperty(  # type: ignore[valid-type]
         name="Denoise",
         description=(

@@ -39,9 +39,11 @@ def render_camera(
     device: str,
     cull: bool = True,
     passes: Sequence[str] = (),
+    depth: bool = True,
 ) -> None:
     """Render `camera`'s pixels into `job` (its ao, coverage, depth, png, build and
-    statistics, and the extra `passes`: JobRequest.passes), reporting each phase; with
+    statistics, and the extra `passes`: JobRequest.passes; no depth without `depth`),
+    reporting each phase; with
     `cull`, of an instance list only what the camera may see is built (render/bvhs.py)."""
 
     def timed(phase: str, fn: Callable[[], Any]) -> Any:
@@ -72,11 +74,15 @@ def render_camera(
     job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
     job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
     job.denoised = stats.denoised
+    job.png = timed("png", lambda: encode_png(job.ao))
+    if not (depth or passes):
+        return
     t, instance = timed("depth", lambda: seen_hits(views, origins, directions, tmin, tmax))
     hit = np.isfinite(t)
     t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]
     z = t64[:, 0] * (directions.astype(np.float64) @ camera.forward)
-    job.depth = np.where(hit, z, BACKGROUND_DEPTH).astype(np.float32).reshape(shape)
+    if depth:
+        job.depth = np.where(hit, z, BACKGROUND_DEPTH).astype(np.float32).reshape(shape)
     extras = {  # made only when asked for (JobRequest.passes)
         "normal": lambda: result.normals.reshape(*shape, 3),
         "position": lambda: np.where(hit[:, None], origins + t64 * directions,
@@ -84,7 +90,6 @@ def render_camera(
         "object": lambda: np.where(job.coverage.ravel() > 0, instance, -1).reshape(shape),
     }
     job.extras = {name: extras[name]().astype(np.float32) for name in passes}
-    job.png = timed("png", lambda: encode_png(job.ao))
 
 
 def seen_hits(

@@ -240,6 +240,9 @@ class JobRequest(AoSettings):
     method: Method = "sah"
     leaf_size: LeafSize = 8
     denoise: ao_setting("denoise")
+    depth: bool = Field(
+        default=True, description="false: no Z pass (the camera rays' closest hits are not "
+                                  "traced a second time for it), as a viewport's rounds ask")
     passes: list[ExtraPass] = Field(
         default_factory=list, max_length=len(EXTRA_PASSES),
         description="extra images to keep for GET .../result: normal (world-space shading "

@@ -62,7 +62,8 @@ async def create_job(request: JobRequest, response: Response, service: Shared) -
 
     def work(job: Job) -> None:
         render_camera(job, service.store, scene, camera, options, request.method,
-                      request.leaf_size, service.settings.device, passes=request.passes)
+                      request.leaf_size, service.settings.device, passes=request.passes,
+                      depth=request.depth)
 
     return _queue(service, response, request.scene_id, camera.width, camera.height, work)
 
@@ -136,7 +137,8 @@ async def cancel_job(job_id: JobId, service: Shared) -> JobStatus:
                 "image/png": {"schema": {"type": "string", "format": "binary"}},
             },
             "description": "format=f32: height*width little-endian float32 AO, row 0 "
-            "at the top; format=coverage: the same layout, 1.0 where the camera ray "
+            "at the top (depth only when the job asked for it, as by default); "
+            "format=coverage: the same layout, 1.0 where the camera ray "
             "hit and 0.0 where it missed; format=depth: the same layout, the hit's "
             "camera-space depth (Cycles' Z pass), 1e10 where it missed; format=holdout: "
             "the same layout, 1.0 where the camera sees a holdout instance (alpha 0, AO 0) "
