@@ -394,12 +394,28 @@ def has_instances(depsgraph: bpy.types.Depsgraph) -> bool:
     return False
 
 
-def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
+@dataclass
+class MeshCache:
+    """Meshes read by `export_instances`, kept between exports of one depsgraph whose
+    geometry did not change (the Rendered viewport after moving objects: its evaluated
+    meshes stay where they were): the arrays by evaluated data, and each (arrays,
+    terminator offset)'s local mesh and id. Clear it after any geometry update."""
+
+    arrays: dict[int, _MeshArrays] = field(default_factory=dict)
+    local: dict[tuple[int, float], tuple[str, SceneMesh]] = field(default_factory=dict)
+
+    def clear(self) -> None:
+        self.arrays.clear()
+        self.local.clear()
+
+
+def export_instances(depsgraph: bpy.types.Depsgraph,
+                     cache: MeshCache | None = None) -> InstanceExport:
     """What `export_scene` renders, as meshes and instances: instanced meshes are read and
-    hashed once, not expanded; instances scaled to nothing (no area) are left out; each
-    instance's `ray_visibility`."""
-    cache: dict[int, _MeshArrays] = {}
-    local: dict[tuple[int, float], str] = {}  # (arrays, terminator offset) -> mesh id
+    hashed once, not expanded (nor again while `cache` holds them); instances scaled to
+    nothing (no area) are left out; each instance's `ray_visibility`."""
+    cache = MeshCache() if cache is None else cache
+    local = cache.local
     meshes: dict[str, SceneMesh] = {}
     position: dict[str, int] = {}  # mesh id -> its place in `meshes`
     index: list[int] = []
@@ -409,25 +425,36 @@ def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
     view_layer = depsgraph.view_layer
     for inst in _rendered(depsgraph):
         obj = inst.object
-        arrays = _source_arrays(obj, cache)
-        m = np.array(inst.matrix_world, dtype=np.float32)[:3]
-        if len(arrays.indices) == 0 or np.linalg.det(m[:, :3].astype(np.float64)) == 0.0:
+        arrays = _source_arrays(obj, cache.arrays)
+        if len(arrays.indices) == 0:
             continue
         key = (id(arrays), terminator_offset(obj))
         if key not in local:
             mesh = _local_mesh(arrays, key[1])
-            local[key] = mesh_id(mesh)
-            position.setdefault(local[key], len(meshes))
-            meshes.setdefault(local[key], mesh)
-        index.append(position[local[key]])
-        transforms.append(m)
+            local[key] = (mesh_id(mesh), mesh)
+        name, mesh = local[key]
+        if name not in meshes:
+            position[name] = len(meshes)
+            meshes[name] = mesh
+        index.append(position[name])
+        transforms.append(np.array(inst.matrix_world, dtype=np.float32)[:3])
         masks.append(ray_visibility(inst, view_layer))
         pass_index.append(obj.pass_index)
-    visibility = np.asarray(masks, np.uint8)
+    placed = np.asarray(transforms, np.float32).reshape(-1, 3, 4)
+    # instances scaled to nothing have no area (and no inverse for the service)
+    keep = np.linalg.det(placed[:, :, :3].astype(np.float64)) != 0.0
+    visibility = np.asarray(masks, np.uint8)[keep]
+    used = np.unique(np.asarray(index, np.int32)[keep])
+    if len(used) < len(meshes):  # a mesh only under such instances is not sent
+        names = list(meshes)
+        meshes = {names[k]: meshes[names[k]] for k in used}
+        renumber = np.full(len(names), -1, np.int32)
+        renumber[used] = np.arange(len(used), dtype=np.int32)
+        index = renumber[np.asarray(index, np.int32)].tolist()
     return InstanceExport(
         meshes,
-        np.asarray(index, np.int32),
-        np.asarray(transforms, np.float32).reshape(-1, 3, 4),
+        np.asarray(index, np.int32)[keep],
+        placed[keep],
         None if (visibility == DEFAULT_VISIBILITY).all() else visibility,
-        np.asarray(pass_index, np.float32),
+        np.asarray(pass_index, np.float32)[keep],
     )

@@ -181,7 +181,8 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
     groups = (
         (("spp", "Samples"), ("target_error", "Target Error"),
          ("max_pixel_error", "Max Pixel Error")),
-        (("viewport_spp", "Viewport Samples"),),
+        (("viewport_spp", "Viewport Samples"),
+         ("viewport_target_error", "Viewport Target Error")),
         (("use_denoising", "Denoise"),),
         (("ao_distance", "AO Distance"), ("seed", "Seed")),
     )

@@ -176,10 +176,12 @@ def test_each_update_does_only_what_it_must(scene) -> None:
         red.diffuse_color = (1.0, 0.0, 0.0, 1.0)
         bpy.context.view_layer.update()
         assert not watch.session.refining and watch.session.exports == exports
-        # one object moved: the instance list only, no mesh sent or built
+        # one object moved: the instance list only, no mesh read, sent or built
+        read = dict(watch.session.scene.meshes)
         scene.objects["BumpsB"].location.x += 0.3
         bpy.context.view_layer.update()
         moved = watch.settle()
+        assert all(mesh is read[name] for name, mesh in watch.session.scene.meshes.items())
         assert moved and not sent(moved) and not built(moved, "built")
         assert not built(moved, "refit")
         # an edit of the shared mesh's vertices: that mesh sent and refit, no other
@@ -192,6 +194,24 @@ def test_each_update_does_only_what_it_must(scene) -> None:
         assert not built(edited, "built")
     finally:
         watch.close()
+
+
+def test_a_viewport_target_error_refines_adaptively(scene) -> None:
+    """With a Viewport Target Error T: the preview and 1-sample rounds, then the final
+    render's adaptive jobs to 4T, 2T and T, the last image's estimate within T."""
+    scene.scenesort.viewport_target_error = 0.03
+    watch = Watch(scene)
+    try:
+        rounds = watch.settle()
+        frame = watch.session.frame()
+        text = viewport.status_text(watch.session)
+    finally:
+        scene.scenesort.viewport_target_error = 0.0
+        watch.close()
+    assert [o.spp_max for o in rounds[:2]] == [1, 1]
+    estimates = [o.rmse_estimate for o in rounds[2:]]
+    assert len(estimates) == 3 and estimates[-1] <= 0.03 < estimates[0]
+    assert frame.done and frame.rmse == estimates[-1] and "target 0.0300 | done" in text
 
 
 def test_a_new_view_cancels_the_rounds_in_flight(scene) -> None:
