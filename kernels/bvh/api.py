@@ -167,17 +167,25 @@ def build_bvh(
 
     node_count = node_count if n > 0 else 1
     nodes = arrays.nodes.numpy()[:node_count]
-    arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
+    if n > 0:  # a copy, not a view: the build's array is sized for the worst case (2n - 1)
+        arrays.nodes = wp.clone(arrays.nodes[:node_count])
     stats = BvhStats(
         action="build", build_ms=total_ms, compile_ms=compile_ms, phase_ms=phase_ms,
         nodes=node_count, leaves=int(np.count_nonzero(nodes["count"])) if n > 0 else 0,
         depth=depth, sah_cost=sah_cost(nodes) if n > 0 else 0.0, triangles=m,
         degenerate=int(m - n), pool_slots_used=int(tree.pool_state[2]),
         pool_steps_published=int(tree.pool_state[3]), workers=tree.workers, method=method,
-        leaf_size=int(leaf_size), width=width, **wide_stats, device=str(device))
+        leaf_size=int(leaf_size), width=width, **wide_stats, bvh_bytes=tree_bytes(arrays),
+        device=str(device))
     return Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
                leaf_size=int(leaf_size), device=device, arrays=arrays, bounds=box[:2].copy(),
                stats=stats, mesh=mesh)
+
+
+def tree_bytes(arrays: BvhArrays) -> int:
+    """Bytes of the tree's own arrays (`BvhStats.bvh_bytes`)."""
+    return sum(a.capacity for a in (arrays.nodes, arrays.tri_verts, arrays.tri_ids,
+                                    arrays.wide, arrays.blocks))
 
 
 def empty_bounds(device) -> wp.array:

@@ -521,5 +521,6 @@ def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: i
                    device)
     c = counters.numpy()
     count, most = int(c[WIDE_NODES]), int(c[MOST])
-    return (wide[: count * int(WORDS_PER_LANE) * width], blocks,
+    # a copy, not a view: `wide` is sized for the bound, several times the nodes made
+    return (wp.clone(wide[: count * int(WORDS_PER_LANE) * width]), blocks,
             {"wide_nodes": count, "wide_stack": most, "leaf_blocks": used})

@@ -53,6 +53,20 @@ def test_sah_cost_statistic_matches_a_float64_sum(shared_scene):
     assert bvh.stats.sah_cost == pytest.approx(expected, rel=1e-6)
 
 
+@pytest.mark.parametrize("width", [2, 4, 8])
+def test_bvh_bytes_statistic_counts_right_sized_arrays(width, shared_scene):
+    """bvh_bytes from the tree's own counts and the documented layouts (32-byte nodes, 36
+    bytes and an id per leaf-order triangle, 32 bytes per lane of a wide node, 160-byte leaf
+    blocks): the arrays the Bvh keeps are no larger than the tree (no worst-case buffer
+    kept alive behind a view)."""
+    scene = shared_scene("conference")  # degenerate triangles: fewer in the tree than given
+    s = kernels.build_bvh(scene.vertices, scene.indices, width=width).stats
+    n = s.triangles - s.degenerate
+    # width 2: a one-word placeholder each for the wide nodes and blocks
+    wide = 8 if width == 2 else 32 * width * s.wide_nodes + 160 * s.leaf_blocks
+    assert s.bvh_bytes == 32 * s.nodes + 40 * n + wide
+
+
 def test_sah_beats_median_on_a_real_scene(shared_scene):
     scene = shared_scene("sponza")
     sah = kernels.build_bvh(scene.vertices, scene.indices, method="sah")
