@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -20,6 +21,7 @@ from ..core.launch import (
 )
 from ..core.mesh import DeviceMesh
 from ..core.validate import as_rays, as_triangle_mesh, ray_range
+from ..pool.chunks import CHUNK
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
 from . import build as bb
@@ -53,6 +55,9 @@ SIMD_WIDTH, PORTABLE_WIDTH = 8, 2
 # grabbing fewer, larger runs of chunks built Conference 1.5x and the 1.1 M-triangle bunny 3x
 # faster on an H200 (docs/benchmarks.md, CUDA sweeps)
 BUILD_MIN_CHUNKS = {"cpu": DEFAULT_MIN_CHUNKS, "cuda": 64}
+# SAH tasks of at most 1 / (SERIAL_SHARE x workers) of the triangles are partitioned by one
+# worker in one pass (build.exchange_in_place), not by the pool's PPS and Swap
+SERIAL_SHARE = 4
 
 
 def default_width(device) -> int:
@@ -121,14 +126,17 @@ def build_bvh(
     m = len(indices)
     mesh = DeviceMesh(vertices, indices, device, validated=True)
     v_wp, f_wp = mesh.v, mesh.f
-    lo, hi = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(2))
     valid = wp.empty(m, dtype=int, device=device)
     bounds = empty_bounds(device)
-    wp.launch(bb.triangle_boxes, dim=m,
-              inputs=[v_wp, f_wp, lo, hi, valid, bounds], device=device)
-    tree = build_over_boxes(lo, hi, valid, bounds, method, leaf_size, max_depth, device,
-                            min_chunks=min_chunks, workers=workers,
-                            pool_capacity=pool_capacity, phase_ms=phase_ms, start=t0)
+    wp.launch(bb.triangle_validity, dim=m, inputs=[v_wp, f_wp, valid, bounds], device=device)
+
+    def fill(offsets: wp.array, b: BuildData) -> None:
+        wp.launch(bb.triangle_items, dim=m, inputs=[v_wp, f_wp, valid, offsets, b],
+                  device=device)
+
+    tree = build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
+                       min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
+                       phase_ms=phase_ms, start=t0)
     n, box, b = tree.count, tree.bounds, tree.data
 
     t0 = time.perf_counter()
@@ -143,6 +151,7 @@ def build_bvh(
     def reorder() -> None:
         wp.launch(bb.gather_leaf_triangles, dim=n,
                   inputs=[v_wp, f_wp, b.items, tri_ids, tri_verts], device=device)
+        release_scratch(b)  # before the collapse allocates the wide tree
         phase_ms["reorder"] = sync_ms(device, t0)
 
     wide_stats = {"wide_nodes": 0, "wide_stack": 0, "leaf_blocks": 0}
@@ -167,8 +176,9 @@ def build_bvh(
 
     node_count = node_count if n > 0 else 1
     nodes = arrays.nodes.numpy()[:node_count]
-    if n > 0:  # a copy, not a view: the build's array is sized for the worst case (2n - 1)
-        arrays.nodes = wp.clone(arrays.nodes[:node_count])
+    # a view of the build's array for 2n - 1 nodes, of which only the pages of these were
+    # touched (a copy cost time and took more memory at the peak than it saved)
+    arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
     stats = BvhStats(
         action="build", build_ms=total_ms, compile_ms=compile_ms, phase_ms=phase_ms,
         nodes=node_count, leaves=int(np.count_nonzero(nodes["count"])) if n > 0 else 0,
@@ -216,12 +226,29 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
                      min_chunks: int | None = None, workers: int | None = None,
                      pool_capacity: int | None = None, phase_ms: dict[str, float],
                      start: float) -> BoxTree:
-    """The pool's build (2012 paper, sec. 4) over any boxes: `build_bvh`'s triangle boxes
-    or a scene's instance boxes (kernels.scene). Boxes with `valid` 0 are left out;
-    `bounds` is `empty_bounds` widened over the valid boxes and their centroids. Adds the
-    "prepare" phase (from `start`, a perf_counter reading) and the build's phases to
-    `phase_ms`."""
-    m = lo.shape[0]
+    """The pool's build (2012 paper, sec. 4) over any boxes: a scene's instance boxes
+    (kernels.scene). Boxes with `valid` 0 are left out; `bounds` is `empty_bounds` widened
+    over the valid boxes and their centroids. Adds the "prepare" phase (from `start`, a
+    perf_counter reading) and the build's phases to `phase_ms`."""
+
+    def fill(offsets: wp.array, b: BuildData) -> None:
+        wp.launch(bb.compact_valid, dim=lo.shape[0], inputs=[valid, offsets, lo, hi, b],
+                  device=device)
+
+    return build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
+                       min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
+                       phase_ms=phase_ms, start=start)
+
+
+def build_items(valid: wp.array, bounds: wp.array,
+                fill: Callable[[wp.array, BuildData], None], method: str, leaf_size: int,
+                max_depth: int, device, *, min_chunks: int | None, workers: int | None,
+                pool_capacity: int | None, phase_ms: dict[str, float],
+                start: float) -> BoxTree:
+    """`build_over_boxes` over boxes that `fill(offsets, b)` writes into `b.items` at
+    their valid boxes' `offsets` (straight from the triangles in `build_bvh`: no box
+    arrays in between)."""
+    m = valid.shape[0]
     workers = default_workers(device) if workers is None else int(workers)
     if min_chunks is None:
         min_chunks = BUILD_MIN_CHUNKS["cpu" if device.is_cpu else "cuda"]
@@ -252,9 +279,14 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
     b.method = METHODS[method]
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)
+    # tasks small enough that the workers have plenty of others exchange in place (the tree
+    # is the same); on CUDA, with thousands of one-thread workers, only those whose steps
+    # would run inline anyway
+    b.serial_max = max(n // (SERIAL_SHARE * workers), int(CHUNK) * int(min_chunks) - 1)
     pool = make_pool(capacity, workers, int(min_chunks), device)
-    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, b],
-              device=device)
+    if m:
+        fill(offsets, b)
+    del offsets
     wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
     phase_ms["prepare"] = sync_ms(device, start)
 
@@ -274,6 +306,14 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
     node_count, depth = (int(x) for x in b.counters.numpy())
     return BoxTree(data=b, count=n, node_count=node_count, depth=depth, bounds=box,
                    pool_state=pool_state, workers=workers)
+
+
+def release_scratch(b: BuildData) -> None:
+    """Let go of a finished build's arrays except its nodes: the index array (its leaf order
+    copied out by the reorder), PPS, Swap, AABB and the bins."""
+    b.items = b.spare = b.spare_pos = b.mark = b.scan = None
+    b.box_lo = b.box_hi = b.cbox_lo = b.cbox_hi = None
+    b.bin_count = b.bin_lo = b.bin_hi = b.bin_clo = b.bin_chi = b.tasks = None
 
 
 def trace(
