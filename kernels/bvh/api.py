@@ -16,6 +16,8 @@ from ..core.launch import (
     host_threads,
     launch_split,
     load_modules,
+    part_launcher,
+    run_parts,
     sync_ms,
     to_device,
 )
@@ -58,6 +60,7 @@ BUILD_MIN_CHUNKS = {"cpu": DEFAULT_MIN_CHUNKS, "cuda": 64}
 # SAH tasks of at most 1 / (SERIAL_SHARE x workers) of the triangles are partitioned by one
 # worker in one pass (build.exchange_in_place), not by the pool's PPS and Swap
 SERIAL_SHARE = 4
+PREPARE_PART = 65536  # fewest triangles worth a host thread of their own in the prepare
 
 
 def default_width(device) -> int:
@@ -127,12 +130,27 @@ def build_bvh(
     mesh = DeviceMesh(vertices, indices, device, validated=True)
     v_wp, f_wp = mesh.v, mesh.f
     valid = wp.empty(m, dtype=int, device=device)
-    bounds = empty_bounds(device)
-    wp.launch(bb.triangle_validity, dim=m, inputs=[v_wp, f_wp, valid, bounds], device=device)
+    # the triangles in parts, one per worker (a host thread each on CPU)
+    parts = max(1, min(default_workers(device) if workers is None else int(workers),
+                       m // PREPARE_PART)) if device.is_cpu else 1
+    cuts = np.linspace(0, m, parts + 1).astype(int)
+    part_bounds = wp.array(np.tile(empty_bounds_numpy(), (parts, 1)), dtype=wp.vec3,
+                           device=device)
+    validity = part_launcher(bb.triangle_validity, [v_wp, f_wp, 0, 0, valid, part_bounds],
+                             device)
+    if m:
+        run_parts(lambda k: validity(int(cuts[k + 1] - cuts[k]), {2: int(cuts[k]), 3: k}),
+                  parts, parts)
+    box = part_bounds.numpy().reshape(parts, 4, 3)
+    merged = np.empty((4, 3), np.float32)
+    merged[0::2] = box[:, 0::2].min(axis=0)  # lows: of the boxes and of the centroids
+    merged[1::2] = box[:, 1::2].max(axis=0)  # highs
+    bounds = wp.array(merged, dtype=wp.vec3, device=device)
 
     def fill(offsets: wp.array, b: BuildData) -> None:
-        wp.launch(bb.triangle_items, dim=m, inputs=[v_wp, f_wp, valid, offsets, b],
-                  device=device)
+        items = part_launcher(bb.triangle_items, [v_wp, f_wp, 0, valid, offsets, b], device)
+        run_parts(lambda k: items(int(cuts[k + 1] - cuts[k]), {2: int(cuts[k])}), parts,
+                  parts)
 
     tree = build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
                        min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
@@ -198,12 +216,16 @@ def tree_bytes(arrays: BvhArrays) -> int:
                                     arrays.wide, arrays.blocks))
 
 
-def empty_bounds(device) -> wp.array:
+def empty_bounds_numpy() -> np.ndarray:
     """The four boxes a box kernel widens by atomics before `build_over_boxes`: the items'
-    box (lo, hi) and their centroids' box (lo, hi), empty."""
+    box (lo, hi) and their centroids' box (lo, hi), empty; (4, 3) float32."""
     inf = np.float32(np.inf)
-    return wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
-                    dtype=wp.vec3, device=device)
+    return np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32)
+
+
+def empty_bounds(device) -> wp.array:
+    """`empty_bounds_numpy` on the device."""
+    return wp.array(empty_bounds_numpy(), dtype=wp.vec3, device=device)
 
 
 @dataclass

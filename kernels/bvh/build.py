@@ -425,34 +425,40 @@ def triangle_box(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.v
 def triangle_validity(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
+    first: int,
+    part: int,
     valid: wp.array(dtype=int),
     bounds: wp.array(dtype=wp.vec3),
 ):
-    """`valid` is 0 for zero-area triangles, which the build leaves out, else 1;
-    bounds[0..3] get the scene's box and centroid box over the valid ones."""
-    i = wp.tid()
+    """Triangles first + tid, one part of them (a host thread each on CPU): `valid` is 0
+    for zero-area triangles, which the build leaves out, else 1; bounds[4 part ..
+    4 part + 3] get the part's box and centroid box over the valid ones (a part's own:
+    CPU atomics are plain updates, safe within one launch only)."""
+    i = first + wp.tid()
     box = triangle_box(vertices, indices, i)
     valid[i] = 0
     if box[2][0] == 0.0:
         valid[i] = 1
         mid = 0.5 * (box[0] + box[1])
-        wp.atomic_min(bounds, 0, box[0])
-        wp.atomic_max(bounds, 1, box[1])
-        wp.atomic_min(bounds, 2, mid)
-        wp.atomic_max(bounds, 3, mid)
+        wp.atomic_min(bounds, 4 * part, box[0])
+        wp.atomic_max(bounds, 4 * part + 1, box[1])
+        wp.atomic_min(bounds, 4 * part + 2, mid)
+        wp.atomic_max(bounds, 4 * part + 3, mid)
 
 
 @wp.kernel
 def triangle_items(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
+    first: int,
     valid: wp.array(dtype=int),
     offsets: wp.array(dtype=int),
     b: BuildData,
 ):
-    """The initial index array straight from the triangles: the valid ones in order, with
-    their boxes (computed again: cheaper than arrays of them in between)."""
-    i = wp.tid()
+    """The initial index array straight from the triangles (first + tid: one part of them):
+    the valid ones in order, with their boxes (computed again: cheaper than arrays of them
+    in between)."""
+    i = first + wp.tid()
     if valid[i] != 0:
         box = triangle_box(vertices, indices, i)
         it = BuildItem()
