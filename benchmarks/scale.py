@@ -33,7 +33,6 @@ import platform
 import statistics
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -73,7 +72,7 @@ def unit_statue(vertices: np.ndarray) -> np.ndarray:
 def gallery(target: int, statues: tuple[str, ...], seed: int = 0
             ) -> tuple[np.ndarray, np.ndarray, int]:
     """Copies of the statues, in turn, until they hold at least `target` triangles, each
-    turned about +y by a random angle, on a square grid; (vertices, indices, grid side)."""
+    turned about +y by a random angle, on a square grid; (vertices, indices, copies)."""
     from scenesort.backend.render.scenes import shared_scene
 
     meshes = [(unit_statue(s.vertices), s.indices)
@@ -92,7 +91,7 @@ def gallery(target: int, statues: tuple[str, ...], seed: int = 0
         vs.append((turned + [pitch * (k % side), 0.0, pitch * (k // side)]).astype(np.float32))
         fs.append(f + base)
         base += len(v)
-    return np.concatenate(vs), np.concatenate(fs).astype(np.int32), side
+    return np.concatenate(vs), np.concatenate(fs).astype(np.int32), copies
 
 
 def camera_rays(vertices: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -108,13 +107,6 @@ def camera_rays(vertices: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray
     return o, d
 
 
-def split_threads(fn, o: np.ndarray, d: np.ndarray, pool: ThreadPoolExecutor, threads: int):
-    """`fn` over `threads` shares of the rays at once, one Python thread each."""
-    cuts = np.linspace(0, len(o), threads + 1).astype(int)
-    parts = [pool.submit(fn, o[a:b], d[a:b]) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
-    return [p.result() for p in parts]
-
-
 def spread(samples: list[float]) -> dict:
     return {"median": statistics.median(samples), "min": min(samples), "max": max(samples)}
 
@@ -125,12 +117,13 @@ def measure(target: int, statues: tuple[str, ...], repeat: int, size: int,
     import warp as wp
 
     wp.config.quiet = True
+    from embree_threads import ThreadedEmbree
     from scenesort.backend.tools import peers
     from scenesort.kernels.render import default_distance
 
     from scenesort import kernels
 
-    v, f, side = gallery(target, statues)
+    v, f, copies = gallery(target, statues)
     # compile and warm up on a few triangles: a build as large as the scene would leave its
     # freed memory to the allocator, and the measured build would reuse it unseen
     kernels.build_bvh(v, f[:WARM_UP], workers=threads)
@@ -148,30 +141,25 @@ def measure(target: int, statues: tuple[str, ...], repeat: int, size: int,
     hits = kernels.trace(bvh, o, d, threads=threads)
     ao_o, ao_d = peers.ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=AO_PER_HIT)
     dist = default_distance(bvh)
-    embree = peers.Embree(v, f)
-    pool = ThreadPoolExecutor(threads)
+    embree = ThreadedEmbree(v, f, threads)
     rays = {}
     for kind, (ro, rd, tmax, any_hit) in {"primary": (o, d, np.inf, False),
                                           "ao": (ao_o, ao_d, dist, True)}.items():
-        if any_hit:
-            def theirs(a, b, tmax=tmax):
-                return embree.occluded(a, b, tmax)
-        else:
-            def theirs(a, b):
-                return embree.closest(a, b)
+        def theirs(ro=ro, rd=rd, tmax=tmax, any_hit=any_hit):
+            if any_hit:
+                return embree.occluded(ro, rd, tmax, threads)
+            return embree.closest(ro, rd, threads) >= 0
+
         samples = peers.samples_each([
             lambda ro=ro, rd=rd, tmax=tmax, a=any_hit:
                 kernels.trace(bvh, ro, rd, tmax=tmax, any_hit=a, threads=threads),
-            lambda ro=ro, rd=rd, fn=theirs: split_threads(fn, ro, rd, pool, threads),
-        ], max(repeat, 3))
+            theirs], max(repeat, 3))
         ours = kernels.trace(bvh, ro, rd, tmax=tmax, any_hit=any_hit).triangle >= 0
-        ref = np.concatenate([np.asarray(r) if any_hit else r[1] >= 0
-                              for r in split_threads(theirs, ro, rd, pool, threads)])
         rays[kind] = {"count": len(ro), "ours": spread([len(ro) / t / 1e6 for t in samples[0]]),
                       "embree": spread([len(ro) / t / 1e6 for t in samples[1]]),
-                      "hit_miss_diff": int((ours != ref).sum())}
+                      "hit_miss_diff": int((ours != theirs()).sum())}
     return {
-        "target": target, "triangles": len(f), "copies": side, "statues": list(statues),
+        "target": target, "triangles": len(f), "copies": copies, "statues": list(statues),
         "threads": threads, "build_ms": spread(builds),
         "mtris_s": len(f) / statistics.median(builds) / 1e3,
         "first_build_ms": first.build_ms, "phase_ms": first.phase_ms,
