@@ -147,7 +147,7 @@ def build_bvh(
     merged[1::2] = box[:, 1::2].max(axis=0)  # highs
     bounds = wp.array(merged, dtype=wp.vec3, device=device)
 
-    def fill(offsets: wp.array, b: BuildData) -> None:
+    def fill(valid: wp.array, offsets: wp.array, b: BuildData) -> None:
         items = part_launcher(bb.triangle_items, [v_wp, f_wp, 0, valid, offsets, b], device)
         run_parts(lambda k: items(int(cuts[k + 1] - cuts[k]), {2: int(cuts[k])}), parts,
                   parts)
@@ -155,6 +155,7 @@ def build_bvh(
     tree = build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
                        min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
                        phase_ms=phase_ms, start=t0)
+    del valid  # before the reorder and the collapse, which need more
     n, box, b = tree.count, tree.bounds, tree.data
 
     t0 = time.perf_counter()
@@ -253,7 +254,7 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
     over the valid boxes and their centroids. Adds the "prepare" phase (from `start`, a
     perf_counter reading) and the build's phases to `phase_ms`."""
 
-    def fill(offsets: wp.array, b: BuildData) -> None:
+    def fill(valid: wp.array, offsets: wp.array, b: BuildData) -> None:
         wp.launch(bb.compact_valid, dim=lo.shape[0], inputs=[valid, offsets, lo, hi, b],
                   device=device)
 
@@ -263,12 +264,13 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
 
 
 def build_items(valid: wp.array, bounds: wp.array,
-                fill: Callable[[wp.array, BuildData], None], method: str, leaf_size: int,
-                max_depth: int, device, *, min_chunks: int | None, workers: int | None,
+                fill: Callable[[wp.array, wp.array, BuildData], None], method: str,
+                leaf_size: int, max_depth: int, device, *, min_chunks: int | None,
+                workers: int | None,
                 pool_capacity: int | None, phase_ms: dict[str, float],
                 start: float) -> BoxTree:
-    """`build_over_boxes` over boxes that `fill(offsets, b)` writes into `b.items` at
-    their valid boxes' `offsets` (straight from the triangles in `build_bvh`: no box
+    """`build_over_boxes` over boxes that `fill(valid, offsets, b)` writes into `b.items`
+    at their valid boxes' `offsets` (straight from the triangles in `build_bvh`: no box
     arrays in between)."""
     m = valid.shape[0]
     workers = default_workers(device) if workers is None else int(workers)
@@ -307,7 +309,7 @@ def build_items(valid: wp.array, bounds: wp.array,
     b.serial_max = max(n // (SERIAL_SHARE * workers), int(CHUNK) * int(min_chunks) - 1)
     pool = make_pool(capacity, workers, int(min_chunks), device)
     if m:
-        fill(offsets, b)
+        fill(valid, offsets, b)
     del offsets
     wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
     phase_ms["prepare"] = sync_ms(device, start)
