@@ -67,6 +67,39 @@ def test_bvh_bytes_statistic_counts_right_sized_arrays(width, shared_scene):
     assert s.bvh_bytes == 32 * s.nodes + 40 * n + wide
 
 
+def depth_first(bvh) -> tuple[np.ndarray, np.ndarray]:
+    """The tree in depth-first order from the root, left child first (node boxes and
+    counts, a leaf's first position), and the leaf order: what the build decided, without
+    the node numbers, which depend on the order in which tasks finish."""
+    nodes = bvh.nodes()
+    order, stack = [], [0]
+    while stack:
+        k = stack.pop()
+        order.append(k)
+        if nodes["count"][k] == 0:
+            stack += [nodes["first"][k] + 1, nodes["first"][k]]
+    picked = nodes[np.asarray(order)]
+    picked["first"] = np.where(picked["count"] > 0, picked["first"], -1)
+    return picked, bvh.permutation()
+
+
+def test_in_place_exchange_gives_the_pools_tree(shared_scene):
+    """One worker with every step inline partitions every SAH task in place in one pass
+    (build.exchange_in_place); 64 workers with K = 1 send all but the smallest through
+    PPS and Swap's two steps. The exchange is the same, so the trees are the same: node
+    for node and in leaf order. The bunny has coincident centroids (halving) too."""
+    scene = shared_scene("bunny")
+    rng = np.random.default_rng(5)
+    for v, f in ((scene.vertices, scene.indices), random_soup(rng, 20_000)):
+        serial = kernels.build_bvh(v, f, workers=1, min_chunks=10**6)
+        pooled = kernels.build_bvh(v, f, workers=64, min_chunks=1)
+        assert serial.stats.pool_steps_published == 0
+        assert pooled.stats.pool_steps_published > 100
+        (a_nodes, a_perm), (b_nodes, b_perm) = depth_first(serial), depth_first(pooled)
+        assert np.array_equal(a_perm, b_perm)
+        assert a_nodes.tobytes() == b_nodes.tobytes()
+
+
 def test_sah_beats_median_on_a_real_scene(shared_scene):
     scene = shared_scene("sponza")
     sah = kernels.build_bvh(scene.vertices, scene.indices, method="sah")
