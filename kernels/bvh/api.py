@@ -60,7 +60,8 @@ BUILD_MIN_CHUNKS = {"cpu": DEFAULT_MIN_CHUNKS, "cuda": 64}
 # SAH tasks of at most 1 / (SERIAL_SHARE x workers) of the triangles are partitioned by one
 # worker in one pass (build.exchange_in_place), not by the pool's PPS and Swap
 SERIAL_SHARE = 4
-PREPARE_PART = 65536  # fewest triangles worth a host thread of their own in the prepare
+PART_ITEMS = 65536  # fewest triangles worth a launch of their own (prepare, reorder)
+REORDER_PARTS = 4  # parts per host thread of the reorder
 
 
 def default_width(device) -> int:
@@ -130,17 +131,14 @@ def build_bvh(
     mesh = DeviceMesh(vertices, indices, device, validated=True)
     v_wp, f_wp = mesh.v, mesh.f
     valid = wp.empty(m, dtype=int, device=device)
-    # the triangles in parts, one per worker (a host thread each on CPU)
-    parts = max(1, min(default_workers(device) if workers is None else int(workers),
-                       m // PREPARE_PART)) if device.is_cpu else 1
-    cuts = np.linspace(0, m, parts + 1).astype(int)
+    threads = (default_workers(device) if workers is None else int(workers)
+               ) if device.is_cpu else 1
+    # the triangles in parts, one per worker, each with a scene box of its own
+    parts = max(1, min(threads, m // PART_ITEMS))
     part_bounds = wp.array(np.tile(empty_bounds_numpy(), (parts, 1)), dtype=wp.vec3,
                            device=device)
-    validity = part_launcher(bb.triangle_validity, [v_wp, f_wp, 0, 0, valid, part_bounds],
-                             device)
-    if m:
-        run_parts(lambda k: validity(int(cuts[k + 1] - cuts[k]), {2: int(cuts[k]), 3: k}),
-                  parts, parts)
+    launch_parts(bb.triangle_validity, [v_wp, f_wp, 0, 0, valid, part_bounds], 2, m, parts,
+                 threads, device, part_arg=3)
     box = part_bounds.numpy().reshape(parts, 4, 3)
     merged = np.empty((4, 3), np.float32)
     merged[0::2] = box[:, 0::2].min(axis=0)  # lows: of the boxes and of the centroids
@@ -148,9 +146,8 @@ def build_bvh(
     bounds = wp.array(merged, dtype=wp.vec3, device=device)
 
     def fill(valid: wp.array, offsets: wp.array, b: BuildData) -> None:
-        items = part_launcher(bb.triangle_items, [v_wp, f_wp, 0, valid, offsets, b], device)
-        run_parts(lambda k: items(int(cuts[k + 1] - cuts[k]), {2: int(cuts[k])}), parts,
-                  parts)
+        launch_parts(bb.triangle_items, [v_wp, f_wp, 0, valid, offsets, b], 2, m, parts,
+                     threads, device)
 
     tree = build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
                        min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
@@ -168,8 +165,11 @@ def build_bvh(
     arrays.tri_ids = tri_ids
 
     def reorder() -> None:
-        wp.launch(bb.gather_leaf_triangles, dim=n,
-                  inputs=[v_wp, f_wp, b.items, tri_ids, tri_verts], device=device)
+        # in more parts than threads: while the collapse's serial start holds one host
+        # thread, the others take the parts, and it joins them when it is done
+        launch_parts(bb.gather_leaf_triangles, [v_wp, f_wp, b.items, 0, tri_ids, tri_verts],
+                     3, n, max(1, min(REORDER_PARTS * threads, n // PART_ITEMS))
+                     if threads > 1 else 1, threads, device)
         release_scratch(b)  # before the collapse allocates the wide tree
         phase_ms["reorder"] = sync_ms(device, t0)
 
@@ -330,6 +330,26 @@ def build_items(valid: wp.array, bounds: wp.array,
     node_count, depth = (int(x) for x in b.counters.numpy())
     return BoxTree(data=b, count=n, node_count=node_count, depth=depth, bounds=box,
                    pool_state=pool_state, workers=workers)
+
+
+def launch_parts(kernel, args: list, first_arg: int, count: int, parts: int, threads: int,
+                 device, *, part_arg: int | None = None) -> None:
+    """`kernel` over `count` items in `parts` contiguous parts, each a launch of its own,
+    taken in turn by `threads` host threads (on CPU a launch runs on one thread):
+    argument `first_arg` is set to the part's first item and `part_arg`, if given, to the
+    part's number."""
+    if count == 0:
+        return
+    cuts = np.linspace(0, count, parts + 1).astype(int)
+    launch = part_launcher(kernel, args, device)
+
+    def run(k: int) -> None:
+        changes = {first_arg: int(cuts[k])}
+        if part_arg is not None:
+            changes[part_arg] = k
+        launch(int(cuts[k + 1] - cuts[k]), changes)
+
+    run_parts(run, parts, threads)
 
 
 def release_scratch(b: BuildData) -> None:

@@ -502,11 +502,13 @@ def gather_leaf_triangles(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
     items: wp.array(dtype=BuildItem),
+    first: int,
     tri_ids: wp.array(dtype=int),
     tri_verts: wp.array(dtype=wp.vec3),
 ):
-    """Triangles in leaf order: the caller's index of each, and its vertices."""
-    i = wp.tid()
+    """Triangles in leaf order (first + tid: one part of them): the caller's index of each,
+    and its vertices."""
+    i = first + wp.tid()
     tri = items[i].tri
     tri_ids[i] = tri
     store_leaf_triangle(vertices, indices, tri, i, tri_verts)
