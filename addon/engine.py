@@ -196,6 +196,9 @@ class AoEngine:
             f"{mesh.triangles:,} triangles",
         )
         line = stats_line(outcome, mesh.triangles)
+        missing = export.skipped(depsgraph)
+        if missing:  # what Cycles would show and this render does not
+            line += " | not rendered: " + ", ".join(f"{n} {kind}" for kind, n in missing.items())
         passes = image.result_passes(outcome, transparent)
         passes.update(image.extra_passes(outcome, extras, mesh))
         self._write(depsgraph, passes, outcome.size, line)

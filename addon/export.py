@@ -26,12 +26,17 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
+from . import strands
 from .ao_options import AO_OPTIONS
 from .client import instances_id
 from .client import scene_id as content_id
 
 # Object types whose evaluated geometry can be turned into a mesh.
 _CONVERTIBLE = {"CURVE", "SURFACE", "FONT", "META"}
+# Hair and points, made into tubes and spheres (strands.py).
+_STRANDS = {"CURVES": strands.curve_tubes, "POINTCLOUD": strands.point_spheres}
+# Geometry Cycles renders that no AO render here holds yet: counted, for the stats line.
+SKIPPED_TYPES = {"VOLUME"}
 # The service's (the engine's) default, Object.shadow_terminator_geometry_offset's too: a
 # scene whose objects all have it sends no offsets.
 DEFAULT_TERMINATOR_OFFSET = AO_OPTIONS["terminator_offset"]["default"]
@@ -117,6 +122,8 @@ def _source_arrays(obj: bpy.types.Object, cache: dict[int, _MeshArrays]) -> _Mes
     if key not in cache:
         if obj.type == "MESH":
             cache[key] = _mesh_arrays(obj.data)
+        elif obj.type in _STRANDS:
+            cache[key] = _MeshArrays(*_STRANDS[obj.type](obj.data))
         else:
             mesh = obj.to_mesh()
             try:
@@ -363,10 +370,26 @@ def ray_visibility(inst: bpy.types.DepsgraphObjectInstance, view_layer: bpy.type
 
 def _rendered(depsgraph: bpy.types.Depsgraph,
               ) -> Iterator[bpy.types.DepsgraphObjectInstance]:
-    """`_instances` that have mesh-like geometry."""
+    """`_instances` that have mesh-like geometry (hair and points included)."""
     for inst in _instances(depsgraph):
-        if inst.object.type == "MESH" or inst.object.type in _CONVERTIBLE:
+        kind = inst.object.type
+        if kind == "MESH" or kind in _CONVERTIBLE or kind in _STRANDS:
             yield inst
+
+
+def skipped(depsgraph: bpy.types.Depsgraph) -> dict[str, int]:
+    """What renders in Cycles but not here, counted by kind: volumes, and particle hair
+    (HAIR particle systems shown for rendering)."""
+    counts: dict[str, int] = {}
+    for inst in _instances(depsgraph):
+        obj = inst.object
+        if obj.type in SKIPPED_TYPES:
+            counts[obj.type.lower()] = counts.get(obj.type.lower(), 0) + 1
+        hair = sum(1 for p in getattr(obj, "particle_systems", ())
+                   if p.settings.type == "HAIR" and p.settings.render_type == "PATH")
+        if hair and not inst.is_instance:
+            counts["particle hair"] = counts.get("particle hair", 0) + hair
+    return counts
 
 
 def custom_visibility(depsgraph: bpy.types.Depsgraph) -> bool:
