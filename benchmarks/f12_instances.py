@@ -46,9 +46,13 @@ FLOOR_RATIO = 1.5
 WIDTH, HEIGHT, SPP = 320, 240, 16
 
 
-def build_scene(count: int) -> tuple[bpy.types.Object, bpy.types.Object]:
-    """The ground, `count` collection instances of the sphere and a camera; (camera, one
-    instance)."""
+def sphere_field(count: int, segments: tuple[int, int], size: tuple[int, int],
+                 camera_angle: float, camera_height: float, turned: bool) -> bpy.types.Scene:
+    """A fresh scene: a ground and `count` collection instances (a jittered grid, each
+    turned at random with `turned`) of a smooth UV sphere of `segments`, a camera over
+    them (pitched `camera_angle` degrees, at `camera_height` times the grid's side) at
+    `size`, the scenesort engine (starting its service), the World's AO distance 1.
+    Shared with benchmarks/viewport.py."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon.register()
     scene = bpy.context.scene
@@ -56,7 +60,7 @@ def build_scene(count: int) -> tuple[bpy.types.Object, bpy.types.Object]:
     scene.world.light_settings.distance = 1.0
     mesh = bpy.data.meshes.new("Sphere")
     bm = bmesh.new()
-    bmesh.ops.create_uvsphere(bm, u_segments=64, v_segments=64, radius=0.45)
+    bmesh.ops.create_uvsphere(bm, u_segments=segments[0], v_segments=segments[1], radius=0.45)
     for face in bm.faces:
         face.smooth = True
     bm.to_mesh(mesh)
@@ -65,31 +69,36 @@ def build_scene(count: int) -> tuple[bpy.types.Object, bpy.types.Object]:
     asset.objects.link(bpy.data.objects.new("Sphere", mesh))
     side = math.ceil(math.sqrt(count))
     rng = np.random.default_rng(0)
-    holders = []
     for k in range(count):
         holder = bpy.data.objects.new(f"Holder{k}", None)
         holder.instance_type, holder.instance_collection = "COLLECTION", asset
         i, j = divmod(k, side)
         holder.location = (i - side / 2 + rng.uniform(-0.2, 0.2),
                            j - side / 2 + rng.uniform(-0.2, 0.2), 0.5)
-        holder.rotation_euler = tuple(rng.uniform(0, math.pi, 3))
+        if turned:
+            holder.rotation_euler = tuple(rng.uniform(0, math.pi, 3))
         scene.collection.objects.link(holder)
-        holders.append(holder)
     ground = bpy.data.meshes.new("Ground")
     s = side
     ground.from_pydata([(-s, -s, 0), (s, -s, 0), (s, s, 0), (-s, s, 0)], [], [(0, 1, 2, 3)])
     scene.collection.objects.link(bpy.data.objects.new("Ground", ground))
     cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    cam.location = (0.0, -0.9 * side, 0.55 * side)
-    cam.rotation_euler = (math.radians(55), 0.0, 0.0)
+    cam.location = (0.0, -0.9 * side, camera_height * side)
+    cam.rotation_euler = (math.radians(camera_angle), 0.0, 0.0)
     scene.collection.objects.link(cam)
     scene.camera = cam
-    scene.render.resolution_x, scene.render.resolution_y = WIDTH, HEIGHT
+    scene.render.resolution_x, scene.render.resolution_y = size
     scene.render.resolution_percentage = 100
     scene.render.engine = "SCENESORT"
-    scene.scenesort.spp = SPP
     prefs.preferences(bpy.context).start_on_render = True
-    return cam, holders[len(holders) // 2]
+    return scene
+
+
+def build_scene(count: int) -> tuple[bpy.types.Object, bpy.types.Object]:
+    """`sphere_field` of 8,064-triangle spheres; (camera, one instance)."""
+    scene = sphere_field(count, (64, 64), (WIDTH, HEIGHT), 55.0, 0.55, turned=True)
+    scene.scenesort.spp = SPP
+    return scene.camera, bpy.data.objects[f"Holder{count // 2}"]
 
 
 def f12(outcomes: list) -> dict:

@@ -33,7 +33,6 @@ HERE = Path(__file__).resolve().parent
 sys.path[:] = [p for p in sys.path if Path(p or ".").resolve() != HERE]
 
 import bpy  # noqa: E402  (before bmesh, which only bpy makes importable)
-import numpy as np  # noqa: E402
 
 REPO = HERE.parent
 sys.path.insert(0, str(REPO))
@@ -43,35 +42,16 @@ import bmesh  # noqa: E402
 import addon  # noqa: E402
 from addon import prefs, viewport  # noqa: E402
 from benchmarks.docs_section import write_section  # noqa: E402
+from benchmarks.f12_instances import sphere_field  # noqa: E402
 
 FLOORS_MS = {"camera orbit step": 120.0, "one object moved": 150.0, "one mesh edited": 250.0}
 MAIN_THREAD_MS, REFINE_RATIO, TARGET = 10.0, 2.0, 0.02
 
 
 def build(count: int, width: int, height: int) -> bpy.types.Scene:
-    bpy.ops.wm.read_factory_settings(use_empty=True)
-    addon.register()
-    scene = bpy.context.scene
-    scene.world = bpy.data.worlds.new("World")
-    scene.world.light_settings.distance = 1.0
-    mesh = bpy.data.meshes.new("Sphere")
-    bm = bmesh.new()
-    bmesh.ops.create_uvsphere(bm, u_segments=128, v_segments=121, radius=0.45)
-    for face in bm.faces:
-        face.smooth = True
-    bm.to_mesh(mesh)
-    bm.free()
-    asset = bpy.data.collections.new("Asset")  # only instanced
-    asset.objects.link(bpy.data.objects.new("Sphere", mesh))
+    """`sphere_field` of 30,720-triangle spheres and a 10,368-triangle grid to edit."""
+    scene = sphere_field(count, (128, 121), (width, height), 58.0, 0.5, turned=False)
     side = math.ceil(math.sqrt(count))
-    rng = np.random.default_rng(0)
-    for k in range(count):
-        holder = bpy.data.objects.new(f"Holder{k}", None)
-        holder.instance_type, holder.instance_collection = "COLLECTION", asset
-        i, j = divmod(k, side)
-        holder.location = (i - side / 2 + rng.uniform(-0.2, 0.2),
-                           j - side / 2 + rng.uniform(-0.2, 0.2), 0.5)
-        scene.collection.objects.link(holder)
     grid = bpy.data.meshes.new("Grid")
     bm = bmesh.new()
     bmesh.ops.create_grid(bm, x_segments=72, y_segments=72, size=1.5)
@@ -80,20 +60,7 @@ def build(count: int, width: int, height: int) -> bpy.types.Scene:
     edited = bpy.data.objects.new("Edited", grid)
     edited.location = (0.0, -side / 2 - 1.0, 1.2)
     scene.collection.objects.link(edited)
-    s = side
-    ground = bpy.data.meshes.new("Ground")
-    ground.from_pydata([(-s, -s, 0), (s, -s, 0), (s, s, 0), (-s, s, 0)], [], [(0, 1, 2, 3)])
-    scene.collection.objects.link(bpy.data.objects.new("Ground", ground))
-    cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
-    cam.location = (0.0, -0.9 * side, 0.5 * side)
-    cam.rotation_euler = (math.radians(58), 0.0, 0.0)
-    scene.collection.objects.link(cam)
-    scene.camera = cam
-    scene.render.resolution_x, scene.render.resolution_y = width, height
-    scene.render.resolution_percentage = 100
-    scene.render.engine = "SCENESORT"
     scene.scenesort.viewport_spp = 64
-    prefs.preferences(bpy.context).start_on_render = True
     return scene
 
 

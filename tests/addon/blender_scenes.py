@@ -77,6 +77,22 @@ def add_camera(
     return cam
 
 
+def render_with_engine(scene: bpy.types.Scene, ao_distance: float, spp: int, seed: int,
+                       transparent: bool = True) -> None:
+    """F12 by the scenesort engine (which starts its service) into 32-bit EXRs, with a
+    World of AO distance `ao_distance`, as a judge against Cycles needs it."""
+    import addon.prefs
+
+    scene.world = bpy.data.worlds.new("World")
+    scene.world.light_settings.distance = ao_distance
+    scene.scenesort.spp, scene.scenesort.seed = spp, seed
+    scene.render.engine = "SCENESORT"
+    scene.render.film_transparent = transparent
+    scene.render.image_settings.file_format = "OPEN_EXR"
+    scene.render.image_settings.color_depth = "32"
+    addon.prefs.preferences(bpy.context).start_on_render = True
+
+
 def read_image(path: Path) -> np.ndarray:
     """An image file's RGBA, (height, width, 4), row 0 at the top."""
     img = bpy.data.images.load(str(path))

@@ -10,11 +10,11 @@ from collections.abc import Iterator
 import bpy
 import numpy as np
 import pytest
-from blender_scenes import add_camera, add_object, f12, grid_mesh
+from blender_scenes import add_camera, add_object, f12, grid_mesh, render_with_engine
 from cycles_reference import clean_pixels, render_cycles_ao
 
 import addon
-from addon import camera, export, prefs, strands
+from addon import camera, export, strands
 
 WIDTH, HEIGHT = 64, 48
 SPP = 256
@@ -68,14 +68,7 @@ def scene() -> Iterator[bpy.types.Scene]:
     add_object(scn, "Hair", hair_patch("Hair"), (-1.0, 0.3, 0.0))
     point_heap(scn, "Points")
     add_camera(scn, (0.0, -3.6, 2.2), (math.radians(60), 0.0, 0.0), WIDTH, HEIGHT)
-    scn.world = bpy.data.worlds.new("World")
-    scn.world.light_settings.distance = 0.6
-    scn.scenesort.spp, scn.scenesort.seed = SPP, 2
-    scn.render.engine = "SCENESORT"
-    scn.render.film_transparent = True
-    scn.render.image_settings.file_format = "OPEN_EXR"
-    scn.render.image_settings.color_depth = "32"
-    prefs.preferences(bpy.context).start_on_render = True
+    render_with_engine(scn, 0.6, SPP, 2)
     try:
         yield scn
     finally:

@@ -11,11 +11,11 @@ from collections.abc import Iterator
 import bpy
 import numpy as np
 import pytest
-from blender_scenes import add_camera, add_object, box_mesh, f12, grid_mesh
+from blender_scenes import add_camera, add_object, box_mesh, f12, grid_mesh, render_with_engine
 from cycles_reference import clean_pixels, render_cycles_ao
 
 import addon
-from addon import export, pipeline, prefs
+from addon import export, pipeline
 
 WIDTH, HEIGHT = 96, 36
 SPP = 256
@@ -36,14 +36,7 @@ def scene() -> Iterator[bpy.types.Scene]:
         # (lifted off the floor: a bottom face coplanar with it would be ill-posed)
         add_object(scn, name, box_mesh(name, size=1.0), (x, 0.6, 0.55))
     add_camera(scn, (0.0, -5.2, 2.6), (math.radians(66), 0.0, 0.0), WIDTH, HEIGHT)
-    scn.world = bpy.data.worlds.new("World")
-    scn.world.light_settings.distance = 1.0
-    scn.scenesort.spp, scn.scenesort.seed = SPP, 3
-    scn.render.engine = "SCENESORT"
-    scn.render.film_transparent = True
-    scn.render.image_settings.file_format = "OPEN_EXR"
-    scn.render.image_settings.color_depth = "32"
-    prefs.preferences(bpy.context).start_on_render = True
+    render_with_engine(scn, 1.0, SPP, 3)
     try:
         yield scn
     finally:

@@ -30,10 +30,11 @@ def digest(*arrays: np.ndarray) -> str:
     return h.hexdigest()
 
 
-def tree(bvh: kernels.Bvh) -> str:
-    """The tree in depth-first order from the root, left child first: each node's bounds
-    and count, and a leaf's first position in leaf order. Inner nodes' child indices are
-    left out: the task pool allocates nodes in whatever order its workers finish."""
+def depth_first(bvh: kernels.Bvh) -> tuple[np.ndarray, np.ndarray]:
+    """The tree in depth-first order from the root, left child first (node boxes and
+    counts, a leaf's first position in leaf order, -1 for inner nodes), and the leaf
+    order: what the build decided, without inner nodes' child indices, which depend on
+    the order in which the task pool's workers finish."""
     nodes = bvh.nodes()
     order, stack = [], [0]
     while stack:
@@ -42,8 +43,14 @@ def tree(bvh: kernels.Bvh) -> str:
         if nodes["count"][k] == 0:
             stack += [nodes["first"][k] + 1, nodes["first"][k]]
     picked = nodes[np.asarray(order)]
-    first = np.where(picked["count"] > 0, picked["first"], -1)
-    return digest(picked["lo"], picked["hi"], picked["count"], first, bvh.permutation())
+    picked["first"] = np.where(picked["count"] > 0, picked["first"], -1)
+    return picked, bvh.permutation()
+
+
+def tree(bvh: kernels.Bvh) -> str:
+    """`depth_first`'s tree as a digest."""
+    picked, permutation = depth_first(bvh)
+    return digest(picked["lo"], picked["hi"], picked["count"], picked["first"], permutation)
 
 
 def hits(h: kernels.Hits) -> str:

@@ -16,6 +16,7 @@ from hypothesis import strategies as st
 
 from scenesort import kernels
 
+from ..engine_digests import depth_first
 from ..reference import check_bvh, random_soup
 
 
@@ -65,22 +66,6 @@ def test_bvh_bytes_statistic_counts_right_sized_arrays(width, shared_scene):
     # width 2: a one-word placeholder each for the wide nodes and blocks
     wide = 8 if width == 2 else 32 * width * s.wide_nodes + 160 * s.leaf_blocks
     assert s.bvh_bytes == 32 * s.nodes + 40 * n + wide
-
-
-def depth_first(bvh) -> tuple[np.ndarray, np.ndarray]:
-    """The tree in depth-first order from the root, left child first (node boxes and
-    counts, a leaf's first position), and the leaf order: what the build decided, without
-    the node numbers, which depend on the order in which tasks finish."""
-    nodes = bvh.nodes()
-    order, stack = [], [0]
-    while stack:
-        k = stack.pop()
-        order.append(k)
-        if nodes["count"][k] == 0:
-            stack += [nodes["first"][k] + 1, nodes["first"][k]]
-    picked = nodes[np.asarray(order)]
-    picked["first"] = np.where(picked["count"] > 0, picked["first"], -1)
-    return picked, bvh.permutation()
 
 
 def test_in_place_exchange_gives_the_pools_tree(shared_scene):
