@@ -87,6 +87,12 @@ class SceneMesh:
     def triangles(self) -> int:
         return int(self.indices.shape[0])
 
+    @property
+    def nbytes(self) -> int:
+        """The length of `body()`, without making it."""
+        blocks = (self.vertices, self.indices, self.normals, self.terminator_offsets)
+        return sum(4 * a.size for a in blocks if a is not None)
+
     def body(self) -> bytes:
         """The upload body of `POST /v1/scenes`: V*3 float32, T*3 int32, then the normal
         and terminator blocks when present (`query()` says which), little-endian."""

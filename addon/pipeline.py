@@ -112,10 +112,25 @@ def remember(status: Any, outcome: Outcome) -> None:
     status.renders += 1
 
 
+def check_size(outcome: Outcome, mesh: SceneMesh, what: str) -> None:
+    """Refuse, before hashing or sending it, an upload larger than the service takes (its
+    health answer's `max_body_bytes`, when it says)."""
+    health = outcome.connection.health if outcome.connection is not None else {}
+    limit = health.get("max_body_bytes")
+    if limit is not None and mesh.nbytes > int(limit):
+        raise ServiceError(
+            f"{what} is {mesh.nbytes / 2**20:,.1f} MB to upload ({mesh.triangles:,} "
+            f"triangles), more than the service takes ({int(limit) / 2**20:,.1f} MB, its "
+            "--max-body-mb): start the service with a larger --max-body-mb, or render "
+            "fewer or lighter objects (linked duplicates and collection instances send "
+            "their mesh once)")
+
+
 def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) -> str:
     """The scene id on the service, uploading the scene only if the service lacks it."""
     if mesh.triangles == 0:
         raise ServiceError(NOTHING_TO_SEND)
+    check_size(outcome, mesh, "The scene")
     task.set_step("hashing the scene")
     body = mesh.body()
     scene_id = content_id(len(mesh.vertices), mesh.triangles, body)
@@ -139,6 +154,8 @@ def ensure_instances(task: Task, client: Client, scene: InstanceExport,
     if scene.triangles == 0:
         raise ServiceError(NOTHING_TO_SEND)
     task.set_step(f"checking {len(scene.meshes)} meshes on the service")
+    for mesh in scene.meshes.values():
+        check_size(outcome, mesh, "A mesh of the scene")
     for mesh_id, mesh in scene.meshes.items():
         if not client.has_mesh(mesh_id):
             body = mesh.body()

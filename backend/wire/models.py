@@ -55,6 +55,9 @@ class Health(Strict):
     cache: CacheUse | None = None
     queued: int | None = None
     active_jobs: int | None = None
+    max_body_bytes: int | None = Field(
+        default=None, description="the largest binary body (an upload) this service takes: "
+                                  "clients check theirs before they hash or send it")
 
 
 class SceneInfo(Strict):

@@ -165,3 +165,20 @@ def test_volumes_are_counted_as_not_rendered(scene, tmp_path) -> None:
         settings.file_format, settings.color_depth = "OPEN_EXR", "32"
         bpy.data.objects.remove(volume)
     assert export.skipped(bpy.context.evaluated_depsgraph_get()) == {}
+
+
+def test_an_upload_over_the_services_limit_is_refused_before_hashing(scene) -> None:
+    """The scene's upload size, from its arrays, against the limit the service's health
+    names: refused in words (the sizes, the limit, the fixes) before any hashing."""
+    from addon import pipeline
+    from addon.connection import Connection
+
+    mesh = export.export_scene(bpy.context.evaluated_depsgraph_get())
+    assert mesh.nbytes == len(mesh.body())
+    outcome = pipeline.Outcome(connection=Connection(None, {"max_body_bytes": mesh.nbytes},
+                                                     started=False))
+    pipeline.check_size(outcome, mesh, "The scene")  # exactly at the limit: taken
+    outcome.connection.health["max_body_bytes"] = mesh.nbytes - 1
+    with pytest.raises(pipeline.ServiceError, match=r"The scene is [\d.]+ MB to upload .*"
+                       r"more than the service takes .*--max-body-mb"):
+        pipeline.check_size(outcome, mesh, "The scene")

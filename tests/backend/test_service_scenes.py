@@ -53,6 +53,7 @@ def test_health_reports_versions_device_and_cache(api) -> None:
     assert health["warp_version"] == "1.19.0"
     assert health["devices"][0] == "cpu"  # then each CUDA device Warp reports
     assert 0 < health["cache"]["bytes"] <= health["cache"]["max_bytes"]
+    assert health["max_body_bytes"] == 64 * 2**20  # the shared service's --max-body-mb
 
 
 def test_cache_evicts_least_recently_used_scene(start_service) -> None:

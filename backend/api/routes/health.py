@@ -28,4 +28,5 @@ async def health(request: Request, service: Shared) -> Health:
         cache=CacheUse(**service.store.usage()),
         queued=service.worker.queued,
         active_jobs=service.jobs.active(),
+        max_body_bytes=service.settings.policy.max_body_bytes,
     )
