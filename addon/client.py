@@ -13,14 +13,17 @@ import json
 import urllib.error
 import urllib.parse
 import urllib.request
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
 
 from .service import token_for
+from .tasks import Cancelled
 
 HEALTH_TIMEOUT_S = 2.0  # health and HEAD are cheap: fail fast when nothing listens
 UPLOAD_TIMEOUT_S = 60.0
+UPLOAD_CHUNK = 4 * 2**20  # an upload asks whether to stop after each of these
 # Build and render answer only when done; this bounds the silence between bytes.
 WORK_TIMEOUT_S = 900.0
 SCENE_HASH_CHARS = 32  # backend/wire/binary.py keeps 32 hex characters of the sha256
@@ -46,6 +49,16 @@ def instances_id(mesh_count: int, instance_count: int, body: bytes) -> str:
     digest = hashlib.sha256(b"scenesort-instances-v1 %d %d\n" % (mesh_count, instance_count))
     digest.update(body)
     return digest.hexdigest()[:SCENE_HASH_CHARS]
+
+
+def _chunks(body: bytes, stop: Callable[[], bool]) -> Iterator[memoryview]:
+    """`body` in UPLOAD_CHUNK pieces, raising Cancelled (which ends the request: the
+    service sees the body cut short and keeps nothing) before a piece once `stop()`."""
+    view = memoryview(body)
+    for start in range(0, len(view), UPLOAD_CHUNK):
+        if stop():
+            raise Cancelled()
+        yield view[start:start + UPLOAD_CHUNK]
 
 
 def _opener() -> urllib.request.OpenerDirector:
@@ -89,8 +102,14 @@ class Client:
         body: bytes | None = None,
         content_type: str | None = None,
         timeout: float = HEALTH_TIMEOUT_S,
+        stop: Callable[[], bool] | None = None,
     ) -> tuple[int, dict[str, str], bytes]:
-        req = urllib.request.Request(self.base_url + path, data=body, method=method)
+        data: Any = body
+        if stop is not None and body is not None:
+            data = _chunks(body, stop)
+        req = urllib.request.Request(self.base_url + path, data=data, method=method)
+        if data is not body:
+            req.add_header("Content-Length", str(len(body)))
         if content_type:
             req.add_header("Content-Type", content_type)
         if self.token:
@@ -149,13 +168,16 @@ class Client:
         return status == 200
 
     def upload_scene(self, vertex_count: int, triangle_count: int, body: bytes,
-                     blocks: dict[str, str] | None = None) -> dict:
+                     blocks: dict[str, str] | None = None,
+                     stop: Callable[[], bool] | None = None) -> dict:
         """`POST /v1/scenes`: the raw scene body, with `blocks` the flags of its optional
-        blocks (`SceneMesh.query()`); returns scene_id, triangles, bounds, ..."""
+        blocks (`SceneMesh.query()`); returns scene_id, triangles, bounds, ... `stop`:
+        asked between chunks of the body; True ends the upload (Cancelled)."""
         query = urllib.parse.urlencode(
             {"vertices": vertex_count, "triangles": triangle_count, **(blocks or {})})
         _, _, data = self._request(
-            "POST", f"/v1/scenes?{query}", body, "application/octet-stream", UPLOAD_TIMEOUT_S
+            "POST", f"/v1/scenes?{query}", body, "application/octet-stream", UPLOAD_TIMEOUT_S,
+            stop,
         )
         return json.loads(data)
 
@@ -165,13 +187,15 @@ class Client:
         return status == 200
 
     def put_mesh(self, mesh_id: str, vertex_count: int, triangle_count: int, body: bytes,
-                 blocks: dict[str, str] | None = None) -> dict:
-        """`PUT /v1/meshes/{id}`: one mesh of an instance list, in its own space."""
+                 blocks: dict[str, str] | None = None,
+                 stop: Callable[[], bool] | None = None) -> dict:
+        """`PUT /v1/meshes/{id}`: one mesh of an instance list, in its own space (`stop`:
+        as `upload_scene`'s)."""
         query = urllib.parse.urlencode(
             {"vertices": vertex_count, "triangles": triangle_count, **(blocks or {})})
         _, _, data = self._request(
             "PUT", f"/v1/meshes/{mesh_id}?{query}", body, "application/octet-stream",
-            UPLOAD_TIMEOUT_S,
+            UPLOAD_TIMEOUT_S, stop,
         )
         return json.loads(data)
 

@@ -137,7 +137,8 @@ def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) 
     task.set_step("checking the service's scene cache")
     if not client.has_scene(scene_id):
         task.set_step(f"uploading {mesh.triangles:,} triangles ({len(body) / 1e6:.1f} MB)")
-        answer = client.upload_scene(len(mesh.vertices), mesh.triangles, body, mesh.query())
+        answer = client.upload_scene(len(mesh.vertices), mesh.triangles, body, mesh.query(),
+                                     stop=lambda: task.cancelled)
         outcome.uploaded_bytes = len(body)
         if answer.get("scene_id", scene_id) != scene_id:
             # Not fatal: use the service's id, but the next render will upload again.
@@ -161,7 +162,8 @@ def ensure_instances(task: Task, client: Client, scene: InstanceExport,
             body = mesh.body()
             task.set_step(f"uploading a mesh of {mesh.triangles:,} triangles "
                           f"({len(body) / 1e6:.1f} MB)")
-            client.put_mesh(mesh_id, len(mesh.vertices), mesh.triangles, body, mesh.query())
+            client.put_mesh(mesh_id, len(mesh.vertices), mesh.triangles, body, mesh.query(),
+                            stop=lambda: task.cancelled)
             outcome.uploaded_bytes += len(body)
     scene_id = scene.scene_id
     if not client.has_scene(scene_id):
