@@ -1,6 +1,8 @@
 """A camera render, the work of a service job and of a frame of a bundle: the scene's BVH
-(cached, built or refit; of an instance list only what the camera may see), primary rays,
-AO with progress, the primary hits' depth and coverage, and the PNG."""
+(cached, built or refit; of an instance list only what the camera may see), AO with
+progress (through the pixel filter when the options ask for one and allow it:
+AoOptions.filtered, else through the pixel centres), coverage (the filtered alpha, or 0/1
+per centre), the pixel centres' depth, and the PNG."""
 
 from __future__ import annotations
 
@@ -50,22 +52,29 @@ def render_camera(
         job.add_timing(phase, 1000.0 * (time.perf_counter() - start))
         return out
 
-    view = View(camera, options.distance) if cull else None
+    view = View(camera, options.distance, _reach(options)) if cull else None
     bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device,
                                                     view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(bvh.stats.compile_ms))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
-    result = timed(
-        "ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin, tmax, options, shape)
-    )
-    job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
-    job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0 spp
-    stats = result.stats()
-    job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
-    job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
-    job.denoised = stats.denoised
+    job.film = options.film
+    if options.filtered:
+        film = timed("ao", lambda: _render_film(job, bvh, scene, camera, options))
+        job.ao, job.coverage = film.ao, film.alpha
+        # a fixed spp: every pixel that any sample hit took `spp`; no error estimate (yet)
+        job.spp_mean = job.spp_max = film.spp if film.alpha.any() else 0
+        job.rmse_estimate, job.rays, job.denoised = None, film.rays, False
+    else:
+        result = timed("ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin,
+                                                tmax, options, shape))
+        job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
+        job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0
+        stats = result.stats()
+        job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
+        job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
+        job.denoised = stats.denoised
     depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
     job.depth = depth.reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
@@ -82,6 +91,24 @@ def camera_depth(
     hits = kernels.trace(bvh, origins, directions, tmin, tmax)
     z = hits.t.astype(np.float64) * (directions.astype(np.float64) @ camera.forward)
     return np.where(hits.hit, z, BACKGROUND_DEPTH).astype(np.float32)
+
+
+def _reach(options: AoOptions) -> float:
+    """How many pixels outside the image the render's camera rays start (its filter's)."""
+    from scenesort.kernels.render.film import filter_reach
+
+    return filter_reach(options.pixel_filter, options.filter_width) if options.filtered else 0.0
+
+
+def _render_film(job: Job, bvh: Any, scene: Any, camera: Any, options: AoOptions) -> Any:
+    """`kernels.render_film` of `camera` through the options' pixel filter with the scene's
+    normals, reporting progress between its rounds; its `FilmResult`."""
+    from scenesort import kernels
+
+    def progress(fraction: float, phase: str) -> None:
+        job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
+
+    return kernels.render_film(bvh, camera, options, progress=progress, **shading(scene))
 
 
 def _render_ao(

@@ -234,6 +234,16 @@ class JobRequest(AoSettings):
     method: Method = "sah"
     leaf_size: LeafSize = 8
     denoise: ao_setting("denoise")
+    pixel_filter: ao_setting("pixel_filter")
+    filter_width: ao_setting("filter_width")
+
+
+FILM_DOC = (
+    "what the image's pixels are: 'BLACKMAN_HARRIS 1.5 px' (the pixel filter and width it "
+    "was rendered through), 'pixel centres' (filter_width 0), or 'pixel centres: ...' "
+    "saying why a requested filter was not used (it needs a fixed spp, engine bvh, no "
+    "denoising)"
+)
 
 
 class JobStatus(Strict):
@@ -253,6 +263,7 @@ class JobStatus(Strict):
         default=None, description="what the job built, refit or reused (once it has its BVH)")
     denoised: bool | None = Field(default=None,
                                   description="the image is OIDN's output (denoise=true)")
+    film: str | None = Field(default=None, description=FILM_DOC)
     error: str | None
 
 

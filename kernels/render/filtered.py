@@ -9,9 +9,10 @@ samples, so they converge to the filter-weighted integrals Cycles' film converge
 Sample i of pixel k uses point i of the pixel's Sobol (or random) sequence for its
 sub-pixel position (with the filter's own scramble) and for its occlusion direction.
 
-Scope today: a fixed `spp` (no error target), engine "bvh", no denoising; each pixel is one
-thread's, so the result is bit-identical for any `threads`. `filter_width=0` is today's
-pixel-centre render: `render_ao` over `Camera.rays()`, alpha 0 or 1.
+Scope today: a fixed `spp` (no error target), engine "bvh", no denoising
+(`AoOptions.film_fallback`); each pixel is one thread's, so the result is bit-identical for
+any `threads`. `filter_width=0` is the pixel-centre render: `render_ao` over
+`Camera.rays()`, alpha 0 or 1.
 """
 
 from __future__ import annotations
@@ -31,9 +32,10 @@ from ..core.launch import PARTS_PER_THREAD, host_threads, part_launcher, run_par
 from ..core.mesh import Shading
 from ..scene.api import Scene
 from ..scene.top import SceneArrays, SceneShading
-from .ao import default_distance, render_ao
+from .adaptive import ROUND_RAYS, Progress
+from .ao import AoResult, default_distance, render_ao
 from .camera import Camera
-from .film import check_filter, filter_position, filter_table
+from .film import filter_position, filter_table
 from .primary import scene_shading
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import occlusion_origin
@@ -116,11 +118,15 @@ for _tracer, _shading, _bvh in ((MeshTracer, Shading, BvhArrays),
 
 @dataclass
 class FilmResult:
-    """A filtered render of a camera's image, row-major with row 0 at the top."""
+    """A camera's image, row-major with row 0 at the top."""
 
     ao: np.ndarray  # (H, W) float32: the mean of the samples' values
     alpha: np.ndarray  # (H, W) float32: the fraction of samples that hit (coverage)
-    spp: int  # samples per pixel
+    spp: int  # samples per pixel (with filter_width=0 and an error target: the minimum)
+    rays: int  # camera and occlusion rays traced
+    # filter_width=0: render_ao's result over the pixel centres (its statistics, normals,
+    # denoised image); None for a filtered render
+    centres: AoResult | None = None
 
 
 def device_camera(camera: Camera) -> FilmCamera:
@@ -139,28 +145,29 @@ def device_camera(camera: Camera) -> FilmCamera:
 
 
 def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = None, *,
-                pixel_filter: str = "BLACKMAN_HARRIS", filter_width: float = 1.5,
                 normals: Any = None, terminator_offset: float | np.ndarray | None = None,
-                **settings: Any) -> FilmResult:
-    """AO and alpha of `camera`'s image through the pixel filter (module docstring).
-    `pixel_filter` is one of film.PIXEL_FILTERS and `filter_width` its width in pixels
-    (Cycles' defaults: Blackman-Harris, 1.5), or 0 for pixel centres; the other arguments
-    are `render_ao`'s."""
+                progress: Progress | None = None, **settings: Any) -> FilmResult:
+    """AO and alpha of `camera`'s image through the options' pixel filter (`pixel_filter`,
+    `filter_width`; module docstring), or with filter_width=0 through the pixel centres
+    (render_ao over `Camera.rays()`, any of its settings). A filter with an error target,
+    denoising or engine "dacrt" raises ValueError (AoOptions.film_fallback says why).
+    `normals`, `terminator_offset` and `progress` are `render_ao`'s; keywords set single
+    fields of `options`."""
     opts = (options or AoOptions()).with_(**settings)
     offsets = opts.terminator_offset if terminator_offset is None else terminator_offset
-    if filter_width == 0:
+    shape = (camera.height, camera.width)
+    if opts.filter_width == 0.0:
         o, d, t0, t1 = camera.rays()
         r = render_ao(bvh, o, d, opts, tmin=t0, tmax=t1, normals=normals,
-                      terminator_offset=offsets)
-        shape = (camera.height, camera.width)
+                      terminator_offset=offsets, image_shape=shape, progress=progress)
         return FilmResult(ao=r.ao.reshape(shape),
                           alpha=(r.spp_used > 0).astype(np.float32).reshape(shape),
-                          spp=opts.spp)
-    check_filter(pixel_filter, filter_width)
-    if opts.adaptive or opts.denoise or opts.engine != "bvh":
-        raise ValueError("render_film renders a fixed spp with engine='bvh' and no denoising: "
-                         "drop target_error, max_pixel_error, denoise and engine='dacrt', or "
-                         "set filter_width=0")
+                          spp=opts.min_spp, rays=r.rays.primary + r.rays.occlusion, centres=r)
+    if opts.film_fallback is not None:
+        raise ValueError(f"render_film with filter_width > 0 renders a fixed spp with "
+                         f"engine='bvh' and no denoising: drop target_error, "
+                         f"max_pixel_error, denoise and engine='dacrt', or set filter_width=0 "
+                         f"({opts.film_fallback})")
     check_tracer(bvh, opts.engine)
     shading = scene_shading(bvh, normals, offsets)
     if isinstance(bvh, Scene):
@@ -176,24 +183,34 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
     out_open = wp.empty(n, dtype=int, device=device)
     out_hit = wp.empty(n, dtype=int, device=device)
     dist = default_distance(bvh) if opts.distance is None else opts.distance
-    table = wp.array(filter_table(pixel_filter, filter_width), dtype=float, device=device)
-    # Contiguous runs of pixels in host threads (a CPU launch is serial); more parts than
-    # threads, taken in turn, since sky and geometry cost very different amounts.
-    nthreads = host_threads(device, opts.threads)
-    parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
-                       n * opts.spp // PART_RAYS, n))
-    bounds = np.linspace(0, n, parts + 1).astype(int)
+    table = wp.array(filter_table(opts.pixel_filter, opts.filter_width), dtype=float,
+                     device=device)
     wp.load_module(film_kernel.module, device=device)  # once, not in every thread at once
     launch = part_launcher(film_kernel, [
         tracer, shading, arrays, device_camera(camera), camera.width, table, opts.spp,
         SAMPLERS[opts.sampler], opts.seed, dist, 0, out_open, out_hit], device)
+    nthreads = host_threads(device, opts.threads)
+    # Rounds of about ROUND_RAYS samples (a progress call, the cancellation point, before
+    # each), each in contiguous runs of pixels in host threads (a CPU launch is serial):
+    # more parts than threads, taken in turn, since sky and geometry cost very different
+    # amounts.
+    rounds = np.linspace(0, n, max(1, min(n, n * opts.spp // ROUND_RAYS)) + 1).astype(int)
+    for a, b in zip(rounds[:-1], rounds[1:], strict=True):
+        if progress is not None:
+            progress(float(a) / n, "film")
+        m = int(b - a)
+        parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
+                           m * opts.spp // PART_RAYS, m))
+        bounds = np.linspace(a, b, parts + 1).astype(int)
 
-    def run(p: int) -> None:
-        a, b = int(bounds[p]), int(bounds[p + 1])
-        launch(b - a, {10: a, 11: out_open[a:b], 12: out_hit[a:b]})
+        def run(p: int, bounds: np.ndarray = bounds) -> None:
+            lo, hi = int(bounds[p]), int(bounds[p + 1])
+            launch(hi - lo, {10: lo, 11: out_open[lo:hi], 12: out_hit[lo:hi]})
 
-    run_parts(run, parts, nthreads)
-    shape = (camera.height, camera.width)
+        run_parts(run, parts, nthreads)
+    if progress is not None:
+        progress(1.0, "done")
+    hit = out_hit.numpy()
     return FilmResult(ao=(out_open.numpy() / opts.spp).astype(np.float32).reshape(shape),
-                      alpha=(out_hit.numpy() / opts.spp).astype(np.float32).reshape(shape),
-                      spp=opts.spp)
+                      alpha=(hit / opts.spp).astype(np.float32).reshape(shape),
+                      spp=opts.spp, rays=n * opts.spp + int(hit.sum()))

@@ -298,6 +298,13 @@ CASES: list[tuple[str, str, str, dict, Any, dict, int, str]] = [
         404,
         "scene_id",
     ),
+    ("job unknown pixel filter", "POST", "/v1/jobs", {},
+     {"scene_id": "{sid}", "camera": CAMERA, "pixel_filter": "MITCHELL"}, {}, 422,
+     "pixel_filter"),
+    ("job filter width over 10", "POST", "/v1/jobs", {},
+     {"scene_id": "{sid}", "camera": CAMERA, "filter_width": 10.5}, {}, 422, "filter_width"),
+    ("job filter width negative", "POST", "/v1/jobs", {},
+     {"scene_id": "{sid}", "camera": CAMERA, "filter_width": -1}, {}, 422, "filter_width"),
     ("unknown route", "GET", "/v1/teapot", {}, None, {}, 404, "path"),
     ("wrong method", "DELETE", "/v1/health", {}, None, {}, 405, "method"),
 ]

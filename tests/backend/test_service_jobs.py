@@ -81,6 +81,44 @@ def test_a_job_reports_what_it_achieved(api, box_scene, scene_id) -> None:
         assert status["spp_max"] >= 8 and status["rmse_estimate"] > 0
 
 
+def test_a_filtered_job_renders_what_render_film_renders(api, box_scene, scene_id) -> None:
+    """pixel_filter and filter_width reach the engine: AO and coverage are render_film's
+    filtered AO and alpha, sample for sample, and the status names the film."""
+    job = create(api, scene_id, 40, 30, spp=8, seed=3, pixel_filter="GAUSSIAN",
+                 filter_width=1.5)
+    status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+    assert status["state"] == "done", status
+    assert status["film"] == "GAUSSIAN 1.5 px"
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    film = kernels.render_film(bvh, Camera.from_dict(camera(40, 30)), spp=8, seed=3,
+                               pixel_filter="GAUSSIAN", filter_width=1.5)
+    for name, expected in (("f32", film.ao), ("coverage", film.alpha)):
+        raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
+        np.testing.assert_array_equal(np.frombuffer(raw.content, "<f4").reshape(30, 40),
+                                      expected)
+    assert ((film.alpha > 0) & (film.alpha < 1)).any()  # the box's edges are filtered
+    assert (status["spp_mean"], status["spp_max"], status["rays"]) == (8, 8, film.rays)
+    assert status["rmse_estimate"] is None
+
+
+def test_a_filter_with_an_error_target_renders_pixel_centres_and_says_so(
+        api, box_scene, scene_id) -> None:
+    """The error target works on pixel centres: a filter asked for with it is not used, and
+    the status's film says so (the image is the pixel-centre render's)."""
+    plain = create(api, scene_id, 40, 30, spp=8, seed=2, target_error=0.05)
+    asked = create(api, scene_id, 40, 30, spp=8, seed=2, target_error=0.05, filter_width=1.5)
+    images = []
+    for job in (plain, asked):
+        status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+        assert status["state"] == "done", status
+        raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": "f32"})
+        images.append(raw.content)
+    assert wait(api, plain["job_id"], {"done"})["film"] == "pixel centres"
+    film = wait(api, asked["job_id"], {"done"})["film"]
+    assert film.startswith("pixel centres: an error target") and "target_error" in film
+    assert images[0] == images[1]
+
+
 def test_coverage_and_depth_layers_follow_the_primary_hits(api, box_scene, scene_id) -> None:
     """coverage is 1 exactly where AO sampled (a hit), depth is Cycles' Z pass: the
     closest hit's camera-space depth, 1e10 on background."""

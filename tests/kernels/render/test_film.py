@@ -11,7 +11,6 @@ import warp as wp
 from scenesort.kernels.render.camera import Camera
 from scenesort.kernels.render.film import (
     FILTER_TABLE_SIZE,
-    PIXEL_FILTERS,
     filter_position,
     filter_profile,
     filter_table,
@@ -20,6 +19,7 @@ from scenesort.kernels.render.filtered import FilmCamera, camera_ray, device_cam
 from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d_at
 
 from scenesort import kernels
+from scenesort.ao_options import PIXEL_FILTERS
 
 PIXELS = 256
 SAMPLES = 256  # a power of two: each pixel's Sobol points are a complete net
@@ -208,17 +208,40 @@ def test_filtered_render_does_not_depend_on_threads(shared_scene):
     scene = shared_scene("sponza")
     cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 96, 64)
     bvh = kernels.build_bvh(scene.vertices, scene.indices)
-    a = render_film(bvh, cam, spp=8, threads=1)
-    b = render_film(bvh, cam, spp=8, threads=2)
+    a = render_film(bvh, cam, spp=8, threads=1, filter_width=1.5)
+    b = render_film(bvh, cam, spp=8, threads=2, filter_width=1.5)
     assert np.array_equal(a.ao, b.ao) and np.array_equal(a.alpha, b.alpha)
 
 
 @pytest.mark.parametrize(("settings", "field"), [
-    ({"target_error": 0.02}, "target_error"), ({"pixel_filter": "MITCHELL"}, "pixel_filter"),
-    ({"filter_width": -1.0}, "filter_width")])
+    ({"target_error": 0.02, "filter_width": 1.5}, "target_error"),
+    ({"denoise": True, "filter_width": 1.5}, "denoise"),
+    ({"pixel_filter": "MITCHELL"}, "pixel_filter"), ({"filter_width": -1.0}, "filter_width"),
+    ({"filter_width": 10.5}, "filter_width")])
 def test_bad_film_arguments_name_the_field(settings, field):
     with pytest.raises(ValueError, match=field):
         render_film(half_plane(0.0), ortho_camera(4, 4), **settings)
+
+
+def test_progress_is_called_between_rounds_and_cancels():
+    """A filtered render reports its rounds (monotone, ending at 1) and stops when the
+    progress callback raises: the service's cancellation point."""
+    seen = []
+    render_film(half_plane(0.0), ortho_camera(64, 64), spp=1024, filter_width=1.5,
+                progress=lambda f, phase: seen.append((f, phase)))
+    fractions = [f for f, _ in seen]
+    assert len(seen) >= 3 and fractions == sorted(fractions) and seen[-1] == (1.0, "done")
+
+    class Stop(Exception):
+        pass
+
+    def stop(fraction: float, phase: str) -> None:
+        if fraction > 0.0:
+            raise Stop
+
+    with pytest.raises(Stop):
+        render_film(half_plane(0.0), ortho_camera(64, 64), spp=1024, filter_width=1.5,
+                    progress=stop)
 
 
 def test_two_level_scene_renders_as_its_mesh():
@@ -227,8 +250,8 @@ def test_two_level_scene_renders_as_its_mesh():
     w, h = 16, 4
     bvh = half_plane(7.3 - w / 2)
     scene = kernels.build_scene([bvh], np.array([0]), np.eye(4, dtype=np.float32)[None, :3])
-    a = render_film(bvh, ortho_camera(w, h), spp=64)
-    b = render_film(scene, ortho_camera(w, h), spp=64)
+    a = render_film(bvh, ortho_camera(w, h), spp=64, filter_width=1.5)
+    b = render_film(scene, ortho_camera(w, h), spp=64, filter_width=1.5)
     assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
     assert 0.0 < a.alpha[0, 7] < 1.0
 
