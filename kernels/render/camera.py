@@ -170,6 +170,18 @@ class Camera:
         sensor = self.sensor_height if self.sensor_fit == "VERTICAL" else self.sensor_width
         return sensor / self.lens
 
+    def raster_plane(self) -> tuple[tuple[float, float], ...]:
+        """The raster -> image-plane map, one affine map per axis, as (centre, step,
+        offset) pairs (x, y): plane = (raster - centre) * step + offset. The one
+        definition of where a raster point lies, for `raster_to_camera` and the device's
+        camera rays (filtered.py); a subclass that frames the image otherwise (a window,
+        non-square pixels: backend/render/framing.py) overrides this alone."""
+        s = self.plane_scale()
+        pix = s / (self.width if self.horizontal_fit else self.height)
+        # y: (H/2 - py) * pix, written as (py - H/2) * -pix (the same float64 numbers)
+        return ((0.5 * self.width, 0.5 * self.height), (pix, -pix),
+                (self.shift_x * s, self.shift_y * s))
+
     def raster_to_camera(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
         """Camera-space image-plane points (float64, (N,3)) for raster coordinates.
 
@@ -178,11 +190,10 @@ class Camera:
         """
         px = np.asarray(px, dtype=np.float64).ravel()
         py = np.asarray(py, dtype=np.float64).ravel()
-        s = self.plane_scale()
-        pix = s / (self.width if self.horizontal_fit else self.height)
+        centre, step, offset = self.raster_plane()
         pts = np.empty((px.size, 3), dtype=np.float64)
-        pts[:, 0] = (px - 0.5 * self.width) * pix + self.shift_x * s
-        pts[:, 1] = (0.5 * self.height - py) * pix + self.shift_y * s
+        pts[:, 0] = (px - centre[0]) * step[0] + offset[0]
+        pts[:, 1] = (py - centre[1]) * step[1] + offset[1]
         pts[:, 2] = -1.0 if self.type == "PERSP" else 0.0
         return pts
 

@@ -50,9 +50,10 @@ class FilmCamera:
 
     rotation: wp.mat33  # matrix_world's normalised 3x3 part
     position: wp.vec3
-    half_size: wp.vec2  # (W / 2, H / 2)
-    pix: float  # image-plane size of a pixel
-    shift: wp.vec2  # (shift_x, shift_y) * plane_scale
+    # Camera.raster_plane: plane x = (px - centre.x) * step.x + offset.x, y likewise
+    centre: wp.vec2
+    step: wp.vec2
+    offset: wp.vec2
     persp: int  # 1: PERSP (plane at z = -1), 0: ORTHO (plane at z = 0)
     clip_start: float
     clip_end: float
@@ -62,8 +63,8 @@ class FilmCamera:
 def camera_ray(cam: FilmCamera, px: float, py: float):
     """(origin, unit direction, tmin, tmax) through raster point (px, py) (pixels from the
     image's left and top edges), as `Camera.rays` builds them."""
-    x = (px - cam.half_size[0]) * cam.pix + cam.shift[0]
-    y = (cam.half_size[1] - py) * cam.pix + cam.shift[1]
+    x = (px - cam.centre[0]) * cam.step[0] + cam.offset[0]
+    y = (py - cam.centre[1]) * cam.step[1] + cam.offset[1]
     if cam.persp == 1:
         world = cam.rotation * wp.vec3(x, y, -1.0)
         length = wp.length(world)
@@ -130,14 +131,11 @@ class FilmResult:
 
 
 def device_camera(camera: Camera) -> FilmCamera:
-    """`camera` as the kernel reads it."""
+    """`camera` as the kernel reads it (a framed camera too: its `raster_plane`)."""
     cam = FilmCamera()
-    s = camera.plane_scale()
     cam.rotation = wp.mat33(*camera.rotation.astype(np.float32).ravel())
     cam.position = wp.vec3(*camera.position.astype(np.float32))
-    cam.half_size = wp.vec2(0.5 * camera.width, 0.5 * camera.height)
-    cam.pix = s / (camera.width if camera.horizontal_fit else camera.height)
-    cam.shift = wp.vec2(camera.shift_x * s, camera.shift_y * s)
+    cam.centre, cam.step, cam.offset = (wp.vec2(*pair) for pair in camera.raster_plane())
     cam.persp = 1 if camera.type == "PERSP" else 0
     cam.clip_start = camera.clip_start
     cam.clip_end = camera.clip_end

@@ -268,19 +268,33 @@ def _centre_rays(cam: FilmCamera, width: int, out: wp.array2d(dtype=float)):
     out[k, 7] = t1
 
 
+FRAMINGS = [  # backend/render/framing.py: a window of the frame, non-square pixels
+    ({"x": 3, "y": 5, "width": 7, "height": 9}, (1.0, 1.0)),
+    (None, (1.0, 2.0)),
+    ({"x": 0, "y": 4, "width": 12, "height": 10}, (3.0, 1.0)),
+]
+
+
+@pytest.mark.parametrize("framing", [None, *FRAMINGS])
 @pytest.mark.parametrize("settings", [
     {"type": "PERSP", "lens": 35.0, "sensor_fit": "AUTO", "shift_x": 0.1, "clip_start": 0.5},
     {"type": "PERSP", "sensor_fit": "VERTICAL", "shift_y": -0.2, "clip_end": 50.0},
     {"type": "ORTHO", "ortho_scale": 4.0, "sensor_fit": "HORIZONTAL", "shift_x": -0.3},
 ])
-def test_device_camera_is_the_camera_model(settings, device):
-    """The kernel's camera ray through each pixel centre is Camera.rays()'s (float32)."""
+def test_device_camera_is_the_camera_model(settings, framing, device):
+    """The kernel's camera ray through each pixel centre is Camera.rays()'s (float32), also
+    for the service's framed cameras (a window, non-square pixels): what a filtered job
+    renders is the frame's part the pixel-centre job renders."""
     angle = 0.3
     m = np.eye(4)
     m[:3, :3] = [[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
                  [-math.sin(angle), 0, math.cos(angle)]]
     m[:3, 3] = (1.0, -2.0, 3.0)
     cam = Camera(matrix_world=m, width=12, height=20, **settings)
+    if framing is not None:
+        from scenesort.backend.render.framing import framed
+
+        cam = framed(cam.to_dict(), *framing)
     out = wp.empty((cam.width * cam.height, 8), dtype=float, device=device)
     wp.launch(_centre_rays, dim=out.shape[0], inputs=[device_camera(cam), cam.width, out],
               device=device)
