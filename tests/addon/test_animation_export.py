@@ -42,7 +42,8 @@ def test_bundle_holds_what_blender_renders_at_each_frame(animated, tmp_path: Pat
     bundle = read_bundle(tmp_path)
     assert bundle.frames == FRAMES
     assert bundle.settings == {"spp": 4, "seed": 3, "method": "sah", "leaf_size": 8,
-                               "distance": 1.5}
+                               "distance": 1.5, "pixel_filter": "BLACKMAN_HARRIS",
+                               "filter_width": 1.5}  # the scene's film: Cycles' defaults
     for number in FRAMES:
         frame = bundle.frame(number)
         scene.frame_set(number)
