@@ -87,8 +87,8 @@ AO_OPTIONS = {
                 'sample traces its own camera ray from a sub-pixel position drawn from the '
                 'filter, so edges and alpha are anti-aliased as Cycles renders them; 0: one '
                 "camera ray through each pixel's centre, coverage 0 or 1. Filtered renders "
-                'take a fixed spp with engine bvh and no denoising; otherwise they render '
-                'pixel centres (film_fallback)'),
+                'take engine bvh and no denoising; otherwise they render pixel centres '
+                '(film_fallback)'),
     },
     'denoise': {
         'kind': 'bool', 'default': False, 'low': None, 'high': None, 'low_open': False,

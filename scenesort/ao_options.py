@@ -174,8 +174,8 @@ class AoOptions:
         0.0, "a camera render's pixel filter width in pixels (Cycles' default 1.5): each "
         "sample traces its own camera ray from a sub-pixel position drawn from the filter, "
         "so edges and alpha are anti-aliased as Cycles renders them; 0: one camera ray "
-        "through each pixel's centre, coverage 0 or 1. Filtered renders take a fixed spp with "
-        "engine bvh and no denoising; otherwise they render pixel centres (film_fallback)",
+        "through each pixel's centre, coverage 0 or 1. Filtered renders take engine bvh and no "
+        "denoising; otherwise they render pixel centres (film_fallback)",
         low=0.0, high=MAX_FILTER_WIDTH)
     denoise: bool = _option(
         False, "denoise the image with Intel Open Image Denoise, the shading normals as its "
@@ -214,17 +214,16 @@ class AoOptions:
     def film_fallback(self) -> str | None:
         """Why a camera render with filter_width > 0 renders pixel centres instead (None:
         it filters, or filter_width is 0). Each sample of a filtered render traces its own
-        camera ray; the error target's rounds, the denoiser's guides and DACRT's ray
-        batches work on one primary hit per pixel."""
+        camera ray; the denoiser's guides and DACRT's ray batches work on one primary hit
+        per pixel."""
         if self.filter_width == 0.0:
             return None
         reasons = [reason for reason, applies in (
-            ("an error target (target_error, max_pixel_error)", self.adaptive),
             ("denoise", self.denoise), ("engine dacrt", self.engine == "dacrt")) if applies]
         if not reasons:
             return None
         return (f"pixel centres: {' and '.join(reasons)} renders one camera ray per pixel "
-                "centre (the pixel filter needs a fixed spp, engine bvh, no denoising)")
+                "centre (the pixel filter needs engine bvh and no denoising)")
 
     @property
     def filtered(self) -> bool:

@@ -151,8 +151,10 @@ def _film_table(scene: Any, camera: Any, film: Any, options: Any,
     phase ("film"), Warp's compile of the film kernel included on first use."""
     from rich.table import Table
 
+    rmse = film.rmse_estimate
     title = (f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
-             f"{film.spp} spp through {options.film}")
+             f"through {options.film}, spp mean {film.spp_mean:.1f} (max {film.spp_max}), "
+             f"est. RMSE {'-' if rmse is None else f'{rmse:.4f}'} (AO units, covered pixels)")
     table = Table(title=title, min_width=len(title) + 4)
     for name, justify in (("phase", "left"), ("ms", "right"), ("rays", "right"),
                           ("MRays/s", "right")):

@@ -63,9 +63,8 @@ def render_camera(
     if options.filtered:
         film = timed("ao", lambda: _render_film(job, bvh, scene, camera, options))
         job.ao, job.coverage = film.ao, film.alpha
-        # a fixed spp: every pixel that any sample hit took `spp`; no error estimate (yet)
-        job.spp_mean = job.spp_max = film.spp if film.alpha.any() else 0
-        job.rmse_estimate, job.rays, job.denoised = None, film.rays, False
+        job.spp_mean, job.spp_max = film.spp_mean, film.spp_max  # over covered pixels
+        job.rmse_estimate, job.rays, job.denoised = film.rmse_estimate, film.rays, False
     else:
         result = timed("ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin,
                                                 tmax, options, shape))

@@ -9,14 +9,19 @@ samples, so they converge to the filter-weighted integrals Cycles' film converge
 Sample i of pixel k uses point i of the pixel's Sobol (or random) sequence for its
 sub-pixel position (with the filter's own scramble) and for its occlusion direction.
 
-Scope today: a fixed `spp` (no error target), engine "bvh", no denoising
-(`AoOptions.film_fallback`); each pixel is one thread's, so the result is bit-identical for
-any `threads`. `filter_width=0` is the pixel-centre render: `render_ao` over
-`Camera.rays()`, alpha 0 or 1.
+With an error target, the rounds of render_ao's adaptive controller (adaptive.py) over
+the covered pixels (any of whose first `min_spp` samples hit): each sample is 0 or 1 as
+an occlusion sample is, so a pixel's statistics include its edge's variance (the camera
+ray hitting or not) beside its occlusion's. Engine "bvh" only, no denoising
+(`AoOptions.film_fallback`); each pixel's samples in a round are one thread's, so the
+result is bit-identical for any `threads`. `filter_width=0` is the pixel-centre render:
+`render_ao` over `Camera.rays()`, alpha 0 or 1.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -32,8 +37,8 @@ from ..core.launch import PARTS_PER_THREAD, host_threads, part_launcher, run_par
 from ..core.mesh import Shading
 from ..scene.api import Scene
 from ..scene.top import SceneArrays, SceneShading
-from .adaptive import ROUND_RAYS, Progress
-from .ao import AoResult, default_distance, render_ao
+from .adaptive import ROUND_RAYS, Progress, SampleCounts, nested_marks, sample_rounds
+from .ao import AoResult, _monotone, default_distance, render_ao
 from .camera import Camera
 from .film import filter_position, filter_table
 from .primary import scene_shading
@@ -82,34 +87,50 @@ def film_kernel(
     cam: FilmCamera,
     width: int,
     table: wp.array(dtype=float),
-    spp: int,
     sampler: int,
     seed: int,
     distance: float,
-    pixel0: int,  # the first pixel of this launch (the outputs start there)
-    out_open: wp.array(dtype=int),  # per pixel: samples whose value is 1
-    out_hit: wp.array(dtype=int),  # per pixel: samples whose camera ray hit
+    active: wp.array(dtype=int),  # the pixel (row-major index) of each slot of this round
+    slot0: int,  # the first slot of this launch
+    first: int,  # the first sample index of this round (the same for every slot)
+    count: int,  # samples per slot this round
+    mid: int,  # out_open_mid counts the open samples with index below this (absolute)
+    quarter: int,  # out_open_quarter: those below this
+    out_open: wp.array(dtype=int),  # per slot: samples whose value is 1
+    out_open_mid: wp.array(dtype=int),
+    out_open_quarter: wp.array(dtype=int),
+    out_hit: wp.array(dtype=int),  # per slot: samples whose camera ray hit
 ):
-    t = wp.tid()
-    k = pixel0 + t
+    # One pixel's samples per thread: each slot is written by one thread of one launch.
+    j = slot0 + wp.tid()
+    k = active[j]
     key = pixel_key(k, seed)
     row = k / width
     col = k - row * width
     n_open = int(0)
+    n_mid = int(0)
+    n_quarter = int(0)
     n_hit = int(0)
-    for i in range(spp):
+    for s in range(count):
+        i = first + s
         offset = filter_position(table, sampler, key, i)
         o, d, t0, t1 = camera_ray(cam, float(col) + offset[0], float(row) + offset[1])
-        s, hit = closest_surface(tracer, shading, o, d, t0, t1)
+        surface, hit = closest_surface(tracer, shading, o, d, t0, t1)
+        is_open = True  # a miss counts 1, as render_ao's pixels do
         if hit:
             n_hit += 1
-            w = cosine_direction(s.n, sampler, key, i)
-            if not occluded(bvh, occlusion_origin(s, w), w, distance, True):
-                n_open += 1
-        else:
+            w = cosine_direction(surface.n, sampler, key, i)
+            is_open = not occluded(bvh, occlusion_origin(surface, w), w, distance, True)
+        if is_open:
             n_open += 1
-    out_open[t] = n_open
-    out_hit[t] = n_hit
+            if i < mid:
+                n_mid += 1
+                if i < quarter:
+                    n_quarter += 1
+    out_open[j] = n_open
+    out_open_mid[j] = n_mid
+    out_open_quarter[j] = n_quarter
+    out_hit[j] = n_hit
 
 
 for _tracer, _shading, _bvh in ((MeshTracer, Shading, BvhArrays),
@@ -123,11 +144,26 @@ class FilmResult:
 
     ao: np.ndarray  # (H, W) float32: the mean of the samples' values
     alpha: np.ndarray  # (H, W) float32: the fraction of samples that hit (coverage)
-    spp: int  # samples per pixel (with filter_width=0 and an error target: the minimum)
+    spp_used: np.ndarray  # (H, W) int32: samples per pixel (pixel centres: 0 on a miss)
     rays: int  # camera and occlusion rays traced
+    # the estimated RMSE of `ao` over the covered pixels (alpha > 0) against the converged
+    # image, as render_ao's (adaptive.py); None when nothing is covered
+    rmse_estimate: float | None
     # filter_width=0: render_ao's result over the pixel centres (its statistics, normals,
     # denoised image); None for a filtered render
     centres: AoResult | None = None
+
+    @property
+    def spp_mean(self) -> float:
+        """Mean samples over the covered pixels (0 when none is)."""
+        covered = self.spp_used[self.alpha > 0]
+        return float(covered.mean()) if covered.size else 0.0
+
+    @property
+    def spp_max(self) -> int:
+        """Most samples a covered pixel took (0 when none is)."""
+        covered = self.spp_used[self.alpha > 0]
+        return int(covered.max()) if covered.size else 0
 
 
 def device_camera(camera: Camera) -> FilmCamera:
@@ -147,10 +183,11 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
                 progress: Progress | None = None, **settings: Any) -> FilmResult:
     """AO and alpha of `camera`'s image through the options' pixel filter (`pixel_filter`,
     `filter_width`; module docstring), or with filter_width=0 through the pixel centres
-    (render_ao over `Camera.rays()`, any of its settings). A filter with an error target,
-    denoising or engine "dacrt" raises ValueError (AoOptions.film_fallback says why).
-    `normals`, `terminator_offset` and `progress` are `render_ao`'s; keywords set single
-    fields of `options`."""
+    (render_ao over `Camera.rays()`, any of its settings). A filter with denoising or
+    engine "dacrt" raises ValueError (AoOptions.film_fallback says why). With an error
+    target the rounds are render_ao's (adaptive.py) over the covered pixels: those that
+    any of their first `min_spp` samples hit. `normals`, `terminator_offset` and
+    `progress` are `render_ao`'s; keywords set single fields of `options`."""
     opts = (options or AoOptions()).with_(**settings)
     offsets = opts.terminator_offset if terminator_offset is None else terminator_offset
     shape = (camera.height, camera.width)
@@ -160,13 +197,65 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
                       terminator_offset=offsets, image_shape=shape, progress=progress)
         return FilmResult(ao=r.ao.reshape(shape),
                           alpha=(r.spp_used > 0).astype(np.float32).reshape(shape),
-                          spp=opts.min_spp, rays=r.rays.primary + r.rays.occlusion, centres=r)
+                          spp_used=r.spp_used.reshape(shape),
+                          rays=r.rays.primary + r.rays.occlusion,
+                          rmse_estimate=r.rmse_estimate, centres=r)
     if opts.film_fallback is not None:
-        raise ValueError(f"render_film with filter_width > 0 renders a fixed spp with "
-                         f"engine='bvh' and no denoising: drop target_error, "
-                         f"max_pixel_error, denoise and engine='dacrt', or set filter_width=0 "
-                         f"({opts.film_fallback})")
+        raise ValueError(f"render_film with filter_width > 0 renders with engine='bvh' and "
+                         f"no denoising: drop denoise and engine='dacrt', or set "
+                         f"filter_width=0 ({opts.film_fallback})")
     check_tracer(bvh, opts.engine)
+    report = _monotone(progress)
+    trace = _film_tracer(bvh, camera, opts, normals, offsets)
+    n, m = camera.width * camera.height, opts.min_spp
+    # The first m samples of every pixel, in rounds of about ROUND_RAYS samples (a progress
+    # call, the cancellation point, before each): they find the covered pixels (with a
+    # fixed spp, all the work).
+    first_open, first_mid, first_quarter, hits = (np.zeros(n, np.int64) for _ in range(4))
+    mid, quarter = nested_marks(0, m)
+    share = 0.5 if opts.adaptive else 1.0  # of the progress bar
+    bounds = np.linspace(0, n, max(1, min(n, n * m // ROUND_RAYS)) + 1).astype(int)
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        report(share * float(a) / n, "film")
+        pixels = np.arange(a, b)
+        (first_open[a:b], first_mid[a:b], first_quarter[a:b],
+         hits[a:b]) = trace(pixels, 0, m, mid, quarter)
+    covered = np.flatnonzero(hits)
+
+    def trace_round(select: np.ndarray, first: int, count: int, mid: int,
+                    quarter: int) -> tuple[np.ndarray, ...]:
+        pixels = covered[select]
+        if first == 0:  # traced above
+            return first_open[pixels], first_mid[pixels], first_quarter[pixels]
+        opened, opened_mid, opened_quarter, hit = trace(pixels, first, count, mid, quarter)
+        hits[pixels] += hit
+        return opened, opened_mid, opened_quarter
+
+    counts = SampleCounts(*(np.zeros(len(covered), np.int64) for _ in range(3)))
+    if len(covered):
+        counts.trace(trace_round, np.arange(len(covered)), m)
+
+    def rounds_progress(fraction: float, phase: str) -> None:
+        report(share + (1.0 - share) * fraction, "film")
+
+    counts, _ = sample_rounds(trace_round, len(covered), opts, rounds_progress, counts)
+    report(1.0, "done")
+    done = np.full(n, m, np.int64)
+    done[covered] = counts.done
+    opened = first_open.copy()
+    opened[covered] = counts.open
+    return FilmResult(ao=(opened / done).astype(np.float32).reshape(shape),
+                      alpha=(hits / done).astype(np.float32).reshape(shape),
+                      spp_used=done.astype(np.int32).reshape(shape),
+                      rays=int(done.sum() + hits.sum()),
+                      rmse_estimate=math.sqrt(counts.mse()) if len(covered) else None)
+
+
+def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any,
+                 offsets: Any) -> Callable[..., tuple[np.ndarray, ...]]:
+    """trace(pixels, first, count, mid, quarter): samples first..first+count-1 of these
+    pixels (row-major indices), each through its own filtered camera ray: per pixel its
+    open samples, those with index below mid and below quarter, and its hits."""
     shading = scene_shading(bvh, normals, offsets)
     if isinstance(bvh, Scene):
         tracer, arrays = bvh.arrays, bvh.arrays
@@ -177,38 +266,31 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
         tracer.vertices, tracer.indices = mesh.v, mesh.f
         arrays = bvh.arrays
     device = bvh.device
-    n = camera.width * camera.height
-    out_open = wp.empty(n, dtype=int, device=device)
-    out_hit = wp.empty(n, dtype=int, device=device)
     dist = default_distance(bvh) if opts.distance is None else opts.distance
     table = wp.array(filter_table(opts.pixel_filter, opts.filter_width), dtype=float,
                      device=device)
     wp.load_module(film_kernel.module, device=device)  # once, not in every thread at once
-    launch = part_launcher(film_kernel, [
-        tracer, shading, arrays, device_camera(camera), camera.width, table, opts.spp,
-        SAMPLERS[opts.sampler], opts.seed, dist, 0, out_open, out_hit], device)
     nthreads = host_threads(device, opts.threads)
-    # Rounds of about ROUND_RAYS samples (a progress call, the cancellation point, before
-    # each), each in contiguous runs of pixels in host threads (a CPU launch is serial):
-    # more parts than threads, taken in turn, since sky and geometry cost very different
-    # amounts.
-    rounds = np.linspace(0, n, max(1, min(n, n * opts.spp // ROUND_RAYS)) + 1).astype(int)
-    for a, b in zip(rounds[:-1], rounds[1:], strict=True):
-        if progress is not None:
-            progress(float(a) / n, "film")
-        m = int(b - a)
-        parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
-                           m * opts.spp // PART_RAYS, m))
-        bounds = np.linspace(a, b, parts + 1).astype(int)
+    head = [tracer, shading, arrays, device_camera(camera), camera.width, table,
+            SAMPLERS[opts.sampler], opts.seed, dist]
 
-        def run(p: int, bounds: np.ndarray = bounds) -> None:
-            lo, hi = int(bounds[p]), int(bounds[p + 1])
-            launch(hi - lo, {10: lo, 11: out_open[lo:hi], 12: out_hit[lo:hi]})
+    def trace(pixels: np.ndarray, first: int, count: int, mid: int,
+              quarter: int) -> tuple[np.ndarray, ...]:
+        k = len(pixels)
+        active = wp.array(pixels.astype(np.int32), dtype=int, device=device)
+        outs = [wp.empty(k, dtype=int, device=device) for _ in range(4)]
+        launch = part_launcher(film_kernel, [*head, active, 0, int(first), int(count),
+                                             int(mid), int(quarter), *outs], device)
+        # Contiguous runs of pixels in host threads (a CPU launch is serial): more parts
+        # than threads, taken in turn, since sky and geometry cost very different amounts.
+        parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
+                           k * count // PART_RAYS, k))
+        bounds = np.linspace(0, k, parts + 1).astype(int)
+
+        def run(p: int) -> None:
+            launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p])})
 
         run_parts(run, parts, nthreads)
-    if progress is not None:
-        progress(1.0, "done")
-    hit = out_hit.numpy()
-    return FilmResult(ao=(out_open.numpy() / opts.spp).astype(np.float32).reshape(shape),
-                      alpha=(hit / opts.spp).astype(np.float32).reshape(shape),
-                      spp=opts.spp, rays=n * opts.spp + int(hit.sum()))
+        return tuple(out.numpy().astype(np.int64) for out in outs)
+
+    return trace

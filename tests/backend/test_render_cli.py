@@ -73,7 +73,7 @@ def test_shared_scene_by_name_writes_png_and_npy(tmp_path, capsys, scenes_dir):
 
 def test_filter_width_renders_through_the_pixel_filter(tmp_path, capsys, scenes_dir):
     """--pixel-filter and --filter-width: the image is render_film's through that filter,
-    the table names it; with an error target the render says it renders pixel centres."""
+    the table names it; with DACRT the render says it renders pixel centres."""
     npy = tmp_path / "f.npy"
     args = ["render", "--scene", "sponza", "--width", "64", "--height", "48", "--spp", "4",
             "--seed", "3", "--out", str(tmp_path / "f.png"), "--npy", str(npy),
@@ -86,9 +86,8 @@ def test_filter_width_renders_through_the_pixel_filter(tmp_path, capsys, scenes_
     assert np.array_equal(np.load(npy), film.ao)
     out = capsys.readouterr().out
     assert "GAUSSIAN 1.5 px" in out and "film" in out
-    target = [a for a in args if a not in ("--spp", "4")]
-    assert main([*target, "--target-error", "0.05", "--filter-width", "1.5"]) == 0
-    assert "pixel centres: an error target" in " ".join(capsys.readouterr().out.split())
+    assert main([*args, "--engine", "dacrt", "--filter-width", "1.5"]) == 0
+    assert "pixel centres: engine dacrt" in " ".join(capsys.readouterr().out.split())
 
 
 def test_ply_path_with_camera_file_and_target_error(tmp_path, scenes_dir, capsys):
