@@ -126,11 +126,19 @@ def filter_position(
 ) -> wp.vec2:
     """Sample `index`'s raster offset (x right, y down) from the corner of the pixel whose
     occlusion samples use `key`."""
-    seed = pcg_hash(key ^ FILTER_KEY)
-    # Burley 2020 (JCGT 9(4)), sec. 4: the index is Owen-scrambled too, else the filter's
-    # point i and the occlusion direction's point i share their strata (the same Sobol
+    u = decorrelated_2d(sampler, key, FILTER_KEY, index)
+    return wp.vec2(table_read(table, u[0]), table_read(table, u[1]))
+
+
+@wp.func
+def decorrelated_2d(sampler: int, key: wp.uint32, salt: wp.uint32, index: int) -> wp.vec2:
+    """Point `index` of the pixel's 2D sequence (of the pixel whose occlusion samples use
+    `key`) under its own scramble `salt`, decorrelated from the occlusion directions' and
+    from every other salt's: the filter's sub-pixel positions, the lens's points."""
+    seed = pcg_hash(key ^ salt)
+    # Burley 2020 (JCGT 9(4)), sec. 4: the index is Owen-scrambled too, else point i here
+    # and the occlusion direction's point i share their strata (the same Sobol
     # dimensions under two scrambles: the top bits agree or differ for every sample of a
     # pixel) and each pixel's estimate keeps a bias that more samples never remove. The
     # first 2^m indices go to an aligned block of 2^m, which is still a (0, m, 2)-net.
-    u = sample_2d_at(sampler, seed, owen_scramble(wp.uint32(index), pcg_hash(seed)))
-    return wp.vec2(table_read(table, u[0]), table_read(table, u[1]))
+    return sample_2d_at(sampler, seed, owen_scramble(wp.uint32(index), pcg_hash(seed)))

@@ -40,13 +40,15 @@ from ..scene.top import SceneArrays, SceneShading
 from .adaptive import ROUND_RAYS, Progress, SampleCounts, nested_marks, sample_rounds
 from .ao import AoResult, _monotone, default_distance, render_ao
 from .camera import Camera
-from .film import filter_position, filter_table
+from .film import decorrelated_2d, filter_position, filter_table
 from .primary import scene_shading
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import occlusion_origin
 from .tracers import PART_RAYS, MeshTracer, check_tracer, closest_surface, occluded, scene_mesh
 
 wp.set_module_options(MODULE_OPTIONS)
+
+LENS_KEY = wp.constant(wp.uint32(0x68E31DA4))  # separates the lens's scramble from the others'
 
 
 @wp.struct
@@ -62,17 +64,68 @@ class FilmCamera:
     persp: int  # 1: PERSP (plane at z = -1), 0: ORTHO (plane at z = 0)
     clip_start: float
     clip_end: float
+    aperture: float  # the lens's radius (0: a pinhole); the others are Camera's fields
+    focus: float
+    blades: int
+    blade_rotation: float
+    inv_ratio: float
 
 
 @wp.func
-def camera_ray(cam: FilmCamera, px: float, py: float):
+def concentric_disk(u: wp.vec2) -> wp.vec2:
+    """A point of the unit disk for u in the unit square, area-preserving (Shirley and
+    Chiu 1997): uniform for uniform u, strata kept."""
+    a = 2.0 * u[0] - 1.0
+    b = 2.0 * u[1] - 1.0
+    if a == 0.0 and b == 0.0:
+        return wp.vec2(0.0, 0.0)
+    r = b
+    phi = 0.5 * wp.pi - 0.25 * wp.pi * (a / b)
+    if wp.abs(a) > wp.abs(b):
+        r = a
+        phi = 0.25 * wp.pi * (b / a)
+    return wp.vec2(r * wp.cos(phi), r * wp.sin(phi))
+
+
+@wp.func
+def polygon_point(corners: int, rotation: float, u: wp.vec2) -> wp.vec2:
+    """A uniform point of the regular polygon with `corners` corners on the unit circle,
+    turned by `rotation` (Cycles' regular_polygon_sample: a corner's triangle picked by
+    u.x, a uniform point in it)."""
+    n = float(corners)
+    corner = wp.floor(u[0] * n)
+    s = wp.sqrt(u[0] * n - corner)
+    t = u[1] * s
+    s = 1.0 - s
+    half = wp.pi / n
+    p = wp.vec2((s + t) * wp.cos(half), (s - t) * wp.sin(half))
+    angle = rotation + corner * 2.0 * half
+    c = wp.cos(angle)
+    sn = wp.sin(angle)
+    return wp.vec2(c * p[0] - sn * p[1], sn * p[0] + c * p[1])
+
+
+@wp.func
+def camera_ray(cam: FilmCamera, px: float, py: float, lens: wp.vec2):
     """(origin, unit direction, tmin, tmax) through raster point (px, py) (pixels from the
-    image's left and top edges), as `Camera.rays` builds them."""
+    image's left and top edges), as `Camera.rays` builds them; with an aperture, from the
+    lens point that `lens` (in the unit square) picks, through the point of the ray from
+    the camera's centre at the depth in focus (Cycles' camera_sample_perspective; the clip
+    range stays the centre ray's, as Cycles keeps it)."""
     x = (px - cam.centre[0]) * cam.step[0] + cam.offset[0]
     y = (py - cam.centre[1]) * cam.step[1] + cam.offset[1]
     if cam.persp == 1:
-        world = cam.rotation * wp.vec3(x, y, -1.0)
+        plane = wp.vec3(x, y, -1.0)
+        world = cam.rotation * plane
         length = wp.length(world)
+        if cam.aperture > 0.0:
+            uv = concentric_disk(lens)
+            if cam.blades > 0:
+                uv = polygon_point(cam.blades, cam.blade_rotation, lens)
+            p = wp.vec3(uv[0] * cam.inv_ratio * cam.aperture, uv[1] * cam.aperture, 0.0)
+            d = cam.rotation * (plane * cam.focus - p)
+            return (cam.position + cam.rotation * p, wp.normalize(d), cam.clip_start * length,
+                    cam.clip_end * length)
         return cam.position, world / length, cam.clip_start * length, cam.clip_end * length
     d = -wp.vec3(cam.rotation[0, 2], cam.rotation[1, 2], cam.rotation[2, 2])
     origin = cam.position + cam.rotation * wp.vec3(x, y, 0.0)
@@ -114,7 +167,10 @@ def film_kernel(
     for s in range(count):
         i = first + s
         offset = filter_position(table, sampler, key, i)
-        o, d, t0, t1 = camera_ray(cam, float(col) + offset[0], float(row) + offset[1])
+        lens = wp.vec2(0.5, 0.5)  # the lens's centre: a pinhole
+        if cam.aperture > 0.0:
+            lens = decorrelated_2d(sampler, key, LENS_KEY, i)
+        o, d, t0, t1 = camera_ray(cam, float(col) + offset[0], float(row) + offset[1], lens)
         surface, hit = closest_surface(tracer, shading, o, d, t0, t1)
         is_open = True  # a miss counts 1, as render_ao's pixels do
         if hit:
@@ -175,6 +231,11 @@ def device_camera(camera: Camera) -> FilmCamera:
     cam.persp = 1 if camera.type == "PERSP" else 0
     cam.clip_start = camera.clip_start
     cam.clip_end = camera.clip_end
+    cam.aperture = camera.aperture_size
+    cam.focus = camera.focus_distance
+    cam.blades = camera.aperture_blades
+    cam.blade_rotation = camera.aperture_rotation
+    cam.inv_ratio = 1.0 / camera.aperture_ratio
     return cam
 
 

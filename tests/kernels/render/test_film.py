@@ -261,7 +261,8 @@ def test_two_level_scene_renders_as_its_mesh():
 def _centre_rays(cam: FilmCamera, width: int, out: wp.array2d(dtype=float)):
     k = wp.tid()
     row = k / width
-    o, d, t0, t1 = camera_ray(cam, float(k - row * width) + 0.5, float(row) + 0.5)
+    o, d, t0, t1 = camera_ray(cam, float(k - row * width) + 0.5, float(row) + 0.5,
+                              wp.vec2(0.5, 0.5))
     for j in range(3):
         out[k, j] = o[j]
         out[k, 3 + j] = d[j]
@@ -329,3 +330,35 @@ def test_error_target_holds_on_filtered_pixels(target):
         assert 0.5 * target <= achieved <= target, (seed, achieved / target)
         assert abs(r.rmse_estimate / achieved - 1.0) <= 0.25, (seed, r.rmse_estimate, achieved)
         assert r.spp_mean >= 8  # at least the minimum, on the covered pixels
+
+
+def disk_cdf(t: np.ndarray, radius: float) -> np.ndarray:
+    """P(x < t) for x the first coordinate of a uniform point of a disk of `radius`."""
+    r = np.clip(t / radius, -1.0, 1.0)
+    return 0.5 + (r * np.sqrt(1.0 - r * r) + np.arcsin(r)) / math.pi
+
+
+@pytest.mark.parametrize(("focus", "ratio"), [(5.0, 1.0), (2.5, 1.0), (10.0, 0.5)])
+def test_depth_of_field_blurs_an_edge_by_its_circle_of_confusion(focus, ratio):
+    """A half plane's straight edge 5 units below a lens of radius 0.3 (Box filter 1 px):
+    a ray from lens point L through the point in focus meets the plane at Z x_p + L_x (1 -
+    Z / F) (x_p: the raster point on the plane at depth 1), so each pixel's alpha is the
+    pixel's mean of the lens's x marginal (a disk's, squeezed by `aperture_ratio`) beyond
+    the edge, integrated here by quadrature: within 4 binomial sigmas at 1024 spp. In
+    focus (F = Z) the edge is as sharp as a pinhole's."""
+    w, h, spp, z, radius, edge = 16, 4, 1024, 5.0, 0.3, 0.1
+    m = np.eye(4)
+    m[2, 3] = z
+    cam = Camera(matrix_world=m, width=w, height=h, sensor_fit="HORIZONTAL",
+                 aperture_size=radius, focus_distance=focus, aperture_ratio=ratio)
+    r = render_film(half_plane(edge), cam, spp=spp, pixel_filter="BOX", filter_width=1.0)
+    pix = cam.plane_scale() / w
+    u = (np.arange(4000) + 0.5) / 4000
+    x_p = (np.arange(w)[:, None] + u[None, :] - w / 2) * pix  # (pixel, position)
+    k = abs(1.0 - z / focus)  # the lens offset's scale at the plane
+    gap = edge - z * x_p
+    sharp = (gap > 0).mean(axis=1)  # a pinhole's
+    expected = sharp if k == 0.0 else disk_cdf(gap / k, radius / ratio).mean(axis=1)
+    sigma = np.sqrt(expected * (1 - expected) / spp) + 1.0 / spp
+    assert np.all(np.abs(r.alpha[0] - expected) <= 4 * sigma), (r.alpha[0], expected)
+    assert k == 0.0 or np.abs(expected - sharp).max() > 0.1  # the test sees the blur
