@@ -60,6 +60,8 @@ def render_camera(
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
     job.film = options.film
+    if camera.aperture_size > 0.0 and not options.filtered:
+        job.film += " (no depth of field: it needs the pixel filter's own camera rays)"
     if options.filtered:
         film = timed("ao", lambda: _render_film(job, bvh, scene, camera, options))
         job.ao, job.coverage = film.ao, film.alpha

@@ -137,6 +137,19 @@ class CameraModel(Strict):
     shift_y: Annotated[float, Field(allow_inf_nan=False)] = 0.0
     clip_start: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.1
     clip_end: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1000.0
+    aperture_size: Annotated[float, Field(
+        ge=0, allow_inf_nan=False,
+        description="depth of field (PERSP, rendered through a pixel filter): the lens's "
+                    "radius in world units, Cycles' lens * 1e-3 / (2 * f-stop); 0: none")] = 0.0
+    focus_distance: Annotated[float, Field(
+        gt=0, allow_inf_nan=False, description="the camera-space depth in focus")] = 10.0
+    aperture_blades: Annotated[int, Field(
+        ge=0, le=16, description="0: a round aperture, else a polygon of 3..16 corners")] = 0
+    aperture_rotation: Annotated[float, Field(
+        allow_inf_nan=False, description="the polygon's rotation, radians")] = 0.0
+    aperture_ratio: Annotated[float, Field(
+        gt=0, allow_inf_nan=False, description="anamorphic squeeze of the aperture across x",
+    )] = 1.0
 
 
 class Window(Strict):
