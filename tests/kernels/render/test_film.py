@@ -3,6 +3,7 @@ sub-pixel positions drawn from it, checked against the filter's own normalised p
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -307,27 +308,35 @@ def test_device_camera_is_the_camera_model(settings, framing, device):
         np.testing.assert_allclose(got[:, cols], ref, rtol=1e-5, atol=1e-5)
 
 
+@functools.cache
+def bunny_reference() -> tuple:
+    """The bunny at 160x120, its BVH and an 8192-spp render through Blackman-Harris 1.5 px
+    (made once per session: 30 s on 2 cores)."""
+    scene = shared_scene("bunny", 160, 120)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    ref = render_film(bvh, scene.camera, spp=8192, seed=999, pixel_filter="BLACKMAN_HARRIS",
+                      filter_width=1.5)
+    return scene, bvh, ref
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("target", [0.05, 0.02])
 def test_error_target_holds_on_filtered_pixels(target):
-    """target_error through the filter (the bunny's silhouette against the sky at 64x48:
-    634 covered pixels, 340 of them edges): the adaptive rounds run over the covered
-    pixels with the edges' variance in their statistics. Over 8 seeds the achieved RMSE
-    (against an 8192-spp filtered reference, its own estimated error subtracted) is at
-    most the target in every run and at least half of it, and the estimate is within 25%
-    of it. Measured: 0.58-0.99x at 0.05, 0.63-0.88x at 0.02 (issue 32's calibration floor,
-    0.7-1.0 in 95% of runs, is not met at this size: 6 of 16 runs under 0.7); estimates
-    0.78-1.21."""
-    scene = shared_scene("bunny", 64, 48)
-    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    """target_error through the filter (the bunny's silhouette against the sky at
+    160x120: 3276 covered pixels, 867 of them edges): the adaptive rounds run over the
+    covered pixels with the edges' variance in their statistics. Over 8 seeds the achieved
+    RMSE (against an 8192-spp filtered reference, its own estimated error subtracted) lies
+    in [0.7, 1.0] x the target (issue 32's calibration band) and the estimate within 25%
+    of it. Measured: 0.81-0.92x at 0.05, 0.79-0.90x at 0.02; estimates 0.81-1.01. (At
+    64x48, 634 covered pixels, the band does not hold: 0.58-0.99x, never above 1.)"""
+    scene, bvh, ref = bunny_reference()
     film = {"pixel_filter": "BLACKMAN_HARRIS", "filter_width": 1.5}
-    ref = render_film(bvh, scene.camera, spp=8192, seed=999, **film)
     covered = ref.alpha > 0
     for seed in range(8):
         r = render_film(bvh, scene.camera, spp=1, seed=seed, target_error=target, **film)
         mse = np.mean((r.ao[covered].astype(np.float64) - ref.ao[covered]) ** 2)
         achieved = math.sqrt(max(mse - ref.rmse_estimate**2, 0.0))
-        assert 0.5 * target <= achieved <= target, (seed, achieved / target)
+        assert 0.7 * target <= achieved <= target, (seed, achieved / target)
         assert abs(r.rmse_estimate / achieved - 1.0) <= 0.25, (seed, r.rmse_estimate, achieved)
         assert r.spp_mean >= 8  # at least the minimum, on the covered pixels
 
