@@ -72,7 +72,8 @@ def write_bundle(context: bpy.types.Context, directory: str | Path) -> Written:
             stem = _frame_stem(root, frame)
             stem.with_suffix(".bin").write_bytes(listing.body())
             record = {"frame": frame, **view, "meshes": len(listing.meshes),
-                      "instances": listing.objects}
+                      "instances": listing.objects,
+                      "visibility": listing.visibility is not None}
             stem.with_suffix(".json").write_text(json.dumps(record, indent=1))
     finally:
         scene.frame_set(current[0], subframe=current[1])

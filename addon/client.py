@@ -175,9 +175,13 @@ class Client:
         )
         return json.loads(data)
 
-    def upload_instances(self, mesh_count: int, instance_count: int, body: bytes) -> dict:
-        """`POST /v1/instance-scenes`: an instance list over meshes the service holds."""
-        query = urllib.parse.urlencode({"meshes": mesh_count, "instances": instance_count})
+    def upload_instances(self, mesh_count: int, instance_count: int, body: bytes,
+                         visibility: bool = False) -> dict:
+        """`POST /v1/instance-scenes`: an instance list over meshes the service holds
+        (`visibility`: the body ends with the instances' ray visibility masks)."""
+        fields = {"meshes": mesh_count, "instances": instance_count}
+        query = urllib.parse.urlencode({**fields, **({"visibility": "true"} if visibility
+                                                     else {})})
         _, _, data = self._request(
             "POST", f"/v1/instance-scenes?{query}", body, "application/octet-stream",
             UPLOAD_TIMEOUT_S,
@@ -219,8 +223,9 @@ class Client:
         return self._json("DELETE", f"/v1/jobs/{job_id}", timeout=UPLOAD_TIMEOUT_S)
 
     def job_result(self, job_id: str, pixels: int, layer: str = "f32") -> np.ndarray:
-        """`GET /v1/jobs/{id}/result?format=f32|coverage|depth`: `pixels` float32 (AO,
-        coverage or depth), row 0 at the top."""
+        """`GET /v1/jobs/{id}/result?format=...` (f32, coverage, depth, holdout, normal,
+        position, object): `pixels` float32 values (pixels times the layer's channels),
+        row 0 at the top."""
         _, _, data = self._request(
             "GET", f"/v1/jobs/{job_id}/result?format={layer}", timeout=UPLOAD_TIMEOUT_S
         )

@@ -9,11 +9,16 @@ and shows the step in the status bar. Blender writes the files of Ctrl-F12 itsel
 Frame ranges (Ctrl-F12) with the BVH engine send the scene as an instance list
 (`export.export_instances`): per frame each mesh is asked for by its hash (HEAD) and sent
 only when the service lacks it, and the list of instances is sent when it changed; the
-service then builds only what changed (backend/render/bvhs.py). F12 sends the flattened scene.
+service then builds only what changed (backend/render/bvhs.py). F12 does the same when the
+scene has instances, ray visibility or holdouts, or an Object Index pass (what only an
+instance list carries), else sends the flattened scene. The Rendered viewport's
+`view_update`/`view_draw` hand the work to a `viewport.ViewSession`.
 
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
 alpha = coverage with Film > Transparent and 1 without; `AO` (one channel, 0 on
-background); `Depth` (camera-space Z, 1e10 on background).
+background); `Depth` (camera-space Z, 1e10 on background); and those the view layer turns
+on (`image.OPTIONAL_PASSES`): Normal, Position, Object Index and the Denoising Normal,
+Albedo and Depth of Cycles' Denoising Data, so that the compositor's Denoise node works.
 """
 
 from __future__ import annotations
@@ -27,7 +32,7 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import bake, camera, export, image, pipeline, prefs, service, timings
+from . import bake, camera, export, image, pipeline, prefs, service, timings, viewport
 from .client import ServiceError
 from .tasks import Cancelled, Task
 
@@ -89,9 +94,53 @@ class AoEngine:
     def update_render_passes(self, scene: Any = None, renderlayer: Any = None) -> None:
         for name, channels, chan_id, kind in PASSES:
             self.register_pass(scene, renderlayer, name, channels, chan_id, kind)
+        for extra in image.wanted_passes(renderlayer):
+            self.register_pass(scene, renderlayer, *extra.blender)
 
     def render(self, depsgraph: bpy.types.Depsgraph) -> None:
         self._guarded("Render", lambda: self._render(depsgraph))
+
+    # --- the Rendered viewport (viewport.py does the work) ----------------------------
+
+    view_session: viewport.ViewSession | None = None
+
+    def view_update(self, context: bpy.types.Context, depsgraph: bpy.types.Depsgraph) -> None:
+        """Blender's call after a change: the session reads what changed and restarts."""
+        first = self.view_session is None
+        if first:
+            self.view_session = viewport.ViewSession(prefs.target(context))
+        self.view_session.update_scene(depsgraph, first)
+
+    def view_draw(self, context: bpy.types.Context, depsgraph: bpy.types.Depsgraph) -> None:
+        """Blender's call to draw the region: the latest round's image, and another redraw
+        while the rounds go on."""
+        session = self.view_session
+        if session is None:
+            return
+        region, space = context.region, context.region_data
+        scale = context.preferences.system.pixel_size
+        try:
+            session.look(viewport.region_view(space.view_matrix, space.window_matrix,
+                                              region.width, region.height,
+                                              viewport.pixel_size(depsgraph.scene, scale)))
+        except ValueError as exc:
+            session.error = str(exc)
+        frame = session.frame()
+        if frame is not None:
+            self.bind_display_space_shader(depsgraph.scene)
+            viewport.draw_frame(frame, region.width, region.height)
+            self.unbind_display_space_shader()
+        self.update_stats("", viewport.status_text(session))
+        if session.refining:
+            self.tag_redraw()
+
+    def __del__(self) -> None:
+        try:
+            session = self.view_session
+        except ReferenceError:  # Blender already freed the engine's data
+            return
+        if session is not None:
+            session.stop()
 
     def bake(self, depsgraph: bpy.types.Depsgraph, obj: bpy.types.Object, pass_type: str,
              pass_filter: int, width: int, height: int) -> None:
@@ -118,8 +167,17 @@ class AoEngine:
         transparent = scene.render.film_transparent
         view = camera.view(scene, depsgraph, self.camera_override)
         self.show("exporting the scene")
-        instanced = self.is_animation and scene.scenesort.engine == "bvh"
+        # Instance lists for the BVH engine where they pay (instances, shared meshes) or
+        # carry what a flattened scene cannot (ray visibility, holdout); every frame of an
+        # animation, so that unchanged meshes are never sent twice.
+        extras = image.wanted_passes(depsgraph.view_layer)
+        instanced = scene.scenesort.engine == "bvh" and (
+            self.is_animation or export.has_instances(depsgraph)
+            or any(extra.per_object for extra in extras))
         mesh = (export.export_instances if instanced else export.export_scene)(depsgraph)
+        if not instanced and export.custom_visibility(depsgraph):
+            self._say("WARNING", "Ray visibility and holdout are ignored by the DACRT engine: "
+                                 "choose the BVH engine to honour them")
         if mesh.triangles == 0:
             frame = view["window"] or view["camera"]
             size = (frame["width"], frame["height"])
@@ -133,11 +191,17 @@ class AoEngine:
         settings = pipeline.Settings.from_scene(scene)
         target = prefs.target(bpy.context)
         outcome = self._run(
-            lambda task: pipeline.render_job(task, target, settings, mesh, view),
+            lambda task: pipeline.render_job(task, target, settings, mesh, view,
+                                             image.service_passes(extras)),
             f"{mesh.triangles:,} triangles",
         )
         line = stats_line(outcome, mesh.triangles)
-        self._write(depsgraph, image.result_passes(outcome, transparent), outcome.size, line)
+        missing = export.skipped(depsgraph)
+        if missing:  # what Cycles would show and this render does not
+            line += " | not rendered: " + ", ".join(f"{n} {kind}" for kind, n in missing.items())
+        passes = image.result_passes(outcome, transparent)
+        passes.update(image.extra_passes(outcome, extras, mesh))
+        self._write(depsgraph, passes, outcome.size, line)
         self.show(line)
         self._keep(scene, outcome)
 

@@ -14,7 +14,8 @@ differs from Blender's default (the service's default).
 
 `export_instances` reads the same depsgraph without flattening it: each distinct mesh once,
 in its own space (a `SceneMesh` whose content hash is its id), and per instance its mesh
-and 3x4 object-to-world transform: the service's instance list (docs/api.md).
+and 3x4 object-to-world transform: the service's instance list (docs/api.md), with each
+instance's ray visibility (camera, shadow, holdout) where some differs from the default.
 """
 
 from __future__ import annotations
@@ -25,15 +26,24 @@ from dataclasses import dataclass, field
 import bpy
 import numpy as np
 
+from . import strands
 from .ao_options import AO_OPTIONS
 from .client import instances_id
 from .client import scene_id as content_id
 
 # Object types whose evaluated geometry can be turned into a mesh.
 _CONVERTIBLE = {"CURVE", "SURFACE", "FONT", "META"}
+# Hair and points, made into tubes and spheres (strands.py).
+_STRANDS = {"CURVES": strands.curve_tubes, "POINTCLOUD": strands.point_spheres}
+# Geometry Cycles renders that no AO render here holds yet: counted, for the stats line.
+SKIPPED_TYPES = {"VOLUME"}
 # The service's (the engine's) default, Object.shadow_terminator_geometry_offset's too: a
 # scene whose objects all have it sends no offsets.
 DEFAULT_TERMINATOR_OFFSET = AO_OPTIONS["terminator_offset"]["default"]
+# An instance's ray visibility mask, the service's bits (docs/api.md): seen by the camera,
+# occluding (Cycles' AO rays are shadow rays), held out.
+CAMERA, SHADOW, HOLDOUT = 1, 2, 4
+DEFAULT_VISIBILITY = CAMERA | SHADOW
 
 
 def terminator_offset(obj: bpy.types.Object) -> float:
@@ -112,6 +122,8 @@ def _source_arrays(obj: bpy.types.Object, cache: dict[int, _MeshArrays]) -> _Mes
     if key not in cache:
         if obj.type == "MESH":
             cache[key] = _mesh_arrays(obj.data)
+        elif obj.type in _STRANDS:
+            cache[key] = _MeshArrays(*_STRANDS[obj.type](obj.data))
         else:
             mesh = obj.to_mesh()
             try:
@@ -229,10 +241,8 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
     offset = 0
     count = 0
     triangles = 0
-    for inst in _instances(depsgraph):
+    for inst in _rendered(depsgraph):
         obj = inst.object
-        if obj.type != "MESH" and obj.type not in _CONVERTIBLE:
-            continue
         arrays = _source_arrays(obj, cache)
         tris, normals = arrays.indices, arrays.normals
         if len(tris) == 0:
@@ -291,6 +301,10 @@ class InstanceExport:
     meshes: dict[str, SceneMesh]
     mesh_index: np.ndarray
     transforms: np.ndarray
+    visibility: np.ndarray | None = None  # (N,) uint8 masks; None: all DEFAULT_VISIBILITY
+    # (N,) float32 each instance's object's Pass Index (the Object Index pass); not sent
+    pass_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32),
+                                   compare=False)
 
     @property
     def triangles(self) -> int:
@@ -302,11 +316,19 @@ class InstanceExport:
     def objects(self) -> int:
         return len(self.mesh_index)
 
+    @property
+    def holdouts(self) -> bool:
+        """Whether the camera may see a holdout (the job then has a holdout image)."""
+        return self.visibility is not None and bool(
+            np.any((self.visibility & CAMERA != 0) & (self.visibility & HOLDOUT != 0)))
+
     def body(self) -> bytes:
-        """The body of `POST /v1/instance-scenes`: K*32 hex ids, N int32, N*12 float32."""
+        """The body of `POST /v1/instance-scenes`: K*32 hex ids, N int32, N*12 float32,
+        then N uint8 masks when `visibility` (its `visibility=true`)."""
         ids = "".join(self.meshes).encode("ascii")
+        masks = b"" if self.visibility is None else self.visibility.astype(np.uint8).tobytes()
         return (ids + np.ascontiguousarray(self.mesh_index, "<i4").tobytes()
-                + np.ascontiguousarray(self.transforms, "<f4").tobytes())
+                + np.ascontiguousarray(self.transforms, "<f4").tobytes() + masks)
 
     @property
     def scene_id(self) -> str:
@@ -329,33 +351,133 @@ def mesh_id(mesh: SceneMesh) -> str:
     return content_id(len(mesh.vertices), mesh.triangles, mesh.body())
 
 
-def export_instances(depsgraph: bpy.types.Depsgraph) -> InstanceExport:
+def ray_visibility(inst: bpy.types.DepsgraphObjectInstance, view_layer: bpy.types.ViewLayer,
+                   ) -> int:
+    """The instance's mask as Cycles reads it: Ray Visibility > Camera and Shadow of its
+    object and, for an instance, of its instancer too; holdout (the object's Mask >
+    Holdout or a holdout collection) of the instancer, else of the object."""
+    obj = inst.object
+    owner = inst.parent if inst.is_instance and inst.parent is not None else obj
+    mask = 0
+    if obj.visible_camera and owner.visible_camera:
+        mask |= CAMERA
+    if obj.visible_shadow and owner.visible_shadow:
+        mask |= SHADOW
+    if owner.original.holdout_get(view_layer=view_layer):
+        mask |= HOLDOUT
+    return mask
+
+
+def _rendered(depsgraph: bpy.types.Depsgraph,
+              ) -> Iterator[bpy.types.DepsgraphObjectInstance]:
+    """`_instances` that have mesh-like geometry (hair and points included)."""
+    for inst in _instances(depsgraph):
+        kind = inst.object.type
+        if kind == "MESH" or kind in _CONVERTIBLE or kind in _STRANDS:
+            yield inst
+
+
+def skipped(depsgraph: bpy.types.Depsgraph) -> dict[str, int]:
+    """What renders in Cycles but not here, counted by kind: volumes, and particle hair
+    (HAIR particle systems shown for rendering)."""
+    counts: dict[str, int] = {}
+    for inst in _instances(depsgraph):
+        obj = inst.object
+        if obj.type in SKIPPED_TYPES:
+            counts[obj.type.lower()] = counts.get(obj.type.lower(), 0) + 1
+        hair = sum(1 for p in getattr(obj, "particle_systems", ())
+                   if p.settings.type == "HAIR" and p.settings.render_type == "PATH")
+        if hair and not inst.is_instance:
+            counts["particle hair"] = counts.get("particle hair", 0) + hair
+    return counts
+
+
+def custom_visibility(depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether some object's ray visibility or holdout is not the default."""
+    view_layer = depsgraph.view_layer
+    return any(ray_visibility(inst, view_layer) != DEFAULT_VISIBILITY
+               for inst in _rendered(depsgraph))
+
+
+def has_instances(depsgraph: bpy.types.Depsgraph) -> bool:
+    """Whether the scene renders best as an instance list: some geometry is instanced
+    (collection instances, instancing by vertices or faces, geometry nodes), mesh data is
+    shared by several objects, or an object's ray visibility or holdout is not the
+    default (only an instance list carries them). Reads no mesh."""
+    view_layer = depsgraph.view_layer
+    seen: set[int] = set()
+    for inst in _rendered(depsgraph):
+        obj = inst.object
+        data = obj.data.as_pointer() if obj.type == "MESH" and obj.data else None
+        if inst.is_instance or data in seen or ray_visibility(
+                inst, view_layer) != DEFAULT_VISIBILITY:
+            return True
+        if data is not None:
+            seen.add(data)
+    return False
+
+
+@dataclass
+class MeshCache:
+    """Meshes read by `export_instances`, kept between exports of one depsgraph whose
+    geometry did not change (the Rendered viewport after moving objects: its evaluated
+    meshes stay where they were): the arrays by evaluated data, and each (arrays,
+    terminator offset)'s local mesh and id. Clear it after any geometry update."""
+
+    arrays: dict[int, _MeshArrays] = field(default_factory=dict)
+    local: dict[tuple[int, float], tuple[str, SceneMesh]] = field(default_factory=dict)
+
+    def clear(self) -> None:
+        self.arrays.clear()
+        self.local.clear()
+
+
+def export_instances(depsgraph: bpy.types.Depsgraph,
+                     cache: MeshCache | None = None) -> InstanceExport:
     """What `export_scene` renders, as meshes and instances: instanced meshes are read and
-    hashed once, not expanded; instances scaled to nothing (no area) are left out."""
-    cache: dict[int, _MeshArrays] = {}
-    local: dict[tuple[int, float], str] = {}  # (arrays, terminator offset) -> mesh id
+    hashed once, not expanded (nor again while `cache` holds them); instances scaled to
+    nothing (no area) are left out; each instance's `ray_visibility`."""
+    cache = MeshCache() if cache is None else cache
+    local = cache.local
     meshes: dict[str, SceneMesh] = {}
     position: dict[str, int] = {}  # mesh id -> its place in `meshes`
     index: list[int] = []
     transforms: list[np.ndarray] = []
-    for inst in _instances(depsgraph):
+    masks: list[int] = []
+    pass_index: list[int] = []
+    view_layer = depsgraph.view_layer
+    for inst in _rendered(depsgraph):
         obj = inst.object
-        if obj.type != "MESH" and obj.type not in _CONVERTIBLE:
-            continue
-        arrays = _source_arrays(obj, cache)
-        m = np.array(inst.matrix_world, dtype=np.float32)[:3]
-        if len(arrays.indices) == 0 or np.linalg.det(m[:, :3].astype(np.float64)) == 0.0:
+        arrays = _source_arrays(obj, cache.arrays)
+        if len(arrays.indices) == 0:
             continue
         key = (id(arrays), terminator_offset(obj))
         if key not in local:
             mesh = _local_mesh(arrays, key[1])
-            local[key] = mesh_id(mesh)
-            position.setdefault(local[key], len(meshes))
-            meshes.setdefault(local[key], mesh)
-        index.append(position[local[key]])
-        transforms.append(m)
+            local[key] = (mesh_id(mesh), mesh)
+        name, mesh = local[key]
+        if name not in meshes:
+            position[name] = len(meshes)
+            meshes[name] = mesh
+        index.append(position[name])
+        transforms.append(np.array(inst.matrix_world, dtype=np.float32)[:3])
+        masks.append(ray_visibility(inst, view_layer))
+        pass_index.append(obj.pass_index)
+    placed = np.asarray(transforms, np.float32).reshape(-1, 3, 4)
+    # instances scaled to nothing have no area (and no inverse for the service)
+    keep = np.linalg.det(placed[:, :, :3].astype(np.float64)) != 0.0
+    visibility = np.asarray(masks, np.uint8)[keep]
+    used = np.unique(np.asarray(index, np.int32)[keep])
+    if len(used) < len(meshes):  # a mesh only under such instances is not sent
+        names = list(meshes)
+        meshes = {names[k]: meshes[names[k]] for k in used}
+        renumber = np.full(len(names), -1, np.int32)
+        renumber[used] = np.arange(len(used), dtype=np.int32)
+        index = renumber[np.asarray(index, np.int32)].tolist()
     return InstanceExport(
         meshes,
-        np.asarray(index, np.int32),
-        np.asarray(transforms, np.float32).reshape(-1, 3, 4),
+        np.asarray(index, np.int32)[keep],
+        placed[keep],
+        None if (visibility == DEFAULT_VISIBILITY).all() else visibility,
+        np.asarray(pass_index, np.float32)[keep],
     )

@@ -3,13 +3,59 @@ datablock `scenesort AO` of the panel's Render AO."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import Any
+
 import bpy
 import numpy as np
 
+from .export import InstanceExport, SceneMesh
 from .pipeline import Outcome
 
 IMAGE_NAME = "scenesort AO"
 BACKGROUND_DEPTH = 1e10  # Cycles' Z pass where nothing was hit
+
+
+@dataclass(frozen=True)
+class ExtraPass:
+    """A pass the view layer may turn on: Blender's definition (name, channels, channel
+    ids, type), the switch (an attribute of the view layer, or of Cycles' view layer
+    settings with `cycles`), the service's image it comes from (None: made here) and
+    whether it needs the instance list (which object a pixel sees)."""
+
+    blender: tuple[str, int, str, str]
+    switch: str
+    source: str | None
+    cycles: bool = False
+    per_object: bool = False
+
+
+# Cycles' names and layouts, so that compositor setups made for Cycles connect as they are.
+OPTIONAL_PASSES = (
+    ExtraPass(("Normal", 3, "XYZ", "VECTOR"), "use_pass_normal", "normal"),
+    ExtraPass(("Position", 3, "XYZ", "VECTOR"), "use_pass_position", "position"),
+    ExtraPass(("IndexOB", 1, "X", "VALUE"), "use_pass_object_index", "object", per_object=True),
+    # Denoising Data: what the compositor's Denoise node takes beside the image
+    ExtraPass(("Denoising Normal", 3, "XYZ", "VECTOR"), "denoising_store_passes", "normal",
+              cycles=True),
+    ExtraPass(("Denoising Albedo", 3, "RGB", "COLOR"), "denoising_store_passes", None,
+              cycles=True),
+    ExtraPass(("Denoising Depth", 1, "Z", "VALUE"), "denoising_store_passes", None,
+              cycles=True),
+)
+
+
+def wanted_passes(view_layer: Any) -> tuple[ExtraPass, ...]:
+    """The optional passes `view_layer` turns on (none without a view layer)."""
+    if view_layer is None:
+        return ()
+    owners = {False: view_layer, True: getattr(view_layer, "cycles", None)}
+    return tuple(p for p in OPTIONAL_PASSES if getattr(owners[p.cycles], p.switch, False))
+
+
+def service_passes(extras: tuple[ExtraPass, ...]) -> tuple[str, ...]:
+    """The service images `extras` are made from (JobRequest.passes), each once."""
+    return tuple(dict.fromkeys(p.source for p in extras if p.source is not None))
 
 
 def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
@@ -23,7 +69,37 @@ def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
                     0.0)
     depth = outcome.depth.reshape(height, width)[::-1].reshape(-1, 1)
     alpha = coverage if transparent else np.ones_like(coverage)
+    if outcome.holdout is not None:  # a holdout is transparent whatever the film says
+        alpha = alpha * (1.0 - outcome.holdout.reshape(height, width)[::-1].reshape(-1, 1))
     return {"Combined": np.hstack([ao, ao, ao, alpha]), "AO": ao, "Depth": depth}
+
+
+def extra_passes(outcome: Outcome, extras: tuple[ExtraPass, ...],
+                 scene: SceneMesh | InstanceExport) -> dict[str, np.ndarray]:
+    """The optional passes' pixels (bottom row first), as Cycles writes them: 0 on
+    background; Object Index the object's Pass Index (0 on background and holdouts);
+    Denoising Albedo 1 where covered (the AO image is a white surface's), Denoising Depth
+    the Depth pass."""
+    width, height = outcome.size
+
+    def rows(values: np.ndarray, channels: int) -> np.ndarray:
+        return values.reshape(height, width, channels)[::-1].reshape(-1, channels)
+
+    coverage = rows(outcome.coverage, 1)
+    out = {}
+    for extra in extras:
+        name, channels = extra.blender[:2]
+        if extra.source == "object":
+            index = outcome.extras["object"].astype(np.int64)
+            table = np.append(getattr(scene, "pass_index", np.zeros(0)), 0.0)  # [-1]: none
+            out[name] = rows(table[index].astype(np.float32), 1)
+        elif extra.source is not None:
+            out[name] = rows(outcome.extras[extra.source], channels)
+        elif name == "Denoising Albedo":
+            out[name] = np.repeat(coverage, 3, axis=1)
+        else:  # Denoising Depth
+            out[name] = rows(outcome.depth, 1)
+    return out
 
 
 def empty_passes(width: int, height: int, transparent: bool) -> dict[str, np.ndarray]:

@@ -181,6 +181,8 @@ class SCENESORT_PT_sampling(_EnginePanel, bpy.types.Panel):
     groups = (
         (("spp", "Samples"), ("target_error", "Target Error"),
          ("max_pixel_error", "Max Pixel Error")),
+        (("viewport_spp", "Viewport Samples"),
+         ("viewport_target_error", "Viewport Target Error")),
         (("use_denoising", "Denoise"),),
         (("ao_distance", "AO Distance"), ("seed", "Seed")),
     )
@@ -204,7 +206,32 @@ class SCENESORT_PT_film(_EnginePanel, bpy.types.Panel):
     groups = ((("film_transparent", "Transparent"),),)
 
 
-CLASSES = (SCENESORT_PT_sampling, SCENESORT_PT_film, SCENESORT_PT_render, SCENESORT_PT_view3d)
+class SCENESORT_OBJECT_PT_ray_visibility(bpy.types.Panel):
+    """Object > Visibility > Ray Visibility, as Cycles and EEVEE draw it: the two kinds
+    of ray an AO render has (Mask > Holdout is Blender's own panel's)."""
+
+    bl_label = "Ray Visibility"
+    bl_space_type = "PROPERTIES"
+    bl_region_type = "WINDOW"
+    bl_context = "object"
+    bl_parent_id = "OBJECT_PT_visibility"
+    COMPAT_ENGINES = {"SCENESORT"}
+
+    @classmethod
+    def poll(cls, context: bpy.types.Context) -> bool:
+        obj = context.object
+        return (context.engine in cls.COMPAT_ENGINES and obj is not None
+                and obj.type in {"MESH", "CURVE", "SURFACE", "META", "FONT", "EMPTY"})
+
+    def draw(self, context: bpy.types.Context) -> None:
+        self.layout.use_property_split = True
+        col = self.layout.column()
+        col.prop(context.object, "visible_camera", text="Camera")
+        col.prop(context.object, "visible_shadow", text="Shadow")
+
+
+CLASSES = (SCENESORT_PT_sampling, SCENESORT_PT_film, SCENESORT_PT_render, SCENESORT_PT_view3d,
+           SCENESORT_OBJECT_PT_ray_visibility)
 
 
 def register() -> None:

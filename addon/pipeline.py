@@ -94,6 +94,9 @@ class Outcome:
     ao: np.ndarray | None = None  # height*width float32, row 0 at the top (1 on a miss)
     coverage: np.ndarray | None = None  # 1 where the camera ray hit, 0 where it missed
     depth: np.ndarray | None = None  # camera-space Z, 1e10 on a miss
+    holdout: np.ndarray | None = None  # 1 where the camera sees a holdout (None: nowhere)
+    # the job's extra passes by name (JobRequest.passes), each pixels * channels float32
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
     timings_ms: dict[str, float] = field(default_factory=dict)  # the job's phases
     render_ms: float = 0.0
     # what the render achieved (the job's status): estimated RMSE (None: unknown), spp, rays
@@ -165,7 +168,8 @@ def ensure_instances(task: Task, client: Client, scene: InstanceExport,
     if not client.has_scene(scene_id):
         task.set_step(f"sending {scene.objects:,} instances")
         body = scene.body()
-        client.upload_instances(len(scene.meshes), scene.objects, body)
+        client.upload_instances(len(scene.meshes), scene.objects, body,
+                                scene.visibility is not None)
         outcome.uploaded_bytes += len(body)
     outcome.scene_id = scene_id
     return scene_id
@@ -200,6 +204,8 @@ def prepare(
 
 
 JOB_POLL_S = 0.03  # a finished job waits this long at most to be seen (one small GET a poll)
+FIRST_POLL_S = 0.002  # the first waits, doubling up to JOB_POLL_S: a short job (a viewport
+# round) is seen within a few ms of its end
 
 
 def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
@@ -207,12 +213,14 @@ def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
     the job. A job that did not finish is a ServiceError; a finished one's size, timings
     and statistics go into `outcome`, and its last status is returned."""
     outcome.job_id = job["job_id"]
+    wait = FIRST_POLL_S
     while job["state"] in {"queued", "running"}:
         if task.cancelled:
             client.cancel_job(job["job_id"])  # then set_step raises Cancelled
         progress = float(job["progress"])
         task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * progress:.0f}%", progress)
-        time.sleep(JOB_POLL_S)
+        time.sleep(wait)
+        wait = min(2.0 * wait, JOB_POLL_S)
         job = client.job_status(job["job_id"])
     if job["state"] != "done":
         raise ServiceError(
@@ -254,19 +262,39 @@ def job_fields(settings: Settings) -> dict[str, Any]:
 
 def render_job(
     task: Task, target: Target, settings: Settings, mesh: SceneMesh | InstanceExport,
-    view: dict,
+    view: dict, passes: tuple[str, ...] = (),
 ) -> Outcome:
     """The one render path (F12, animations, the panel's Render AO, scripts): scene, BVH,
     then a service job for `view` (`camera.view()`: camera, window, pixel aspect) with
-    progress; cancelling the task cancels the job on the service."""
+    progress, keeping the extra `passes` (JobRequest.passes); cancelling the task cancels
+    the job on the service."""
     client, outcome, scene_id = prepare(task, target, settings, mesh)
+    holdouts = isinstance(mesh, InstanceExport) and mesh.holdouts
+    return camera_job(task, client, outcome, scene_id, settings, view, passes, holdouts)
+
+
+def camera_job(task: Task, client: Client, outcome: Outcome, scene_id: str,
+               settings: Settings, view: dict, passes: tuple[str, ...] = (),
+               holdouts: bool = False, depth: bool = True) -> Outcome:
+    """`render_job`'s job, of a scene the service holds (`prepare`'s id): its images into
+    `outcome` (the holdout layer with `holdouts`; no depth without `depth`)."""
     payload = {**view, "scene_id": scene_id, **job_fields(settings)}
+    if not depth:
+        payload["depth"] = False
+    if passes:
+        payload["passes"] = list(passes)
     start = time.perf_counter()
     job = follow(task, client, client.create_job(payload), outcome)
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)
     outcome.coverage = client.job_result(job["job_id"], pixels, "coverage")
-    outcome.depth = client.job_result(job["job_id"], pixels, "depth")
+    if depth:
+        outcome.depth = client.job_result(job["job_id"], pixels, "depth")
+    if holdouts:
+        outcome.holdout = client.job_result(job["job_id"], pixels, "holdout")
+    for name in passes:
+        channels = 1 if name == "object" else 3
+        outcome.extras[name] = client.job_result(job["job_id"], pixels * channels, name)
     outcome.render_ms = (time.perf_counter() - start) * 1e3
     outcome.requests = client.requests
     return outcome

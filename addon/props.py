@@ -109,6 +109,27 @@ class SCENESORT_PG_settings(bpy.types.PropertyGroup):
         max=_top(MAX_PIXEL_ERROR),
         precision=4,
     )
+    viewport_spp: IntProperty(  # type: ignore[valid-type]
+        name="Viewport samples",
+        description=("AO rays per pixel the Rendered viewport refines to (as Cycles' "
+                     "Viewport samples: apart from the final render's). The first image "
+                     "comes after 1"),
+        default=32,
+        min=1,
+        max=SPP["soft_high"],
+    )
+    viewport_target_error: FloatProperty(  # type: ignore[valid-type]
+        name="Viewport target error",
+        description=(
+            "The Rendered viewport refines to this estimated RMSE (AO units) with the "
+            "final render's adaptive sampling, through 4x and 2x it first, instead of to "
+            "Viewport Samples (0: off)"
+        ),
+        default=TARGET_ERROR["low"],  # unset
+        min=TARGET_ERROR["low"],
+        max=_top(TARGET_ERROR),
+        precision=4,
+    )
     use_denoising: BoolProperty(  # type: ignore[valid-type]
         name="Denoise",
         description=(

@@ -61,6 +61,11 @@ class Task:
         self._thread = threading.Thread(target=self._run_caught, name="scenesort", daemon=True)
         self._thread.start()
 
+    def join(self, timeout: float | None = None) -> None:
+        """Wait for a started task's thread to end."""
+        if self._thread is not None:
+            self._thread.join(timeout)
+
     @property
     def done(self) -> bool:
         return self._thread is not None and not self._thread.is_alive()

@@ -1,10 +1,13 @@
 """The 2012 paper's Tables 6.1/6.2 on the shared scenes: BVH build and trace, against
 Warp's `wp.Mesh` and Embree in the same run; and the wide BVH against the binary
-one and Embree side by side (`--part wide` runs only that).
+one and Embree side by side (`--part wide` runs only that); and ours against embreex on the
+same number of threads, a column per thread count, at several batch sizes
+(`--part threads` runs only that).
 
     python benchmarks/bvh.py [--scenes bunny,sponza] [--repeat 5] [--width 1024 --height 768]
     python benchmarks/bvh.py --part wide --width 1024 --height 1024
     python benchmarks/bvh.py --part wide --target-cpu x86-64 --no-docs   # a CPU without AVX2
+    python benchmarks/bvh.py --part threads [--batches 256,512,1024]
 
 Times are medians of `--repeat` runs after one warm-up. Warp's kernel compile time is
 measured once, in a fresh kernel cache, and reported on its own. Writes the tables into
@@ -33,6 +36,7 @@ wp.config.kernel_cache_dir = tempfile.mkdtemp(prefix="scenesort-bench-cache-")
 wp.config.quiet = True
 
 from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.path)
+from embree_threads import ThreadedEmbree  # noqa: E402
 from scenesort.backend.render.scenes import shared_scene, shared_scene_infos  # noqa: E402
 from scenesort.backend.tools import peers  # noqa: E402
 from scenesort.kernels.core import cpu_cores  # noqa: E402
@@ -45,6 +49,7 @@ LEAVES = (8, 16, 32)
 METHODS = ("sah", "median")
 WIDE_WIDTHS = (2, 4, 8)  # 2: the binary tree
 AO_PER_HIT = 4  # the wide-BVH floors' AO rays: 4 cosine rays per hit, tmax 0.1 x diagonal
+BATCHES = (256, 512, 1024)  # --part threads: square batches of camera rays
 
 
 def compile_seconds() -> dict[str, float]:
@@ -273,6 +278,66 @@ def wide_markdown(rows: list[dict], command: str, load: str) -> str:
     return "\n".join(out) + "\n"
 
 
+def thread_rows(name: str, scene, repeat: int, batches: tuple[int, ...]) -> list[dict]:
+    """Ours (the default width) against embreex on the same number of threads (one share
+    of the rays per Python thread: embreex_threads), for 1 thread and every core, at each
+    batch of size x size camera rays and its AO any-hit rays (AO_PER_HIT per hit, tmax 0.1 x
+    diagonal); timed interleaved, ours and Embree in turn."""
+    v, f = scene.vertices, scene.indices
+    cores = cpu_cores()
+    counts = sorted({1, cores})
+    bvh = kernels.build_bvh(v, f)
+    embree = ThreadedEmbree(v, f, cores)
+    dist = default_distance(bvh)
+    rows = []
+    for size in batches:
+        cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": size,
+                                            "height": size})
+        o, d, _, _ = cam.rays()
+        hits = kernels.trace(bvh, o, d)
+        ao_o, ao_d = peers.ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=AO_PER_HIT)
+        for kind, (ro, rd, tmax, any_hit) in {"primary": (o, d, 1e30, False),
+                                              "AO": (ao_o, ao_d, dist, True)}.items():
+            def theirs(t, ro=ro, rd=rd, tmax=tmax, any_hit=any_hit):
+                if any_hit:
+                    return embree.occluded(ro, rd, tmax, t)
+                return embree.closest(ro, rd, t) >= 0
+
+            row = {"scene": name, "batch": size, "rays": kind, "count": len(ro)}
+            for t in counts:
+                ours_s, theirs_s = peers.timeit_each([
+                    lambda t=t, ro=ro, rd=rd, tmax=tmax, a=any_hit:
+                        kernels.trace(bvh, ro, rd, tmax=tmax, any_hit=a, threads=t),
+                    lambda t=t, theirs=theirs: theirs(t)], repeat)
+                row[t] = {"ours": len(ro) / ours_s / 1e6, "embree": len(ro) / theirs_s / 1e6}
+            ours = kernels.trace(bvh, ro, rd, tmax=tmax, any_hit=any_hit).triangle >= 0
+            row["embree_diff"] = int((ours != theirs(cores)).sum())
+            rows.append(row)
+    return rows
+
+
+def threads_markdown(rows: list[dict], command: str, load: str) -> str:
+    counts = [k for k in rows[0] if isinstance(k, int)]
+    out = [
+        f"Command: `{command}` on {platform.machine()} with {cpu_cores()} cores, CPU only (Warp "
+        f"{wp.config.version}), load before the run: {load}. Ours (SAH, leaf 8, the default "
+        "width) on t host threads against embreex (Embree 4) on t Python threads, each "
+        "tracing one share of the rays (embreex releases the Python lock); medians of "
+        "interleaved runs. Camera rays at batch x batch and AO any-hit rays "
+        f"({AO_PER_HIT} per hit, tmax 0.1 x diagonal). Issue floor: ours / Embree >= 1.0 on "
+        "the same threads.", "",
+        "| scene | batch | rays | count | "
+        + " | ".join(f"ours {t}t | Embree {t}t | ours / Embree {t}t" for t in counts)
+        + " | hit/miss diff |",
+        "|---|---:|---|---:|" + "---:|---:|---:|" * len(counts) + "---:|"]
+    for r in rows:
+        cells = " | ".join(f"{r[t]['ours']:.2f} | {r[t]['embree']:.2f} | "
+                           f"{r[t]['ours'] / r[t]['embree']:.2f}" for t in counts)
+        out.append(f"| {r['scene']} | {r['batch']}² | {r['rays']} | {r['count']:,} | {cells} "
+                   f"| {r['embree_diff']} |")
+    return "\n".join(out) + "\n"
+
+
 def floors(build: list[dict], peer_build: dict, traces: list[dict]) -> list[str]:
     """The BVH floors, per scene: SAH build (ours, leaf_size 8, all cores) <= 1.5x
     `wp.Mesh(bvh_constructor="sah")` as users call it (its default leaf size 4) at equal or
@@ -364,8 +429,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--width", type=int, default=1024)
     parser.add_argument("--height", type=int, default=768)
-    parser.add_argument("--part", choices=("all", "wide"), default="all",
-                        help="wide: only the wide-BVH tables")
+    parser.add_argument("--part", choices=("all", "wide", "threads"), default="all",
+                        help="wide: only the wide-BVH tables; threads: only ours against "
+                        "Embree on the same threads")
+    parser.add_argument("--batches", default=",".join(map(str, BATCHES)),
+                        help="--part threads: square batch sizes")
     parser.add_argument("--no-docs", action="store_true", help="print only")
     parser.add_argument("--target-cpu", help="compile the engine for this clang target CPU, "
                         "not the host's (x86-64: no AVX2, the wide trees traversed lane by "
@@ -380,6 +448,20 @@ def main(argv: list[str] | None = None) -> int:
     wp.init()
     load = "{:.2f}, {:.2f}, {:.2f} (1, 5, 15 min)".format(*os.getloadavg())
     compile_s = compile_seconds()
+    if args.part == "threads":
+        batches = tuple(int(x) for x in args.batches.split(","))
+        rows = []
+        for name in args.scenes.split(","):
+            rows += thread_rows(name, shared_scene(name), args.repeat, batches)
+            print(f"{name}: threads done", file=sys.stderr, flush=True)
+        text = threads_markdown(rows, command.strip(), load)
+        Console(width=220).print(Markdown(text))
+        if not args.no_docs:
+            write_section("bvh_threads", "## Ours against Embree on the same threads "
+                          "(`benchmarks/bvh.py --part threads`)\n\n" + text)
+            FIGURES.mkdir(parents=True, exist_ok=True)
+            (FIGURES / "bvh_threads.json").write_text(json.dumps(rows, indent=1, default=str))
+        return 0
     wide = []
     for name in args.scenes.split(","):
         wide.append(wide_rows(name, shared_scene(name), args.repeat, args.width, args.height))

@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
 from fastapi import Request, Response
 from scenesort.backend.api import errors
 from scenesort.backend.api.openapi import COMMON_ERRORS
@@ -96,6 +97,17 @@ def mesh_info(scene_id: str, scene: wire.SceneArrays) -> SceneInfo:
     )
 
 
+def _visibility_counts(scene: wire.InstanceScene) -> dict[str, int]:
+    """Instances seen by the camera, occluding, seen as holdout."""
+    n = scene.instances
+    if scene.visibility is None:
+        return {"camera": n, "shadow": n, "holdout": 0}
+    m = scene.visibility
+    return {name: int(np.count_nonzero(m & bit))
+            for name, bit in (("camera", wire.CAMERA), ("shadow", wire.SHADOW),
+                              ("holdout", wire.HOLDOUT))}
+
+
 def instances_info(scene: wire.InstanceScene) -> InstanceSceneInfo:
     return InstanceSceneInfo(
         scene_id=scene.scene_id,
@@ -104,4 +116,5 @@ def instances_info(scene: wire.InstanceScene) -> InstanceSceneInfo:
         triangles=scene.triangles,
         bounds=scene.bounds,
         bytes=scene.nbytes,
+        visibility=_visibility_counts(scene),
     )

@@ -120,8 +120,6 @@ def _listen(family: socket.AddressFamily, host: str, port: int) -> socket.socket
 
 def run(args: argparse.Namespace) -> int:
     """Start uvicorn; return its exit status (2 for refused options)."""
-    if args.exit_with_stdin:
-        lifeline.exit_with_stdin()
     problem = _problem(args) or engine.device_problem(args.device)
     token, described = None, ""
     if problem is None:
@@ -143,6 +141,11 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         print(f"scenesort serve: cannot bind {args.host}:{args.port}: {exc}", file=sys.stderr)
         return 2
+    if args.exit_with_stdin:
+        # Only now: a refusal above must exit with its message, and a thread blocked in
+        # reading stdin makes the interpreter's shutdown abort (its buffer's lock is held).
+        # A parent that died meanwhile is seen at the first read.
+        lifeline.exit_with_stdin()
     host, port = sock.getsockname()[:2]
     shown = f"[{host}]" if family == socket.AF_INET6 else host
     app = _app(args, token, port, shown)

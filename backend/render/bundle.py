@@ -11,7 +11,8 @@ A bundle is a directory:
                            written once per distinct content (a deformed mesh is a new id
                            in the frames where it changed)
     frames/<frame>.json    {"frame": F, "camera": {...}, "window": null | {...},
-                            "pixel_aspect": [x, y], "meshes": K, "instances": N}
+                            "pixel_aspect": [x, y], "meshes": K, "instances": N,
+                            "visibility": bool (optional: the list ends with masks)}
     frames/<frame>.bin     the frame's instance list, the body of POST /v1/instance-scenes
 
 `<frame>` is the frame number as `%06d`. The settings and a frame's view are the fields of
@@ -150,9 +151,12 @@ class Bundle:
         if not isinstance(data, dict):
             raise BundleError(f"{path}: must be a JSON object")
         meshes, instances = _count(path, data, "meshes"), _count(path, data, "instances")
+        masks = data.get("visibility", False)
+        if not isinstance(masks, bool):
+            raise BundleError(f"{path}: visibility must be true or false, got {masks!r}")
         body_path = stem.with_suffix(".bin")
         try:
-            listing = wire.decode_instances(_read_bytes(body_path), meshes, instances)
+            listing = wire.decode_instances(_read_bytes(body_path), meshes, instances, masks)
         except ApiError as exc:
             raise _api(body_path, exc) from None
         view = {k: data[k] for k in ("camera", "window", "pixel_aspect") if k in data}
@@ -188,10 +192,13 @@ def mesh_id(vertices: np.ndarray, indices: np.ndarray) -> str:
     return wire.scene_hash(len(vertices), len(indices), mesh_body(vertices, indices))
 
 
-def instance_body(ids: list[str], mesh_index: list[int], transforms: np.ndarray) -> bytes:
-    """An instance list in the POST /v1/instance-scenes layout."""
+def instance_body(ids: list[str], mesh_index: list[int], transforms: np.ndarray,
+                  visibility: Any = None) -> bytes:
+    """An instance list in the POST /v1/instance-scenes layout (with `visibility`, the
+    per-instance uint8 masks of `visibility=true`)."""
+    masks = b"" if visibility is None else np.asarray(visibility, np.uint8).tobytes()
     return ("".join(ids).encode() + np.asarray(mesh_index, "<i4").tobytes()
-            + np.asarray(transforms, "<f4").tobytes())
+            + np.asarray(transforms, "<f4").tobytes() + masks)
 
 
 @dataclass

@@ -31,7 +31,7 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from scenesort.backend.render.visibility import View, visible
+from scenesort.backend.render.visibility import View, placement, visible
 from scenesort.backend.wire import binary as wire
 from scenesort.backend.work.store import Store, bvh_key, bvh_nbytes
 
@@ -133,6 +133,8 @@ def _forget(store: Store, mesh_id: str, method: str, leaf_size: int) -> None:
         if any(m.scene_id == mesh_id for m in scene.meshes):
             store.discard(bvh_key(scene.scene_id, method, leaf_size))
             store.discard(culled_key(scene.scene_id, method, leaf_size))
+            for role in ROLES:
+                store.discard(role_key(scene.scene_id, role, method, leaf_size))
 
 
 def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method: str,
@@ -142,34 +144,128 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
     single mesh's BVH, or an instance list's two levels (the top level over the meshes'
     BVHs, each from `mesh_bvh`); with a `view`, only what may change its pixels (module
     doc). An instance list is kept in the store with its top level, which lives no longer
-    than it (work/store.py drops a scene's BVHs with it)."""
+    than it (work/store.py drops a scene's BVHs with it). Ray visibility masks are not
+    applied here: `scene_views` applies them."""
     from scenesort.kernels.scene import bvh_nbytes as mesh_bytes
-
-    from scenesort import kernels
 
     report = BuildReport()
     if isinstance(scene, wire.SceneArrays):
         bvh = mesh_bvh(store, scene, method, leaf_size, device, report)
         report.bvh_bytes = mesh_bytes(bvh)
         return bvh, report
-    keep, placed = None, None
-    if view is not None:
-        keep, placed = report.measure("cull", lambda: visible(store, scene, view))
-        report.culled = int(np.count_nonzero(~keep))
-        if not report.culled:
-            keep = None  # the scene's own top level, shared with renders without a view
-    needed = (set(range(len(scene.meshes))) if keep is None
-              else set(np.unique(scene.mesh_index[keep]).tolist()))
-    report.skipped = [m.scene_id for k, m in enumerate(scene.meshes) if k not in needed]
+    keep, placed = _cull(store, scene, view, report)
+    report.skipped = _unused(scene, keep)
     key = (bvh_key if keep is None else culled_key)(scene.scene_id, method, leaf_size)
+    levels = _levels(store, scene, method, leaf_size, device, keep, placed, key, report)
+    report.bvh_bytes = levels.nbytes
+    return levels, report
+
+
+@dataclass(frozen=True)
+class Views:
+    """What a camera render traces (kernels.render_ao's arguments): what the camera sees,
+    what occlusion rays meet (often the same object) and what is held out (None: nothing)."""
+
+    camera: Any
+    occluders: Any
+    holdout: Any | None = None
+
+
+# An instance list with ray visibility masks: the instances each view holds.
+ROLES = {
+    "camera": lambda m: ((m & wire.CAMERA) != 0) & ((m & wire.HOLDOUT) == 0),
+    "occluders": lambda m: (m & wire.SHADOW) != 0,
+    "holdout": lambda m: ((m & wire.CAMERA) != 0) & ((m & wire.HOLDOUT) != 0),
+}
+
+
+def role_key(scene_id: str, role: str, method: str, leaf_size: int) -> str:
+    """The cache key of an instance list's top level over one role's instances (kept with
+    the mask of which they are, as `culled_key`'s)."""
+    return f"{scene_id}/{role}/bvh/{method}/{leaf_size}"
+
+
+def scene_views(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method: str,
+                leaf_size: int, device: str, view: View | None = None,
+                ) -> tuple[Views, BuildReport]:
+    """`scene_bvh` with the instance list's ray visibility masks applied: a top level per
+    role over the instances that have it (and may change a pixel of `view`), on the same
+    cached mesh BVHs; one object for the camera and the occluders where their instances
+    are the same. Without masks, `scene_bvh`'s levels in both roles."""
+    if isinstance(scene, wire.SceneArrays) or scene.visibility is None:
+        levels, report = scene_bvh(store, scene, method, leaf_size, device, view)
+        return Views(levels, levels), report
+    from scenesort.kernels.scene import bvh_nbytes as mesh_bytes
+
+    report = BuildReport()
+    keep, placed = _cull(store, scene, view, report)
+    if placed is None:  # a role's top level leaves meshes unbuilt: it needs their boxes
+        placed = placement(store, scene)[0]
+    masks = {role: rule(scene.visibility) & (True if keep is None else keep)
+             for role, rule in ROLES.items()}
+    report.skipped = _unused(scene, masks["camera"] | masks["occluders"] | masks["holdout"])
+    made: dict[str, Any] = {}
+    for role, mask in masks.items():
+        if role == "holdout" and not mask.any():
+            continue  # no holdout in view: nothing to trace for it
+        twin = next((r for r in made if np.array_equal(masks[r], mask)), None)
+        made[role] = made[twin] if twin is not None else _levels(
+            store, scene, method, leaf_size, device, mask, placed,
+            role_key(scene.scene_id, role, method, leaf_size), report)
+    for name in ("built", "refit", "reused"):  # a mesh of several roles, once
+        setattr(report, name, list(dict.fromkeys(getattr(report, name))))
+    report.reused = [m for m in report.reused if m not in report.built + report.refit]
+    distinct = list({id(levels): levels for levels in made.values()}.values())
+    meshes = {id(b): b for levels in distinct for b in levels.meshes if b is not None}
+    report.bvh_bytes = sum(mesh_bytes(b) for b in meshes.values()) + sum(
+        levels.nbytes - sum(mesh_bytes(b) for b in levels.meshes if b is not None)
+        for levels in distinct)
+    return Views(made["camera"], made["occluders"], made.get("holdout")), report
+
+
+def _cull(store: Store, scene: wire.InstanceScene, view: View | None,
+          report: BuildReport) -> tuple[np.ndarray | None, Any]:
+    """The instances that may change a pixel of `view` (None: all of them) and their
+    placement (None without a view)."""
+    if view is None:
+        return None, None
+    keep, placed = report.measure("cull", lambda: visible(store, scene, view))
+    report.culled = int(np.count_nonzero(~keep))
+    # nothing culled: the scene's own top level, shared with renders without a view
+    return (None if not report.culled else keep), placed
+
+
+def _needed(scene: wire.InstanceScene, keep: np.ndarray | None) -> set[int]:
+    """The meshes (indices) of the instances `keep` holds (None: all)."""
+    if keep is None:
+        return set(range(len(scene.meshes)))
+    return set(np.unique(scene.mesh_index[keep]).tolist())
+
+
+def _unused(scene: wire.InstanceScene, keep: np.ndarray | None) -> list[str]:
+    """The ids of the meshes no instance `keep` holds uses: no BVH made or used."""
+    needed = _needed(scene, keep)
+    return [m.scene_id for k, m in enumerate(scene.meshes) if k not in needed]
+
+
+def _levels(store: Store, scene: wire.InstanceScene, method: str, leaf_size: int,
+            device: str, keep: np.ndarray | None, placed: Any, key: str,
+            report: BuildReport) -> Any:
+    """The two levels over the instances `keep` holds (None: all), from the store under
+    `key` (with the mask they are over, unless all), else built on the meshes' BVHs."""
+    from scenesort.kernels.scene import bvh_nbytes as mesh_bytes
+
+    from scenesort import kernels
+
+    needed = _needed(scene, keep)
     levels = store.get(key)
     if keep is not None and levels is not None:
         levels = levels[1] if np.array_equal(levels[0], keep) else None
     if levels is not None:
         report.reused.extend(m.scene_id for k, m in enumerate(scene.meshes) if k in needed)
-        report.top_level = "reused"
-        report.bvh_bytes = levels.nbytes
-        return levels, report
+        if report.top_level != "built":
+            report.top_level = "reused"
+        return levels
     if scene.scene_id not in store:
         store.put(scene.scene_id, scene, scene.nbytes)
     in_use = frozenset(m.scene_id for m in scene.meshes)
@@ -179,11 +275,10 @@ def scene_bvh(store: Store, scene: wire.SceneArrays | wire.InstanceScene, method
         bottoms, scene.mesh_index, scene.transforms, visible=keep, placed=placed,
         device=device))
     report.top_level = "built"
-    report.bvh_bytes = levels.nbytes
     # Its own bytes: the meshes' BVHs are entries of their own.
     own = max(levels.nbytes - sum(mesh_bytes(b) for b in bottoms if b is not None), 1)
     store.put(key, levels if keep is None else (keep, levels), own)
-    return levels, report
+    return levels
 
 
 def get_or_build_bvh(

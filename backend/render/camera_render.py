@@ -7,12 +7,12 @@ per centre), the pixel centres' depth, and the PNG."""
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 from scenesort.backend.render.ao import shading
-from scenesort.backend.render.bvhs import scene_bvh
+from scenesort.backend.render.bvhs import Views, scene_views
 from scenesort.backend.render.framing import framed
 from scenesort.backend.render.visibility import View
 from scenesort.backend.wire.binary import encode_png
@@ -40,10 +40,13 @@ def render_camera(
     leaf_size: int,
     device: str,
     cull: bool = True,
+    passes: Sequence[str] = (),
+    depth: bool = True,
 ) -> None:
     """Render `camera`'s pixels into `job` (its ao, coverage, depth, png, build and
-    statistics), reporting each phase; with `cull`, of an instance list only what the
-    camera may see is built (render/bvhs.py)."""
+    statistics, and the extra `passes`: JobRequest.passes; no depth without `depth`),
+    reporting each phase; with
+    `cull`, of an instance list only what the camera may see is built (render/bvhs.py)."""
 
     def timed(phase: str, fn: Callable[[], Any]) -> Any:
         job.report(phase)  # also the cancellation point between phases
@@ -53,45 +56,73 @@ def render_camera(
         return out
 
     view = View(camera, options.distance, _reach(options)) if cull else None
-    bvh, job.build = timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size, device,
-                                                    view))
+    views, job.build = timed("bvh", lambda: scene_views(store, scene, method, leaf_size, device,
+                                                        view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
-        job.add_timing("bvh.compile", float(bvh.stats.compile_ms))
+        job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
-    job.film = options.film
-    if camera.aperture_size > 0.0 and not options.filtered:
+    centres_only = _centres_only(views, passes)
+    filtered = options.filtered and centres_only is None
+    job.film = options.film if filtered or not options.filtered else (
+        f"pixel centres: {centres_only} renders one camera ray per pixel centre")
+    if camera.aperture_size > 0.0 and not filtered:
         job.film += " (no depth of field: it needs the pixel filter's own camera rays)"
-    if options.filtered:
-        film = timed("ao", lambda: _render_film(job, bvh, scene, camera, options))
+    if filtered:
+        film = timed("ao", lambda: _render_film(job, views, scene, camera, options))
         job.ao, job.coverage = film.ao, film.alpha
         job.spp_mean, job.spp_max = film.spp_mean, film.spp_max  # over covered pixels
         job.rmse_estimate, job.rays, job.denoised = film.rmse_estimate, film.rays, False
+        normals, held = None, None  # (no holdout: _centres_only)
     else:
-        result = timed("ao", lambda: _render_ao(job, bvh, scene, origins, directions, tmin,
-                                                tmax, options, shape))
+        result = timed(
+            "ao", lambda: _render_ao(job, views, scene, origins, directions, tmin, tmax,
+                                     options, shape)
+        )
         job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
-        job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)  # misses: 0
+        # misses and holdouts: 0 spp
+        job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)
         stats = result.stats()
         job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
         job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
         job.denoised = stats.denoised
-    depth = timed("depth", lambda: camera_depth(bvh, camera, origins, directions, tmin, tmax))
-    job.depth = depth.reshape(shape)
+        normals, held = result.normals, result.holdout
+    if getattr(scene, "visibility", None) is not None:  # an instance list with masks
+        held = np.zeros(shape, bool) if held is None else held
+        job.holdout = held.astype(np.float32).reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
+    if not (depth or passes):
+        return
+    t, instance = timed("depth", lambda: seen_hits(views, origins, directions, tmin, tmax))
+    hit = np.isfinite(t)
+    t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]
+    z = t64[:, 0] * (directions.astype(np.float64) @ camera.forward)
+    if depth:
+        job.depth = np.where(hit, z, BACKGROUND_DEPTH).astype(np.float32).reshape(shape)
+    extras = {  # made only when asked for (JobRequest.passes)
+        "normal": lambda: normals.reshape(*shape, 3),
+        "position": lambda: np.where(hit[:, None], origins + t64 * directions,
+                                     0.0).reshape(*shape, 3),
+        "object": lambda: np.where(job.coverage.ravel() > 0, instance, -1).reshape(shape),
+    }
+    job.extras = {name: extras[name]().astype(np.float32) for name in passes}
 
 
-def camera_depth(
-    bvh: Any, camera: Any, origins: np.ndarray, directions: np.ndarray,
-    tmin: np.ndarray, tmax: np.ndarray,
-) -> np.ndarray:
-    """Cycles' Z pass: the closest hit's camera-space depth `t * dot(d, forward)` per ray,
-    BACKGROUND_DEPTH where the ray misses (the same closest-hit query as AO's primary rays)."""
+def seen_hits(
+    views: Views, origins: np.ndarray, directions: np.ndarray, tmin: np.ndarray,
+    tmax: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per ray the closest seen hit's t (a holdout's too; inf on a miss) and the instance
+    hit (a single mesh's 0): the same closest-hit query as AO's primary rays."""
     from scenesort import kernels
 
-    hits = kernels.trace(bvh, origins, directions, tmin, tmax)
-    z = hits.t.astype(np.float64) * (directions.astype(np.float64) @ camera.forward)
-    return np.where(hits.hit, z, BACKGROUND_DEPTH).astype(np.float32)
+    hits = kernels.trace(views.camera, origins, directions, tmin, tmax)
+    t, instance = hits.t, hits.instance
+    if views.holdout is not None:
+        held = kernels.trace(views.holdout, origins, directions, tmin, tmax)
+        nearer = held.t < t
+        t, instance = np.where(nearer, held.t, t), np.where(nearer, held.instance, instance)
+    return t, instance
 
 
 def _reach(options: AoOptions) -> float:
@@ -101,20 +132,31 @@ def _reach(options: AoOptions) -> float:
     return filter_reach(options.pixel_filter, options.filter_width) if options.filtered else 0.0
 
 
-def _render_film(job: Job, bvh: Any, scene: Any, camera: Any, options: AoOptions) -> Any:
+def _centres_only(views: Views, passes: Sequence[str]) -> str | None:
+    """What makes a job render pixel centres whatever its filter (None: nothing): the
+    filtered film has no holdout and no per-pixel normal yet."""
+    reasons = [why for why, applies in (("a holdout", views.holdout is not None),
+                                        ("the normal pass", "normal" in passes)) if applies]
+    return " and ".join(reasons) or None
+
+
+def _render_film(job: Job, views: Views, scene: Any, camera: Any, options: AoOptions) -> Any:
     """`kernels.render_film` of `camera` through the options' pixel filter with the scene's
-    normals, reporting progress between its rounds; its `FilmResult`."""
+    normals, occlusion rays through the views' occluders, reporting progress between its
+    rounds; its `FilmResult`."""
     from scenesort import kernels
 
     def progress(fraction: float, phase: str) -> None:
         job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
 
-    return kernels.render_film(bvh, camera, options, progress=progress, **shading(scene))
+    occluders = None if views.occluders is views.camera else views.occluders
+    return kernels.render_film(views.camera, camera, options, occluders=occluders,
+                               progress=progress, **shading(scene))
 
 
 def _render_ao(
     job: Job,
-    bvh: Any,
+    views: Views,
     scene: Any,
     origins: np.ndarray,
     directions: np.ndarray,
@@ -131,8 +173,10 @@ def _render_ao(
     def progress(fraction: float, phase: str) -> None:
         job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
 
-    result = kernels.render_ao(bvh, origins, directions, options, tmin=tmin, tmax=tmax,
-                               progress=progress, image_shape=shape, **shading(scene))
+    occluders = None if views.occluders is views.camera else views.occluders
+    result = kernels.render_ao(views.camera, origins, directions, options, tmin=tmin,
+                               tmax=tmax, progress=progress, image_shape=shape,
+                               occluders=occluders, holdout=views.holdout, **shading(scene))
     for name, ms in result.timings_ms.to_dict().items():
         job.add_timing(f"ao.{name}", float(ms))
     return result

@@ -36,14 +36,11 @@ class View:
     reach: float = 0.0
 
 
-def visible(store: Store, scene: wire.InstanceScene, view: View) -> tuple[np.ndarray, Any]:
-    """The instances that may change a pixel of the view's AO image (`cull.
-    visible_instances`), decided from the meshes' boxes before any BVH is made, and their
-    placement (`place_instances`, which `build_scene` then reuses). The placement and the
-    meshes' triangle sizes depend on the instance list alone: kept under `placement_key`,
-    so a camera-only change pays the planes' test only."""
-    from scenesort.kernels.render import default_distance
-    from scenesort.kernels.render.cull import mesh_box, visible_instances
+def placement(store: Store, scene: wire.InstanceScene) -> tuple[Any, np.ndarray]:
+    """The instance list's placement (`place_instances`, which `build_scene` then reuses)
+    from the meshes' boxes, before any BVH, and the meshes' largest triangle sides. Both
+    depend on the list alone: kept under `placement_key`."""
+    from scenesort.kernels.render.cull import mesh_box
     from scenesort.kernels.scene.api import place_instances
 
     kept = store.get(placement_key(scene.scene_id))
@@ -60,7 +57,17 @@ def visible(store: Store, scene: wire.InstanceScene, view: View) -> tuple[np.nda
         kept = placed, np.array([e for _, e in found])
         held = [placed.lo, placed.hi, placed.mesh_ids, placed.transforms, *placed.frames.values()]
         store.put(placement_key(scene.scene_id), kept, sum(a.nbytes for a in held))
-    placed, extents = kept
+    return kept
+
+
+def visible(store: Store, scene: wire.InstanceScene, view: View) -> tuple[np.ndarray, Any]:
+    """The instances that may change a pixel of the view's AO image (`cull.
+    visible_instances`), decided from the meshes' boxes before any BVH is made, and their
+    `placement`: a camera-only change pays the planes' test only."""
+    from scenesort.kernels.render import default_distance
+    from scenesort.kernels.render.cull import visible_instances
+
+    placed, extents = placement(store, scene)
     # The scene default over every instance: render_ao's from the culled scene's bounds,
     # which are the placement's (build_scene counts the culled instances' boxes).
     distance = default_distance(placed) if view.distance is None else view.distance

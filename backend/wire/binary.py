@@ -9,7 +9,8 @@ testable without a server. Layouts (also in docs/api.md):
   normals) T float32 shadow terminator offsets; little-endian, no padding.
 - mesh body (`PUT /v1/meshes/{id}`): the scene body's layout, in the mesh's own space.
 - instance list: K*32 ASCII hex mesh ids, then N int32 mesh indices (into those ids), then
-  N*12 float32 object-to-world transforms (3x4, row-major), little-endian, no padding.
+  N*12 float32 object-to-world transforms (3x4, row-major), then (with `visibility`) N
+  uint8 ray visibility masks (VISIBILITY_BITS), little-endian, no padding.
 - ray body: R*6 float32 (origin xyz, direction xyz per ray), little-endian.
 - AO result: R float32, little-endian.
 """
@@ -75,11 +76,13 @@ class InstanceScene:
     meshes: tuple[SceneArrays, ...]
     mesh_index: np.ndarray  # (N,) int32
     transforms: np.ndarray  # (N, 3, 4) float32
+    visibility: np.ndarray | None = None  # (N,) uint8 masks; None: all DEFAULT_VISIBILITY
 
     @property
     def nbytes(self) -> int:
         """Bytes of the instance list itself; the meshes are store entries of their own."""
-        return int(self.mesh_index.nbytes + self.transforms.nbytes)
+        masks = 0 if self.visibility is None else self.visibility.nbytes
+        return int(self.mesh_index.nbytes + self.transforms.nbytes + masks)
 
     @property
     def instances(self) -> int:
@@ -254,9 +257,17 @@ MESH_ID_BYTES = SCENE_HASH_CHARS  # a mesh id travels as its 32 ASCII hex charac
 _HEX = frozenset(b"0123456789abcdef")
 
 
-def instance_body_length(mesh_count: int, instance_count: int) -> int:
-    """Bytes of an instance list with K mesh ids and N instances."""
-    return MESH_ID_BYTES * mesh_count + 52 * instance_count
+# An instance's ray visibility mask, as Cycles' AO pass reads an object's: seen by camera
+# rays, met by occlusion (shadow) rays, and held out where the camera sees it.
+CAMERA, SHADOW, HOLDOUT = 1, 2, 4
+VISIBILITY_BITS = CAMERA | SHADOW | HOLDOUT
+DEFAULT_VISIBILITY = CAMERA | SHADOW  # an instance list sent without masks
+
+
+def instance_body_length(mesh_count: int, instance_count: int,
+                         visibility: bool = False) -> int:
+    """Bytes of an instance list with K mesh ids and N instances (and their masks)."""
+    return MESH_ID_BYTES * mesh_count + (53 if visibility else 52) * instance_count
 
 
 @dataclass(frozen=True)
@@ -267,14 +278,17 @@ class InstanceList:
     mesh_ids: tuple[str, ...]
     mesh_index: np.ndarray  # (N,) int32 into mesh_ids
     transforms: np.ndarray  # (N, 3, 4) float32
+    visibility: np.ndarray | None = None  # (N,) uint8 masks; None: all DEFAULT_VISIBILITY
 
 
-def decode_instances(body: bytes, mesh_count: int, instance_count: int) -> InstanceList:
+def decode_instances(body: bytes, mesh_count: int, instance_count: int,
+                     visibility: bool = False) -> InstanceList:
     """Decode and validate an instance list (layout in the module docstring); raise
     `ApiError` naming the bad part. Its id is `instances_hash` of the body."""
     layout = (f"{mesh_count}*32 hex mesh ids + {instance_count} int32 mesh indices"
-              f" + {instance_count}*12 float32 transforms")
-    expected = instance_body_length(mesh_count, instance_count)
+              f" + {instance_count}*12 float32 transforms"
+              + (f" + {instance_count} uint8 visibility masks" if visibility else ""))
+    expected = instance_body_length(mesh_count, instance_count, visibility)
     expect_body_length("meshes and instances", len(body), expected, layout)
     ids = []
     for k in range(mesh_count):
@@ -314,8 +328,24 @@ def decode_instances(body: bytes, mesh_count: int, instance_count: int) -> Insta
             "leave out instances scaled to nothing (their triangles have no area)",
             "singular_transform",
         )
+    masks = None
+    if visibility:
+        at += 48 * instance_count
+        masks = np.frombuffer(body, np.uint8, count=instance_count, offset=at).copy()
+        unknown = (masks & ~VISIBILITY_BITS) != 0
+        if unknown.any():
+            row = int(np.argmax(unknown))
+            raise ApiError(
+                400, "body (visibility masks)",
+                f"instance {row} has visibility mask {int(masks[row])}, with bits outside "
+                f"{VISIBILITY_BITS} (1 camera, 2 shadow, 4 holdout)",
+                "send each mask as the sum of the bits that apply (docs/api.md)",
+                "invalid_parameter",
+            )
+        if (masks == DEFAULT_VISIBILITY).all():
+            masks = None  # the same render as without masks (the id still differs)
     return InstanceList(instances_hash(mesh_count, instance_count, body), tuple(ids),
-                        mesh_index, transforms)
+                        mesh_index, transforms, masks)
 
 
 def resolve(listing: InstanceList,
@@ -335,7 +365,7 @@ def resolve(listing: InstanceList,
                              "repeated, as the object's value)")
         meshes.append(found)
     return InstanceScene(listing.scene_id, tuple(meshes), listing.mesh_index,
-                              listing.transforms)
+                         listing.transforms, listing.visibility)
 
 
 def decode_rays(body: bytes, ray_count: int) -> tuple[np.ndarray, np.ndarray]:

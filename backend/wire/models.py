@@ -16,6 +16,8 @@ from scenesort.ao_options import AO_OPTIONS, AoOptions, OptionError
 
 OCTET = "application/octet-stream"
 Method = Literal["sah", "median"]  # the BVH builders
+ExtraPass = Literal["normal", "position", "object"]  # a job's images beside AO, coverage, depth
+EXTRA_PASSES = ("normal", "position", "object")
 LeafSize = Annotated[int, Field(ge=1, le=64)]
 
 
@@ -74,6 +76,10 @@ class InstanceSceneInfo(Strict):
     triangles: int = Field(description="triangles the instances stand for (not stored again)")
     bounds: list[list[float]] = Field(description="[[xmin, ymin, zmin], [xmax, ymax, zmax]]")
     bytes: int = Field(description="bytes of the instance list (the meshes are apart)")
+    visibility: dict[str, int] = Field(
+        description="instances by ray visibility: camera (seen), shadow (occluding), holdout "
+                    "(seen as holdout); every instance counts in camera and shadow when the "
+                    "list was sent without masks")
 
 
 class BuildReport(Strict):
@@ -247,6 +253,14 @@ class JobRequest(AoSettings):
     method: Method = "sah"
     leaf_size: LeafSize = 8
     denoise: ao_setting("denoise")
+    depth: bool = Field(
+        default=True, description="false: no Z pass (the camera rays' closest hits are not "
+                                  "traced a second time for it), as a viewport's rounds ask")
+    passes: list[ExtraPass] = Field(
+        default_factory=list, max_length=len(EXTRA_PASSES),
+        description="extra images to keep for GET .../result: normal (world-space shading "
+                    "normal, xyz), position (world-space hit point, xyz), object (the "
+                    "instance index the camera ray hit, -1 on background and holdouts)")
     pixel_filter: ao_setting("pixel_filter")
     filter_width: ao_setting("filter_width")
 
@@ -254,8 +268,8 @@ class JobRequest(AoSettings):
 FILM_DOC = (
     "what the image's pixels are: 'BLACKMAN_HARRIS 1.5 px' (the pixel filter and width it "
     "was rendered through), 'pixel centres' (filter_width 0), or 'pixel centres: ...' "
-    "saying why a requested filter was not used (it needs a fixed spp, engine bvh, no "
-    "denoising)"
+    "saying why a requested filter was not used (it needs engine bvh, no denoising, no "
+    "holdout and no normal pass)"
 )
 
 

@@ -50,6 +50,10 @@ class Job:
     ao: np.ndarray | None = None  # (height, width) float32 once done
     coverage: np.ndarray | None = None  # (height, width) float32: 1 where the camera ray hit
     depth: np.ndarray | None = None  # (height, width) float32 camera-space Z, 1e10 on a miss
+    holdout: np.ndarray | None = None  # (height, width) float32: 1 where a holdout is seen
+    # the extra images a request asked for (JobRequest.passes), by name: normal and
+    # position (height, width, 3), object (height, width); float32
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
     png: bytes | None = None
     spp_mean: float | None = None
     # what the render achieved (AoResult.stats): estimated RMSE, largest spp, rays traced
@@ -69,7 +73,7 @@ class Job:
     @property
     def result_nbytes(self) -> int:
         """Bytes held by the finished images (float32 layers and PNG)."""
-        layers = (self.ao, self.coverage, self.depth)
+        layers = (self.ao, self.coverage, self.depth, self.holdout, *self.extras.values())
         return sum(a.nbytes for a in layers if a is not None) + len(self.png or b"")
 
     def report(self, phase: str | None = None, progress: float | None = None) -> None:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -15,11 +16,14 @@ from ..core.launch import (
     host_threads,
     launch_split,
     load_modules,
+    part_launcher,
+    run_parts,
     sync_ms,
     to_device,
 )
 from ..core.mesh import DeviceMesh
 from ..core.validate import as_rays, as_triangle_mesh, ray_range
+from ..pool.chunks import CHUNK
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
 from . import build as bb
@@ -53,6 +57,11 @@ SIMD_WIDTH, PORTABLE_WIDTH = 8, 2
 # grabbing fewer, larger runs of chunks built Conference 1.5x and the 1.1 M-triangle bunny 3x
 # faster on an H200 (docs/benchmarks.md, CUDA sweeps)
 BUILD_MIN_CHUNKS = {"cpu": DEFAULT_MIN_CHUNKS, "cuda": 64}
+# SAH tasks of at most 1 / (SERIAL_SHARE x workers) of the triangles are partitioned by one
+# worker in one pass (build.exchange_in_place), not by the pool's PPS and Swap
+SERIAL_SHARE = 4
+PART_ITEMS = 65536  # fewest triangles worth a launch of their own (prepare, reorder)
+REORDER_PARTS = 4  # parts per host thread of the reorder
 
 
 def default_width(device) -> int:
@@ -121,14 +130,29 @@ def build_bvh(
     m = len(indices)
     mesh = DeviceMesh(vertices, indices, device, validated=True)
     v_wp, f_wp = mesh.v, mesh.f
-    lo, hi = (wp.empty(m, dtype=wp.vec3, device=device) for _ in range(2))
     valid = wp.empty(m, dtype=int, device=device)
-    bounds = empty_bounds(device)
-    wp.launch(bb.triangle_boxes, dim=m,
-              inputs=[v_wp, f_wp, lo, hi, valid, bounds], device=device)
-    tree = build_over_boxes(lo, hi, valid, bounds, method, leaf_size, max_depth, device,
-                            min_chunks=min_chunks, workers=workers,
-                            pool_capacity=pool_capacity, phase_ms=phase_ms, start=t0)
+    threads = (default_workers(device) if workers is None else int(workers)
+               ) if device.is_cpu else 1
+    # the triangles in parts, one per worker, each with a scene box of its own
+    parts = max(1, min(threads, m // PART_ITEMS))
+    part_bounds = wp.array(np.tile(empty_bounds_numpy(), (parts, 1)), dtype=wp.vec3,
+                           device=device)
+    launch_parts(bb.triangle_validity, [v_wp, f_wp, 0, 0, valid, part_bounds], 2, m, parts,
+                 threads, device, part_arg=3)
+    box = part_bounds.numpy().reshape(parts, 4, 3)
+    merged = np.empty((4, 3), np.float32)
+    merged[0::2] = box[:, 0::2].min(axis=0)  # lows: of the boxes and of the centroids
+    merged[1::2] = box[:, 1::2].max(axis=0)  # highs
+    bounds = wp.array(merged, dtype=wp.vec3, device=device)
+
+    def fill(valid: wp.array, offsets: wp.array, b: BuildData) -> None:
+        launch_parts(bb.triangle_items, [v_wp, f_wp, 0, valid, offsets, b], 2, m, parts,
+                     threads, device)
+
+    tree = build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
+                       min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
+                       phase_ms=phase_ms, start=t0)
+    del valid  # before the reorder and the collapse, which need more
     n, box, b = tree.count, tree.bounds, tree.data
 
     t0 = time.perf_counter()
@@ -141,8 +165,12 @@ def build_bvh(
     arrays.tri_ids = tri_ids
 
     def reorder() -> None:
-        wp.launch(bb.gather_leaf_triangles, dim=n,
-                  inputs=[v_wp, f_wp, b.items, tri_ids, tri_verts], device=device)
+        # in more parts than threads: while the collapse's serial start holds one host
+        # thread, the others take the parts, and it joins them when it is done
+        launch_parts(bb.gather_leaf_triangles, [v_wp, f_wp, b.items, 0, tri_ids, tri_verts],
+                     3, n, max(1, min(REORDER_PARTS * threads, n // PART_ITEMS))
+                     if threads > 1 else 1, threads, device)
+        release_scratch(b)  # before the collapse allocates the wide tree
         phase_ms["reorder"] = sync_ms(device, t0)
 
     wide_stats = {"wide_nodes": 0, "wide_stack": 0, "leaf_blocks": 0}
@@ -167,6 +195,8 @@ def build_bvh(
 
     node_count = node_count if n > 0 else 1
     nodes = arrays.nodes.numpy()[:node_count]
+    # a view of the build's array for 2n - 1 nodes, of which only the pages of these were
+    # touched (a copy cost time and took more memory at the peak than it saved)
     arrays.nodes = arrays.nodes[:node_count] if n > 0 else arrays.nodes
     stats = BvhStats(
         action="build", build_ms=total_ms, compile_ms=compile_ms, phase_ms=phase_ms,
@@ -174,18 +204,29 @@ def build_bvh(
         depth=depth, sah_cost=sah_cost(nodes) if n > 0 else 0.0, triangles=m,
         degenerate=int(m - n), pool_slots_used=int(tree.pool_state[2]),
         pool_steps_published=int(tree.pool_state[3]), workers=tree.workers, method=method,
-        leaf_size=int(leaf_size), width=width, **wide_stats, device=str(device))
+        leaf_size=int(leaf_size), width=width, **wide_stats, bvh_bytes=tree_bytes(arrays),
+        device=str(device))
     return Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
                leaf_size=int(leaf_size), device=device, arrays=arrays, bounds=box[:2].copy(),
                stats=stats, mesh=mesh)
 
 
-def empty_bounds(device) -> wp.array:
+def tree_bytes(arrays: BvhArrays) -> int:
+    """Bytes of the tree's own arrays (`BvhStats.bvh_bytes`)."""
+    return sum(a.capacity for a in (arrays.nodes, arrays.tri_verts, arrays.tri_ids,
+                                    arrays.wide, arrays.blocks))
+
+
+def empty_bounds_numpy() -> np.ndarray:
     """The four boxes a box kernel widens by atomics before `build_over_boxes`: the items'
-    box (lo, hi) and their centroids' box (lo, hi), empty."""
+    box (lo, hi) and their centroids' box (lo, hi), empty; (4, 3) float32."""
     inf = np.float32(np.inf)
-    return wp.array(np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32),
-                    dtype=wp.vec3, device=device)
+    return np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32)
+
+
+def empty_bounds(device) -> wp.array:
+    """`empty_bounds_numpy` on the device."""
+    return wp.array(empty_bounds_numpy(), dtype=wp.vec3, device=device)
 
 
 @dataclass
@@ -208,12 +249,30 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
                      min_chunks: int | None = None, workers: int | None = None,
                      pool_capacity: int | None = None, phase_ms: dict[str, float],
                      start: float) -> BoxTree:
-    """The pool's build (2012 paper, sec. 4) over any boxes: `build_bvh`'s triangle boxes
-    or a scene's instance boxes (kernels.scene). Boxes with `valid` 0 are left out;
-    `bounds` is `empty_bounds` widened over the valid boxes and their centroids. Adds the
-    "prepare" phase (from `start`, a perf_counter reading) and the build's phases to
-    `phase_ms`."""
-    m = lo.shape[0]
+    """The pool's build (2012 paper, sec. 4) over any boxes: a scene's instance boxes
+    (kernels.scene). Boxes with `valid` 0 are left out; `bounds` is `empty_bounds` widened
+    over the valid boxes and their centroids. Adds the "prepare" phase (from `start`, a
+    perf_counter reading) and the build's phases to `phase_ms`."""
+
+    def fill(valid: wp.array, offsets: wp.array, b: BuildData) -> None:
+        wp.launch(bb.compact_valid, dim=lo.shape[0], inputs=[valid, offsets, lo, hi, b],
+                  device=device)
+
+    return build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
+                       min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
+                       phase_ms=phase_ms, start=start)
+
+
+def build_items(valid: wp.array, bounds: wp.array,
+                fill: Callable[[wp.array, wp.array, BuildData], None], method: str,
+                leaf_size: int, max_depth: int, device, *, min_chunks: int | None,
+                workers: int | None,
+                pool_capacity: int | None, phase_ms: dict[str, float],
+                start: float) -> BoxTree:
+    """`build_over_boxes` over boxes that `fill(valid, offsets, b)` writes into `b.items`
+    at their valid boxes' `offsets` (straight from the triangles in `build_bvh`: no box
+    arrays in between)."""
+    m = valid.shape[0]
     workers = default_workers(device) if workers is None else int(workers)
     if min_chunks is None:
         min_chunks = BUILD_MIN_CHUNKS["cpu" if device.is_cpu else "cuda"]
@@ -244,9 +303,14 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
     b.method = METHODS[method]
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)
+    # tasks small enough that the workers have plenty of others exchange in place (the tree
+    # is the same); on CUDA, with thousands of one-thread workers, only those whose steps
+    # would run inline anyway
+    b.serial_max = max(n // (SERIAL_SHARE * workers), int(CHUNK) * int(min_chunks) - 1)
     pool = make_pool(capacity, workers, int(min_chunks), device)
-    wp.launch(bb.compact_valid, dim=m, inputs=[valid, offsets, lo, hi, b],
-              device=device)
+    if m:
+        fill(valid, offsets, b)
+    del offsets
     wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
     phase_ms["prepare"] = sync_ms(device, start)
 
@@ -266,6 +330,34 @@ def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.arr
     node_count, depth = (int(x) for x in b.counters.numpy())
     return BoxTree(data=b, count=n, node_count=node_count, depth=depth, bounds=box,
                    pool_state=pool_state, workers=workers)
+
+
+def launch_parts(kernel, args: list, first_arg: int, count: int, parts: int, threads: int,
+                 device, *, part_arg: int | None = None) -> None:
+    """`kernel` over `count` items in `parts` contiguous parts, each a launch of its own,
+    taken in turn by `threads` host threads (on CPU a launch runs on one thread):
+    argument `first_arg` is set to the part's first item and `part_arg`, if given, to the
+    part's number."""
+    if count == 0:
+        return
+    cuts = np.linspace(0, count, parts + 1).astype(int)
+    launch = part_launcher(kernel, args, device)
+
+    def run(k: int) -> None:
+        changes = {first_arg: int(cuts[k])}
+        if part_arg is not None:
+            changes[part_arg] = k
+        launch(int(cuts[k + 1] - cuts[k]), changes)
+
+    run_parts(run, parts, threads)
+
+
+def release_scratch(b: BuildData) -> None:
+    """Let go of a finished build's arrays except its nodes: the index array (its leaf order
+    copied out by the reorder), PPS, Swap, AABB and the bins."""
+    b.items = b.spare = b.spare_pos = b.mark = b.scan = None
+    b.box_lo = b.box_hi = b.cbox_lo = b.cbox_hi = None
+    b.bin_count = b.bin_lo = b.bin_hi = b.bin_clo = b.bin_chi = b.tasks = None
 
 
 def trace(

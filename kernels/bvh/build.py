@@ -65,6 +65,7 @@ from .build_data import (
     PHASE_SPLIT_PLANE,
     PHASE_SWAP,
     SMALL_TASK,
+    SWAP_IN_PLACE,
     BuildData,
     BuildItem,
     BuildTask,
@@ -101,6 +102,24 @@ def mark_chunk(b: BuildData, t: BuildTask, chunk: int):
         b.mark[i] = wp.int8(right)
         total += right
     pps_count(b.scan, t.start, chunk, total)
+
+
+@wp.func
+def exchange_in_place(b: BuildData, t: BuildTask):
+    """Swap by one worker without PPS: the r-th triangle right of the plane in front of the
+    pivot trades places with the r-th one left of it behind the pivot, the exchange that
+    PPS and Swap's two steps make (the same order, so the same tree), in one pass over the
+    range and without the mark, scan and spare arrays."""
+    scale = bin_scale(t)
+    j = t.start + t.pivot
+    for i in range(t.start, t.start + t.pivot):
+        if goes_right(b, t, scale, i):
+            while goes_right(b, t, scale, j):
+                j += 1
+            it = b.items[i]
+            b.items[i] = b.items[j]
+            b.items[j] = it
+            j += 1
 
 
 @wp.func
@@ -181,6 +200,8 @@ def step_chunks(t: BuildTask) -> int:
         levels = pps_levels(t)
         return pps_chunks(t.count, levels, levels, t.step)
     if t.phase == PHASE_SWAP:
+        if t.step == SWAP_IN_PLACE:
+            return 1
         return swap_chunks(t.count, t.pivot, t.step)
     if t.phase == PHASE_AABB:
         level = t.step + 1
@@ -201,7 +222,9 @@ def run_chunk(b: BuildData, t: BuildTask, slot: int, chunk: int):
         else:
             pps_down_chunk(b.scan, t.start, t.count, 2 * levels - 1 - t.step, chunk)
     elif t.phase == PHASE_SWAP:
-        if t.step == 0:
+        if t.step == SWAP_IN_PLACE:
+            exchange_in_place(b, t)
+        elif t.step == 0:
             swap_gather_chunk(b.items, b.spare, b.spare_pos, b.mark, b.scan, t.start, t.count,
                               t.pivot, t.ones_left, chunk)
         else:
@@ -233,6 +256,11 @@ def complete_step(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
         t = choose_sah_split(b, t, slot)
         if t.pivot < 0:
             return halve(t)
+        if t.count <= b.serial_max:  # the bins counted the pivot: no PPS needed
+            t.phase = PHASE_SWAP
+            t.step = SWAP_IN_PLACE
+            t.chunks = step_chunks(t)
+            return t
         return enter(t, PHASE_PPS)
     if t.phase == PHASE_PPS:
         levels = pps_levels(t)
@@ -244,7 +272,7 @@ def complete_step(b: BuildData, t: BuildTask, slot: int) -> BuildTask:
             t.ones_left = ones_before(b.scan, b.mark, t.start, t.count, t.pivot)
             return enter(t, PHASE_SWAP)
     elif t.phase == PHASE_SWAP:
-        if t.step == 1:
+        if t.step >= 1:  # the exchange, or SWAP_IN_PLACE
             if b.method == METHOD_SAH:
                 t.phase = PHASE_DONE
                 return t
@@ -382,32 +410,62 @@ def reset_bins(b: BuildData):
     reset_bin(b, wp.tid())
 
 
+@wp.func
+def triangle_box(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+                 i: int) -> wp.mat33:
+    """Rows: triangle i's corners' min and max, and whether it is degenerate (x: 1.0) or
+    not (0.0): zero area by an exact float64 cross product of the float32 edges."""
+    t = triangle_corners(vertices, indices, i)
+    flat = wp.where(is_degenerate(t[0], t[1], t[2]), 1.0, 0.0)
+    return wp.matrix_from_rows(min3(min3(t[0], t[1]), t[2]), max3(max3(t[0], t[1]), t[2]),
+                               wp.vec3(flat, 0.0, 0.0))
+
+
 @wp.kernel
-def triangle_boxes(
+def triangle_validity(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
-    tri_lo: wp.array(dtype=wp.vec3),
-    tri_hi: wp.array(dtype=wp.vec3),
+    first: int,
+    part: int,
     valid: wp.array(dtype=int),
     bounds: wp.array(dtype=wp.vec3),
 ):
-    """Per-triangle boxes; `valid` is 0 for zero-area triangles (an exact
-    float64 cross product of the float32 edges), which the build leaves out. bounds[0..3]
-    get the scene's box and centroid box over the valid ones."""
-    i = wp.tid()
-    t = triangle_corners(vertices, indices, i)
-    lo = min3(min3(t[0], t[1]), t[2])
-    hi = max3(max3(t[0], t[1]), t[2])
-    mid = 0.5 * (lo + hi)
-    tri_lo[i] = lo
-    tri_hi[i] = hi
+    """Triangles first + tid, one part of them (a host thread each on CPU): `valid` is 0
+    for zero-area triangles, which the build leaves out, else 1; bounds[4 part ..
+    4 part + 3] get the part's box and centroid box over the valid ones (a part's own:
+    CPU atomics are plain updates, safe within one launch only)."""
+    i = first + wp.tid()
+    box = triangle_box(vertices, indices, i)
     valid[i] = 0
-    if not is_degenerate(t[0], t[1], t[2]):
+    if box[2][0] == 0.0:
         valid[i] = 1
-        wp.atomic_min(bounds, 0, lo)
-        wp.atomic_max(bounds, 1, hi)
-        wp.atomic_min(bounds, 2, mid)
-        wp.atomic_max(bounds, 3, mid)
+        mid = 0.5 * (box[0] + box[1])
+        wp.atomic_min(bounds, 4 * part, box[0])
+        wp.atomic_max(bounds, 4 * part + 1, box[1])
+        wp.atomic_min(bounds, 4 * part + 2, mid)
+        wp.atomic_max(bounds, 4 * part + 3, mid)
+
+
+@wp.kernel
+def triangle_items(
+    vertices: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.vec3i),
+    first: int,
+    valid: wp.array(dtype=int),
+    offsets: wp.array(dtype=int),
+    b: BuildData,
+):
+    """The initial index array straight from the triangles (first + tid: one part of them):
+    the valid ones in order, with their boxes (computed again: cheaper than arrays of them
+    in between)."""
+    i = first + wp.tid()
+    if valid[i] != 0:
+        box = triangle_box(vertices, indices, i)
+        it = BuildItem()
+        it.lo = box[0]
+        it.tri = i
+        it.hi = box[1]
+        b.items[offsets[i]] = it
 
 
 @wp.kernel
@@ -418,7 +476,7 @@ def compact_valid(
     hi: wp.array(dtype=wp.vec3),
     b: BuildData,
 ):
-    """The initial index array: the valid triangles in order, with their boxes."""
+    """The initial index array: the valid boxes in order (kernels.scene's instances)."""
     i = wp.tid()
     if valid[i] != 0:
         it = BuildItem()
@@ -444,11 +502,13 @@ def gather_leaf_triangles(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
     items: wp.array(dtype=BuildItem),
+    first: int,
     tri_ids: wp.array(dtype=int),
     tri_verts: wp.array(dtype=wp.vec3),
 ):
-    """Triangles in leaf order: the caller's index of each, and its vertices."""
-    i = wp.tid()
+    """Triangles in leaf order (first + tid: one part of them): the caller's index of each,
+    and its vertices."""
+    i = first + wp.tid()
     tri = items[i].tri
     tri_ids[i] = tri
     store_leaf_triangle(vertices, indices, tri, i, tri_verts)

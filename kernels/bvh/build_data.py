@@ -30,6 +30,10 @@ NODE_COUNT = wp.constant(0)
 MAX_DEPTH = wp.constant(1)
 
 SMALL_TASK = wp.constant(64)  # SAH ranges up to this size are built in one worker
+# Swap's steps: 0 gather and 1 exchange (through the spare array, in parallel chunks); or,
+# for a task of at most BuildData.serial_max triangles, the same exchange by one worker in
+# one pass over the range (build.exchange_in_place)
+SWAP_IN_PLACE = wp.constant(2)
 SmallFloats = wp.types.vector(length=SMALL_TASK, dtype=wp.float32)  # per item of a range
 SmallInts = wp.types.vector(length=SMALL_TASK, dtype=wp.int32)  # the small subtree's stack
 
@@ -96,11 +100,12 @@ class BuildData:
     method: int
     leaf_size: int
     max_depth: int
+    serial_max: int  # SAH tasks of at most this many triangles skip PPS: SWAP_IN_PLACE
 
 
 @wp.func
 def centroid(it: BuildItem) -> wp.vec3:
-    """The centroid of an item's triangle box (as triangle_boxes computes it)."""
+    """The centroid of an item's triangle box (as build.triangle_box computes it)."""
     return 0.5 * (it.lo + it.hi)
 
 

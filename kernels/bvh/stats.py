@@ -33,6 +33,8 @@ class BvhStats(Record):
     wide_nodes: int
     wide_stack: int  # most stack entries the wide traversal holds
     leaf_blocks: int  # 4-triangle blocks of the wide leaves
+    bvh_bytes: int  # what the tree keeps allocated: nodes, leaf-order triangles and their
+    # ids, wide nodes and leaf blocks (the mesh's own arrays not counted)
     device: str
     # refit_bvh: the refit tree's SAH cost over the last build's, that build's cost, the
     # refit's wall time (before a rebuild too), and why it rebuilt ("sah" | "area")

@@ -45,7 +45,7 @@ from ..core.launch import host_threads, load_modules
 from ..core.record import Record, unset
 from ..core.validate import as_rays, as_surface_points
 from ..dacrt.api import dacrt_warp_modules
-from ..scene.api import Placement, Scene
+from ..scene.api import Placement, Scene, trace
 from ..scene.top import WARP_MODULES as SCENE_MODULES
 from . import primary, tracers
 from .adaptive import Progress, SampleCounts, sample_rounds
@@ -100,6 +100,7 @@ class AoResult:
     normals: np.ndarray
     denoised: bool = False  # `ao` is OIDN's output (denoise=True)
     raw_ao: np.ndarray | None = None  # (R,) the render before denoising, when denoised
+    holdout: np.ndarray | None = None  # (R,) bool: the ray's closest hit is a holdout's
 
     def stats(self) -> AoStats:
         """What the render achieved: estimated RMSE (of the raw render), mean and largest
@@ -130,6 +131,8 @@ def render_ao(
     terminator_offset: float | np.ndarray | None = None,
     image_shape: tuple[int, int] | None = None,
     progress: Progress | None = None,
+    occluders: Bvh | Scene | None = None,
+    holdout: Bvh | Scene | None = None,
     **settings: Any,
 ) -> AoResult:
     """AO per primary ray (see the module docstring for the definition and guarantees).
@@ -155,9 +158,20 @@ def render_ao(
     OIDN on the image (`denoise.denoise_ao`): the rays must be a row-major `image_shape` =
     (height, width) image. `ao` is then the denoised image, `raw_ao` the render's own;
     `rmse_estimate` stays the raw render's (nothing measures the denoised error here).
+    Ray visibility, as Cycles' AO pass has it: `bvh` is what the camera sees, `occluders`
+    (None: `bvh`) what occlusion rays meet, so an object only in `bvh` is seen but casts no
+    occlusion and one only in `occluders` occludes unseen. `holdout`: what the camera sees
+    as holdout; a primary ray whose closest hit is there (no hit of `bvh` nearer) gets AO
+    0 and no samples, and is marked in `result.holdout`. Shading normals and terminator
+    offsets are `bvh`'s; all three must be on one device and, as Scenes, traced with
+    engine="bvh".
     """
     opts = _options(options, settings)
-    check_tracer(bvh, opts.engine)
+    for traced in (bvh, occluders, holdout):
+        if traced is not None:
+            check_tracer(traced, opts.engine)
+            if traced.device != bvh.device:
+                raise ValueError("occluders and holdout must be on bvh's device")
     compile_ms = _load(bvh, opts)
     t_start = time.perf_counter()
     if opts.denoise:
@@ -173,12 +187,20 @@ def render_ao(
 
     report(0.0, "primary")
     t0 = time.perf_counter()
+    held = None
+    if holdout is not None:  # the holdout's closest hit bounds the camera's (see above)
+        first = trace(holdout, origins, directions, tmin, tmax, threads=opts.threads)
+        held = first.hit
+        tmax = np.where(held, first.t, np.asarray(tmax, np.float32))
     hits = trace_primary(bvh, origins, directions, tmin, tmax, opts.threads, opts.engine,
                          normals, offsets)
+    if held is not None:
+        held[hits.pixels] = False
     wp.synchronize_device(bvh.device)
     primary_ms = (time.perf_counter() - t0) * 1e3
     return _occlusion(bvh, hits, len(origins), opts, report, image_shape,
-                      compile=compile_ms, setup=setup_ms, primary=primary_ms, start=t_start)
+                      compile=compile_ms, setup=setup_ms, primary=primary_ms, start=t_start,
+                      occluders=occluders, holdout=held)
 
 
 def surface_ao(
@@ -238,17 +260,23 @@ def _load(bvh: Bvh | Scene, opts: AoOptions) -> float:
 
 def _occlusion(bvh: Bvh | Scene, hits: PrimaryHits, r: int, opts: AoOptions,
                report: Progress, image_shape: tuple[int, int] | None, *, compile: float,
-               setup: float, primary: float, start: float) -> AoResult:
-    """The occlusion rounds from `hits` (of `r` primary rays or points), the pixels, the
-    denoiser if asked, and the result with its timings since `start`."""
+               setup: float, primary: float, start: float,
+               occluders: Bvh | Scene | None = None,
+               holdout: np.ndarray | None = None) -> AoResult:
+    """The occlusion rounds from `hits` (of `r` primary rays or points) through `occluders`
+    (None: `bvh`), the pixels (AO 0 where `holdout`), the denoiser if asked, and the result
+    with its timings since `start`."""
     dist = default_distance(bvh) if opts.distance is None else opts.distance
     t0 = time.perf_counter()
     nthreads = host_threads(bvh.device, opts.threads)
-    counts, rounds = sample_rounds(occlusion_tracer(bvh, hits, opts, dist, nthreads),
-                                   len(hits.pixels), opts, report)
+    tracer = occlusion_tracer(bvh if occluders is None else occluders, hits, opts, dist,
+                              nthreads)
+    counts, rounds = sample_rounds(tracer, len(hits.pixels), opts, report)
     occlusion_ms = (time.perf_counter() - t0) * 1e3
 
     ao, spp_used, shading_normals = _pixels(r, hits, counts)
+    if holdout is not None:
+        ao[holdout] = 0.0
     raw_ao = denoise_ms = None
     if opts.denoise:
         t0 = time.perf_counter()
@@ -262,7 +290,8 @@ def _occlusion(bvh: Bvh | Scene, hits: PrimaryHits, r: int, opts: AoOptions,
                     rays=AoRays(primary=hits.traced, occlusion=int(counts.done.sum()),
                                 rounds=rounds),
                     rmse_estimate=math.sqrt(counts.mse()) if len(hits.pixels) else None,
-                    normals=shading_normals, denoised=opts.denoise, raw_ao=raw_ao)
+                    normals=shading_normals, denoised=opts.denoise, raw_ao=raw_ao,
+                    holdout=holdout)
 
 
 def _monotone(progress: Progress | None) -> Progress:

@@ -241,21 +241,24 @@ def device_camera(camera: Camera) -> FilmCamera:
 
 def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = None, *,
                 normals: Any = None, terminator_offset: float | np.ndarray | None = None,
-                progress: Progress | None = None, **settings: Any) -> FilmResult:
+                occluders: Bvh | Scene | None = None, progress: Progress | None = None,
+                **settings: Any) -> FilmResult:
     """AO and alpha of `camera`'s image through the options' pixel filter (`pixel_filter`,
     `filter_width`; module docstring), or with filter_width=0 through the pixel centres
     (render_ao over `Camera.rays()`, any of its settings). A filter with denoising or
     engine "dacrt" raises ValueError (AoOptions.film_fallback says why). With an error
     target the rounds are render_ao's (adaptive.py) over the covered pixels: those that
-    any of their first `min_spp` samples hit. `normals`, `terminator_offset` and
-    `progress` are `render_ao`'s; keywords set single fields of `options`."""
+    any of their first `min_spp` samples hit. `normals`, `terminator_offset`, `occluders`
+    (what occlusion rays meet; None: `bvh`; of `bvh`'s kind) and `progress` are
+    `render_ao`'s; keywords set single fields of `options`."""
     opts = (options or AoOptions()).with_(**settings)
     offsets = opts.terminator_offset if terminator_offset is None else terminator_offset
     shape = (camera.height, camera.width)
     if opts.filter_width == 0.0:
         o, d, t0, t1 = camera.rays()
         r = render_ao(bvh, o, d, opts, tmin=t0, tmax=t1, normals=normals,
-                      terminator_offset=offsets, image_shape=shape, progress=progress)
+                      terminator_offset=offsets, image_shape=shape, progress=progress,
+                      occluders=occluders)
         return FilmResult(ao=r.ao.reshape(shape),
                           alpha=(r.spp_used > 0).astype(np.float32).reshape(shape),
                           spp_used=r.spp_used.reshape(shape),
@@ -266,8 +269,12 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
                          f"no denoising: drop denoise and engine='dacrt', or set "
                          f"filter_width=0 ({opts.film_fallback})")
     check_tracer(bvh, opts.engine)
+    if occluders is not None and (type(occluders) is not type(bvh)
+                                  or occluders.device != bvh.device):
+        raise ValueError("occluders must be of bvh's kind (both a Bvh or both a Scene) and on "
+                         "its device")
     report = _monotone(progress)
-    trace = _film_tracer(bvh, camera, opts, normals, offsets)
+    trace = _film_tracer(bvh, camera, opts, normals, offsets, occluders or bvh)
     n, m = camera.width * camera.height, opts.min_spp
     # The first m samples of every pixel, in rounds of about ROUND_RAYS samples (a progress
     # call, the cancellation point, before each): they find the covered pixels (with a
@@ -313,19 +320,20 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
 
 
 def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any,
-                 offsets: Any) -> Callable[..., tuple[np.ndarray, ...]]:
+                 offsets: Any, occluders: Bvh | Scene) -> Callable[..., tuple[np.ndarray, ...]]:
     """trace(pixels, first, count, mid, quarter): samples first..first+count-1 of these
-    pixels (row-major indices), each through its own filtered camera ray: per pixel its
-    open samples, those with index below mid and below quarter, and its hits."""
+    pixels (row-major indices), each through its own filtered camera ray into `bvh` and an
+    occlusion ray through `occluders`: per pixel its open samples, those with index below
+    mid and below quarter, and its hits."""
     shading = scene_shading(bvh, normals, offsets)
+    arrays = occluders.arrays
     if isinstance(bvh, Scene):
-        tracer, arrays = bvh.arrays, bvh.arrays
+        tracer = bvh.arrays
     else:
         mesh = scene_mesh(bvh)
         tracer = MeshTracer()
         tracer.bvh = bvh.arrays
         tracer.vertices, tracer.indices = mesh.v, mesh.f
-        arrays = bvh.arrays
     device = bvh.device
     dist = default_distance(bvh) if opts.distance is None else opts.distance
     table = wp.array(filter_table(opts.pixel_filter, opts.filter_width), dtype=float,

@@ -498,6 +498,8 @@ def test_engine_panels_draw_the_scenes_settings(live) -> None:
     assert drawn == {"spp": live.scenesort, "target_error": live.scenesort,
                      "max_pixel_error": live.scenesort, "use_denoising": live.scenesort,
                      "ao_distance": live.scenesort, "seed": live.scenesort,
+                     "viewport_spp": live.scenesort,
+                     "viewport_target_error": live.scenesort,
                      "film_transparent": live.render}  # fmt: skip
 
 

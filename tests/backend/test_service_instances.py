@@ -302,3 +302,112 @@ def test_smooth_meshes_shade_as_their_flattened_triangles(api, mirrored) -> None
     direct = kernels.ambient_occlusion(bvh, o, d, spp=8, seed=5, distance=0.4,
                                        normals=np.concatenate(world_n), terminator_offset=0.3)
     np.testing.assert_array_equal(np.frombuffer(answer.content, "<f4"), direct)
+
+
+def post_masked(api, ids, mesh_index, placed, masks) -> httpx.Response:  # noqa: ANN001
+    query = {"meshes": len(ids), "instances": len(mesh_index), "visibility": "true"}
+    return api.client.post("/v1/instance-scenes", params=query, headers=OCTET,
+                           content=instance_body(ids, mesh_index, placed, masks))
+
+
+def test_visibility_masks_are_counted_and_checked(api, meshes) -> None:  # noqa: ANN001
+    ids = [meshes["floor"], meshes["cube"]]
+    placed = transforms((0, 0, 0), (0.3, 0.2, 0.0), (-0.3, 0.2, 0.0))
+    masks = [wire.CAMERA | wire.SHADOW, wire.SHADOW, wire.CAMERA | wire.HOLDOUT]
+    answer = post_masked(api, ids, [0, 1, 1], placed, masks)
+    assert answer.status_code == 201, answer.text
+    assert answer.json()["visibility"] == {"camera": 2, "shadow": 2, "holdout": 1}
+    plain = post_instances(api, ids, [0, 1, 1], placed).json()
+    assert plain["visibility"] == {"camera": 3, "shadow": 3, "holdout": 0}
+    assert plain["scene_id"] != answer.json()["scene_id"]
+    bad = post_masked(api, ids, [0, 1, 1], placed, [3, 3, 9])
+    assert bad.status_code == 400 and bad.json()["parameter"] == "body (visibility masks)"
+    assert "instance 2" in bad.json()["detail"]
+    short = api.client.post("/v1/instance-scenes", headers=OCTET, params={
+        "meshes": 2, "instances": 3, "visibility": "true"},
+        content=instance_body(ids, [0, 1, 1], placed))  # the masks left out
+    assert short.status_code == 400 and "223 bytes" in short.json()["detail"]  # 32*2 + 53*3
+
+
+def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
+    """A job over a list with masks renders as kernels.render_ao with the camera's, the
+    occluders' and the holdout's instances (bit for bit), reports the holdout pixels and
+    their depth, and a second job builds nothing."""
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
+
+    ids = [meshes["floor"], meshes["cube"]]
+    placed = transforms((0, 0, 0), (0.3, 0.0, 0.3), (-0.3, 0.0, 0.3), scale=0.5)
+    placed[0, :, :3] = np.eye(3)
+    masks = np.array([wire.CAMERA | wire.SHADOW, wire.SHADOW, wire.CAMERA | wire.HOLDOUT
+                      | wire.SHADOW], np.uint8)
+    scene_id = post_masked(api, ids, [0, 1, 1], placed, masks).json()["scene_id"]
+    camera = Camera.look_at((0.0, 2.0, 2.0), (0, 0, 0), (0, 1, 0), 50.0, 24, 18).to_dict()
+    first = _job(api, scene_id, camera)
+    again = _job(api, scene_id, camera)
+    assert first["build"]["top_level"] == "built" and again["build"]["top_level"] == "reused"
+    np.testing.assert_array_equal(first["ao"], again["ao"])
+
+    (fv, fi), (cv, ci) = floor_and_box(), cube()
+    bvhs = [kernels.build_bvh(fv, fi), kernels.build_bvh(cv, ci)]
+
+    def scene(*keep: int):
+        return kernels.build_scene(bvhs, [0, 1, 1], placed, visible=np.isin(range(3), keep))
+
+    o, d, tmin, tmax = Camera.from_dict(camera).rays()
+    direct = kernels.render_ao(scene(0), o, d, spp=4, seed=2, distance=0.5, tmin=tmin,
+                               tmax=tmax, occluders=scene(0, 1, 2), holdout=scene(2))
+    np.testing.assert_array_equal(first["ao"], direct.ao)
+    held = api.client.get(f"/v1/jobs/{first['job_id']}/result", params={"format": "holdout"})
+    held = np.frombuffer(held.content, "<f4")
+    np.testing.assert_array_equal(held, direct.holdout.astype(np.float32))
+    assert 0 < held.sum() < len(held)
+    coverage = api.client.get(f"/v1/jobs/{first['job_id']}/result",
+                              params={"format": "coverage"})
+    assert not np.frombuffer(coverage.content, "<f4")[held > 0].any()
+    depth = api.client.get(f"/v1/jobs/{first['job_id']}/result", params={"format": "depth"})
+    assert (np.frombuffer(depth.content, "<f4")[held > 0] < 1e9).all()  # the holdout's
+
+
+def test_extra_passes_are_kept_when_asked_for(api, meshes) -> None:  # noqa: ANN001
+    """A job's passes: the shading normals render_ao found, the hit points (on the
+    instances' world triangles), the instance each camera ray hit (-1 on background);
+    a pass not asked for is a 409 naming `format`."""
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
+
+    ids = [meshes["floor"], meshes["cube"]]
+    placed = transforms((0, 0, 0), (0.3, 0.0, 0.3), scale=0.5)
+    placed[0, :, :3] = np.eye(3)
+    scene_id = post_instances(api, ids, [0, 1], placed).json()["scene_id"]
+    camera = Camera.look_at((0.0, 2.0, 2.0), (0, 0, 0), (0, 1, 0), 50.0, 24, 18).to_dict()
+    job = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera, "spp": 4,
+                                            "seed": 2, "distance": 0.5,
+                                            "passes": ["normal", "position", "object"]})
+    assert job.status_code == 202, job.text
+    status = job_ended(api.client, job.json()["job_id"])
+
+    def layer(name: str, channels: int = 1) -> np.ndarray:
+        got = api.client.get(f"/v1/jobs/{status['job_id']}/result", params={"format": name})
+        assert got.status_code == 200, got.text
+        return np.frombuffer(got.content, "<f4").reshape(-1, channels)
+
+    (fv, fi), (cv, ci) = floor_and_box(), cube()
+    scene = kernels.build_scene([kernels.build_bvh(fv, fi), kernels.build_bvh(cv, ci)],
+                                [0, 1], placed)
+    o, d, tmin, tmax = Camera.from_dict(camera).rays()
+    direct = kernels.render_ao(scene, o, d, spp=4, seed=2, distance=0.5, tmin=tmin, tmax=tmax)
+    hits = kernels.trace(scene, o, d, tmin, tmax)
+    np.testing.assert_array_equal(layer("normal", 3), direct.normals)
+    np.testing.assert_array_equal(layer("object")[:, 0], np.where(hits.hit, hits.instance, -1))
+    assert {0, 1} <= set(hits.instance.tolist())
+    expected = np.where(hits.hit[:, None], o + hits.t[:, None].astype(np.float64) * d, 0.0)
+    np.testing.assert_allclose(layer("position", 3), expected, rtol=1e-6, atol=1e-6)
+    plain = _job(api, scene_id, camera)
+    missing = api.client.get(f"/v1/jobs/{plain['job_id']}/result", params={"format": "normal"})
+    assert missing.status_code == 409 and missing.json()["parameter"] == "format"
+    bad = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera,
+                                            "passes": ["albedo"]})
+    assert bad.status_code == 422 and "passes" in bad.json()["parameter"]

@@ -43,6 +43,30 @@ def test_refuses_an_unknown_device() -> None:
     assert result.returncode == 2 and "--device 'cuda:7' is not available" in result.stderr
 
 
+def test_a_taken_port_is_refused_in_words_also_with_a_lifeline() -> None:
+    """As the add-on starts it (stdin a pipe it never writes): the refusal exits with
+    status 2 and its message, not with an abort at shutdown (a thread reading stdin)."""
+    import socket
+
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        child = subprocess.Popen(
+            [sys.executable, "-m", "scenesort.backend.commands", "serve", "--port", str(port),
+             "--exit-with-stdin", "--no-token"], cwd=REPO, stdin=subprocess.PIPE,
+            stderr=subprocess.PIPE, text=True)
+        try:
+            child.wait(60)  # stdin held open, as by Blender
+            err = child.stderr.read()
+        finally:
+            child.kill()
+            child.stdin.close()
+            child.stderr.close()
+    assert child.returncode == 2, err
+    assert f"cannot bind 127.0.0.1:{port}" in err and "Fatal Python error" not in err
+
+
 def test_loopback_detection() -> None:
     assert is_loopback("127.0.0.1") and is_loopback("::1") and is_loopback("localhost")
     assert not is_loopback("0.0.0.0") and not is_loopback("192.168.1.2")

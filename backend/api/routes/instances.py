@@ -27,19 +27,24 @@ router = APIRouter()
     openapi_extra=binary_body(
         "K*32 ASCII hex mesh ids (each PUT /v1/meshes/{mesh_id} first), then N "
         "little-endian int32 mesh indices (0-based into those ids), then N*12 float32 "
-        "object-to-world transforms (3x4, row-major); exactly 32*K + 52*N bytes."
+        "object-to-world transforms (3x4, row-major), then with visibility=true N uint8 "
+        "ray visibility masks (1 seen by the camera, 2 occludes, 4 holdout; without them "
+        "every instance is 3); exactly 32*K + 52*N bytes (53*N with masks)."
     ),
 )
 async def upload_instances(
     request: Request, response: Response, service: Shared,
     meshes: Annotated[int, Query(ge=1, le=2**20)],
     instances: Annotated[int, Query(ge=1, le=2**24)],
+    visibility: Annotated[bool, Query(description="the body ends with N uint8 ray "
+                                                  "visibility masks")] = False,
 ) -> InstanceSceneInfo:
     """A scene as an instance list over uploaded meshes; its content hash is its id
     (201 new, 200 known). Jobs render it with two levels: the meshes' BVHs, built once
     per mesh, and a top level over the instances."""
-    body = await read_body(request, wire.instance_body_length(meshes, instances))
-    listing = await run_in_threadpool(wire.decode_instances, body, meshes, instances)
+    body = await read_body(request, wire.instance_body_length(meshes, instances, visibility))
+    listing = await run_in_threadpool(wire.decode_instances, body, meshes, instances,
+                                      visibility)
     del body
     scene = service.store.get(listing.scene_id)
     if scene is None:

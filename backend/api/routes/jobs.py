@@ -62,7 +62,8 @@ async def create_job(request: JobRequest, response: Response, service: Shared) -
 
     def work(job: Job) -> None:
         render_camera(job, service.store, scene, camera, options, request.method,
-                      request.leaf_size, service.settings.device)
+                      request.leaf_size, service.settings.device, passes=request.passes,
+                      depth=request.depth)
 
     return _queue(service, response, request.scene_id, camera.width, camera.height, work)
 
@@ -136,21 +137,37 @@ async def cancel_job(job_id: JobId, service: Shared) -> JobStatus:
                 "image/png": {"schema": {"type": "string", "format": "binary"}},
             },
             "description": "format=f32: height*width little-endian float32 AO, row 0 "
-            "at the top; format=coverage: the same layout, 1.0 where the camera ray "
+            "at the top (depth only when the job asked for it, as by default); "
+            "format=coverage: the same layout, 1.0 where the camera ray "
             "hit and 0.0 where it missed; format=depth: the same layout, the hit's "
-            "camera-space depth (Cycles' Z pass), 1e10 where it missed; format=png: "
+            "camera-space depth (Cycles' Z pass), 1e10 where it missed; format=holdout: "
+            "the same layout, 1.0 where the camera sees a holdout instance (alpha 0, AO 0) "
+            "and 0.0 elsewhere (a scene sent with visibility masks); format=normal and "
+            "format=position: height*width*3 float32 (x, y, z per pixel, 0 on background), "
+            "format=object: height*width float32 instance indices (-1 on background), "
+            "each when the job's passes asked for it; format=png: "
             "8-bit grayscale PNG of the AO. X-Width/X-Height headers.",
         },
         **error_responses(404, 409, 422),
     },
 )
 async def job_result(
-    job_id: JobId, service: Shared, format: Literal["f32", "coverage", "depth", "png"] = "f32"
+    job_id: JobId, service: Shared,
+    format: Literal["f32", "coverage", "depth", "holdout", "normal", "position", "object",
+                    "png"] = "f32",
 ) -> Response:
-    """The finished image (AO, coverage or depth); 409 while the job is not done."""
+    """The finished image (AO, coverage, depth, holdout or an extra pass); 409 while the
+    job is not done or did not make it."""
     job = service.job(job_id)
     # One read: the manager may forget the job meanwhile.
-    layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth, "png": job.png}[format]
+    layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth,
+             "holdout": job.holdout, "png": job.png}.get(format, job.extras.get(format))
+    if job.state == "done" and layer is None:
+        raise ApiError(
+            409, "format", f"job {job_id} made no {format} image",
+            "ask for it in the job's passes (holdout: send the instance list with "
+            "visibility masks), then render again", "not_made",
+        )
     if job.state != "done" or layer is None:
         detail = f" ({job.error})" if job.error else ""
         raise ApiError(

@@ -53,6 +53,53 @@ def test_sah_cost_statistic_matches_a_float64_sum(shared_scene):
     assert bvh.stats.sah_cost == pytest.approx(expected, rel=1e-6)
 
 
+@pytest.mark.parametrize("width", [2, 4, 8])
+def test_bvh_bytes_statistic_counts_right_sized_arrays(width, shared_scene):
+    """bvh_bytes from the tree's own counts and the documented layouts (32-byte nodes, 36
+    bytes and an id per leaf-order triangle, 32 bytes per lane of a wide node, 160-byte leaf
+    blocks): the arrays the Bvh keeps are no larger than the tree (no worst-case buffer
+    kept alive behind a view)."""
+    scene = shared_scene("conference")  # degenerate triangles: fewer in the tree than given
+    s = kernels.build_bvh(scene.vertices, scene.indices, width=width).stats
+    n = s.triangles - s.degenerate
+    # width 2: a one-word placeholder each for the wide nodes and blocks
+    wide = 8 if width == 2 else 32 * width * s.wide_nodes + 160 * s.leaf_blocks
+    assert s.bvh_bytes == 32 * s.nodes + 40 * n + wide
+
+
+def depth_first(bvh) -> tuple[np.ndarray, np.ndarray]:
+    """The tree in depth-first order from the root, left child first (node boxes and
+    counts, a leaf's first position), and the leaf order: what the build decided, without
+    the node numbers, which depend on the order in which tasks finish."""
+    nodes = bvh.nodes()
+    order, stack = [], [0]
+    while stack:
+        k = stack.pop()
+        order.append(k)
+        if nodes["count"][k] == 0:
+            stack += [nodes["first"][k] + 1, nodes["first"][k]]
+    picked = nodes[np.asarray(order)]
+    picked["first"] = np.where(picked["count"] > 0, picked["first"], -1)
+    return picked, bvh.permutation()
+
+
+def test_in_place_exchange_gives_the_pools_tree(shared_scene):
+    """One worker with every step inline partitions every SAH task in place in one pass
+    (build.exchange_in_place); 64 workers with K = 1 send all but the smallest through
+    PPS and Swap's two steps. The exchange is the same, so the trees are the same: node
+    for node and in leaf order. The bunny has coincident centroids (halving) too."""
+    scene = shared_scene("bunny")
+    rng = np.random.default_rng(5)
+    for v, f in ((scene.vertices, scene.indices), random_soup(rng, 20_000)):
+        serial = kernels.build_bvh(v, f, workers=1, min_chunks=10**6)
+        pooled = kernels.build_bvh(v, f, workers=64, min_chunks=1)
+        assert serial.stats.pool_steps_published == 0
+        assert pooled.stats.pool_steps_published > 100
+        (a_nodes, a_perm), (b_nodes, b_perm) = depth_first(serial), depth_first(pooled)
+        assert np.array_equal(a_perm, b_perm)
+        assert a_nodes.tobytes() == b_nodes.tobytes()
+
+
 def test_sah_beats_median_on_a_real_scene(shared_scene):
     scene = shared_scene("sponza")
     sah = kernels.build_bvh(scene.vertices, scene.indices, method="sah")
