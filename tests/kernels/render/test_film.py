@@ -371,3 +371,24 @@ def test_depth_of_field_blurs_an_edge_by_its_circle_of_confusion(focus, ratio):
     sigma = np.sqrt(expected * (1 - expected) / spp) + 1.0 / spp
     assert np.all(np.abs(r.alpha[0] - expected) <= 4 * sigma), (r.alpha[0], expected)
     assert k == 0.0 or np.abs(expected - sharp).max() > 0.1  # the test sees the blur
+
+
+def test_occluders_occlude_unseen():
+    """Ray visibility: occlusion rays go through `occluders`, camera rays through `bvh`.
+    A lid just above the floor, only among the occluders, darkens the floor under it to 0
+    and leaves alpha (the camera's) as the floor alone gives it."""
+    w, h = 16, 4
+    floor = half_plane(100.0)
+    lid = np.array([[-100, -100, 0.01], [100, -100, 0.01], [100, 100, 0.01],
+                    [-100, 100, 0.01]], np.float32)
+    lid_bvh = kernels.build_bvh(lid, np.array([[0, 2, 1], [0, 3, 2]], np.int32))
+    one = np.eye(4, dtype=np.float32)[None, :3]
+    seen = kernels.build_scene([floor], np.array([0]), one)
+    both = kernels.build_scene([floor, lid_bvh], np.array([0, 1]), np.concatenate([one, one]))
+    film = {"spp": 16, "distance": 0.5, "filter_width": 1.5}
+    alone = render_film(seen, ortho_camera(w, h), **film)
+    lidded = render_film(seen, ortho_camera(w, h), occluders=both, **film)
+    assert np.array_equal(lidded.alpha, alone.alpha) and np.all(alone.alpha == 1.0)
+    assert np.all(alone.ao == 1.0) and np.all(lidded.ao == 0.0)
+    with pytest.raises(ValueError, match="occluders"):
+        render_film(floor, ortho_camera(w, h), occluders=both, **film)
