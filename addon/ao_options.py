@@ -72,6 +72,24 @@ AO_OPTIONS = {
                 'occlusion rays off their flat surface (render_ao takes one per triangle or '
                 'instance)'),
     },
+    'pixel_filter': {
+        'kind': 'str', 'default': 'BLACKMAN_HARRIS', 'low': None, 'high': None,
+        'low_open': False, 'high_open': False,
+        'choices': ('BOX', 'GAUSSIAN', 'BLACKMAN_HARRIS'), 'optional': False,
+        'soft_high': None,
+        'doc': ("a camera render's pixel filter (Cycles' Film > Pixel Filter; its default "
+                'Blackman-Harris), used where filter_width > 0'),
+    },
+    'filter_width': {
+        'kind': 'float', 'default': 0.0, 'low': 0.0, 'high': 10.0, 'low_open': False,
+        'high_open': False, 'choices': None, 'optional': False, 'soft_high': None,
+        'doc': ("a camera render's pixel filter width in pixels (Cycles' default 1.5): each "
+                'sample traces its own camera ray from a sub-pixel position drawn from the '
+                'filter, so edges and alpha are anti-aliased as Cycles renders them; 0: one '
+                "camera ray through each pixel's centre, coverage 0 or 1. Filtered renders "
+                'take engine bvh and no denoising; otherwise they render pixel centres '
+                '(film_fallback)'),
+    },
     'denoise': {
         'kind': 'bool', 'default': False, 'low': None, 'high': None, 'low_open': False,
         'high_open': False, 'choices': None, 'optional': False, 'soft_high': None,

@@ -62,7 +62,7 @@ def stats_line(outcome: pipeline.Outcome, triangles: int) -> str:
         f"{triangles:,} triangles | build {build_ms:.1f} ms{cached} | "
         f"trace {trace_ms:.1f} ms | total {outcome.render_ms:.0f} ms | "
         f"est. RMSE {rmse} | spp {outcome.spp_mean:.1f} mean, {outcome.spp_max} max | "
-        f"{outcome.rays:,} rays | {outcome.device}"
+        f"{outcome.rays:,} rays | film {outcome.film or '-'} | {outcome.device}"
     )
 
 

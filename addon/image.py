@@ -62,7 +62,11 @@ def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
     """The passes' pixels (bottom row first, as Blender stores them) of a job's outcome."""
     width, height = outcome.size
     coverage = outcome.coverage.reshape(height, width)[::-1].reshape(-1, 1)
-    ao = outcome.ao.reshape(height, width)[::-1].reshape(-1, 1) * coverage
+    # Cycles' AO pass counts the samples that hit (premultiplied by coverage): the job's AO
+    # counts a miss as 1, so a pixel's missed fraction (1 - coverage) comes off; rounding
+    # of the two float32 means must not take an uncovered pixel below 0.
+    ao = np.maximum(outcome.ao.reshape(height, width)[::-1].reshape(-1, 1) + coverage - 1.0,
+                    0.0)
     depth = outcome.depth.reshape(height, width)[::-1].reshape(-1, 1)
     alpha = coverage if transparent else np.ones_like(coverage)
     if outcome.holdout is not None:  # a holdout is transparent whatever the film says

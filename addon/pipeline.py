@@ -33,6 +33,18 @@ def ao_distance(scene: Any) -> float:
     return float(world.light_settings.distance) if world is not None else NO_WORLD_AO_DISTANCE
 
 
+def film_filter(scene: Any) -> tuple[str, float]:
+    """The pixel filter Cycles renders `scene` with (Film > Pixel Filter): its type and
+    width in pixels from `scene.cycles` where the Cycles add-on is enabled (Cycles renders
+    Box 1 px wide whatever the width says: blender/sync.cpp), else Blackman-Harris (Cycles'
+    default type) at `scene.render.filter_size`."""
+    cycles = getattr(scene, "cycles", None)
+    if cycles is not None and hasattr(cycles, "pixel_filter_type"):
+        kind = str(cycles.pixel_filter_type)
+        return kind, 1.0 if kind == "BOX" else float(cycles.filter_width)
+    return "BLACKMAN_HARRIS", float(scene.render.filter_size)
+
+
 @dataclass(frozen=True)
 class Settings:
     """A snapshot of `scene.scenesort` (and the World's AO distance), safe to read off the
@@ -47,10 +59,13 @@ class Settings:
     seed: int
     engine: str
     denoise: bool = False
+    pixel_filter: str = "BLACKMAN_HARRIS"  # `film_filter(scene)`; width 0: pixel centres
+    filter_width: float = 0.0
 
     @classmethod
     def from_scene(cls, scene: Any) -> Settings:
         props = scene.scenesort
+        pixel_filter, filter_width = film_filter(scene)
         return cls(
             method=props.method,
             leaf_size=int(props.leaf_size),
@@ -61,6 +76,8 @@ class Settings:
             seed=int(props.seed),
             engine=props.engine,
             denoise=bool(props.use_denoising),
+            pixel_filter=pixel_filter,
+            filter_width=filter_width,
         )
 
 
@@ -90,6 +107,7 @@ class Outcome:
     # what the job built, refit or reused (the job status's `build`; backend/render/bvhs.py)
     build_report: dict | None = None
     denoised: bool = False  # the image is OIDN's output (rmse_estimate is the raw render's)
+    film: str = ""  # what the pixels are: the job status's `film` ("" for a bake)
     requests: list[str] = field(default_factory=list)
 
     @property
@@ -235,6 +253,7 @@ def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
     outcome.rays = int(job.get("rays") or 0)
     outcome.build_report = job.get("build")
     outcome.denoised = bool(job.get("denoised"))
+    outcome.film = str(job.get("film") or "")
     return job
 
 
@@ -254,6 +273,9 @@ def job_fields(settings: Settings) -> dict[str, Any]:
         fields["max_pixel_error"] = settings.max_pixel_error
     if settings.denoise:
         fields["denoise"] = True
+    if settings.filter_width > 0.0:  # the service renders through it where it can
+        fields["pixel_filter"] = settings.pixel_filter
+        fields["filter_width"] = settings.filter_width
     return fields
 
 
@@ -305,7 +327,7 @@ def bake_job(task: Task, target: Target, settings: Settings, mesh: SceneMesh,
     settings = replace(settings, engine="bvh", denoise=False)  # what surface jobs trace
     client, outcome, scene_id = prepare(task, target, settings, mesh)
     fields = {name: value for name, value in job_fields(settings).items()
-              if name not in ("engine", "denoise")}
+              if name not in ("engine", "denoise", "pixel_filter", "filter_width")}
     body = b"".join(np.ascontiguousarray(a, dtype).tobytes()
                     for a, dtype in ((triangles, "<i4"), (u, "<f4"), (v, "<f4")))
     start = time.perf_counter()

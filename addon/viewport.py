@@ -16,7 +16,8 @@ The engine's `view_update` and `view_draw` are thin (engine.py); the work is a
   averaged into the image until the Viewport Samples are reached; or, with a Viewport
   Target Error T, after the 1-sample round the final render's adaptive jobs to 4T, 2T and
   T, each image replacing the last (about 1.3x the work of one job to T, where doubling
-  uniform rounds takes several times it); no Z pass is traced;
+  uniform rounds takes several times it); pixel centres (the film's filter, which F12
+  applies, would double a round's cost); no Z pass is traced;
   a new view or scene cancels the job in flight (`Task.cancel`: the service's job is
   cancelled too) and starts again.
 """
@@ -180,7 +181,9 @@ class ViewSession:
         settings = replace(pipeline.Settings.from_scene(scene), engine="bvh",
                            spp=int(scene.scenesort.viewport_spp),
                            target_error=float(scene.scenesort.viewport_target_error),
-                           max_pixel_error=0.0, denoise=False)
+                           max_pixel_error=0.0, denoise=False,
+                           filter_width=0.0)  # pixel centres: a filter's camera rays
+        # would double a round's cost (F12 renders through the film's filter)
         self.transparent = bool(scene.render.film_transparent)
         changed = settings != self.settings
         scene_changed, geometry = changes(depsgraph.updates)

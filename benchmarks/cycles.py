@@ -131,6 +131,8 @@ def clear(scene: bpy.types.Scene) -> None:
 def parity_scene(scene, width: int, height: int) -> None:
     clear(scene)
     scene.world.light_settings.distance = PARITY_DISTANCE
+    # F12 renders through the scene's pixel filter: the pixel-centre one Cycles gets here
+    scene.cycles.pixel_filter_type, scene.cycles.filter_width = "GAUSSIAN", 0.01
     _add(scene, "Floor", _mesh("Floor", lambda bm: bmesh.ops.create_grid(
         bm, x_segments=6, y_segments=6, size=4.0), smooth=False), (0, 0, 0))
     _add(scene, "Cube", _mesh("Cube", lambda bm: bmesh.ops.create_cube(bm, size=1.0),

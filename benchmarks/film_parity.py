@@ -7,7 +7,8 @@ pass at Cycles' default pixel filter (Blackman-Harris 1.5 px), edges and alpha i
 The scene is benchmarks/cycles.py's parity scene (flat and smooth objects, silhouettes
 against the transparent background). Triangles, normals and terminator offsets come from
 the add-on's export and the camera from its camera_dict, so both renderers see the same
-scene; render_film is called directly (the add-on does not send the filter yet).
+scene; render_film is called directly (F12 sends the same filter through the service:
+tests/addon/test_film.py).
 
 For each N: a Cycles reference at 16N spp (seed 0), Cycles at N (seed 1) and render_film at
 N (seed 2). Cycles' AO pass is accumulated by the samples that hit a surface only, so it

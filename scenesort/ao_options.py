@@ -21,6 +21,9 @@ import numpy as np
 
 Sampler = Literal["sobol", "random"]
 Engine = Literal["bvh", "dacrt"]
+PixelFilter = Literal["BOX", "GAUSSIAN", "BLACKMAN_HARRIS"]  # Cycles' pixel_filter_type names
+PIXEL_FILTERS: tuple[str, ...] = typing.get_args(PixelFilter)
+MAX_FILTER_WIDTH = 10.0  # Blender's limit for scene.cycles.filter_width, in pixels
 DEFAULT_MAX_SPP = 1024
 MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
 DEFAULT_TERMINATOR_OFFSET = 0.1  # Blender's Object.shadow_terminator_geometry_offset default
@@ -164,6 +167,16 @@ class AoOptions:
         DEFAULT_TERMINATOR_OFFSET, "Cycles' shadow terminator geometry offset: how far "
         "smooth triangles lift occlusion rays off their flat surface (render_ao takes one "
         "per triangle or instance)", low=0.0, high=1.0)
+    pixel_filter: PixelFilter = _option(
+        "BLACKMAN_HARRIS", "a camera render's pixel filter (Cycles' Film > Pixel Filter; its "
+        "default Blackman-Harris), used where filter_width > 0")
+    filter_width: float = _option(
+        0.0, "a camera render's pixel filter width in pixels (Cycles' default 1.5): each "
+        "sample traces its own camera ray from a sub-pixel position drawn from the filter, "
+        "so edges and alpha are anti-aliased as Cycles renders them; 0: one camera ray "
+        "through each pixel's centre, coverage 0 or 1. Filtered renders take engine bvh and no "
+        "denoising; otherwise they render pixel centres (film_fallback)",
+        low=0.0, high=MAX_FILTER_WIDTH)
     denoise: bool = _option(
         False, "denoise the image with Intel Open Image Denoise, the shading normals as its "
         'guide (needs pip install "scenesort[denoise]"); the estimated RMSE stays the raw '
@@ -196,6 +209,35 @@ class AoOptions:
     def adaptive(self) -> bool:
         """Whether an error target decides the samples (else `spp` per pixel)."""
         return self.target_error is not None or self.max_pixel_error is not None
+
+    @property
+    def film_fallback(self) -> str | None:
+        """Why a camera render with filter_width > 0 renders pixel centres instead (None:
+        it filters, or filter_width is 0). Each sample of a filtered render traces its own
+        camera ray; the denoiser's guides and DACRT's ray batches work on one primary hit
+        per pixel."""
+        if self.filter_width == 0.0:
+            return None
+        reasons = [reason for reason, applies in (
+            ("denoise", self.denoise), ("engine dacrt", self.engine == "dacrt")) if applies]
+        if not reasons:
+            return None
+        return (f"pixel centres: {' and '.join(reasons)} renders one camera ray per pixel "
+                "centre (the pixel filter needs engine bvh and no denoising)")
+
+    @property
+    def filtered(self) -> bool:
+        """Whether a camera render goes through the pixel filter (filter_width > 0 and no
+        `film_fallback`)."""
+        return self.filter_width > 0.0 and self.film_fallback is None
+
+    @property
+    def film(self) -> str:
+        """What a camera render's pixels are, in words (the service job's `film`):
+        "BLACKMAN_HARRIS 1.5 px", "pixel centres", or the `film_fallback`."""
+        if self.filtered:
+            return f"{self.pixel_filter} {self.filter_width:g} px"
+        return self.film_fallback or "pixel centres"
 
     @property
     def min_spp(self) -> int:

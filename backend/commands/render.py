@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_ao_option(mode, "spp")
     add_ao_option(mode, "target_error")
     for name in ("max_pixel_error", "max_spp", "distance", "seed", "sampler", "denoise",
-                 "engine", "threads"):
+                 "engine", "pixel_filter", "filter_width", "threads"):
         add_ao_option(parser, name)
     parser.add_argument("--out", type=Path, default=Path("ao.png"), help="8-bit PNG to write")
     parser.add_argument("--npy", type=Path, default=None, help="also write float32 AO (.npy)")
@@ -92,8 +93,20 @@ def _render(args: argparse.Namespace, options: Any, console: Any) -> int:
 
     bvh, timings["compile"], timings["build"] = image.build(scene.vertices, scene.indices)
     shape = (camera.height, camera.width)
-    result = _with_progress(bvh, rays, options, shape, console, not args.no_progress)
-    ao = result.ao.reshape(camera.height, camera.width)
+    if options.film_fallback is not None:
+        console.print(f"[yellow]note:[/yellow] --filter-width: {options.film_fallback}")
+    if options.filtered:
+        t0 = time.perf_counter()
+        film = _with_progress(lambda progress: image.render_film(bvh, camera, options,
+                                                                 progress=progress),
+                              console, not args.no_progress)
+        timings["film"] = (time.perf_counter() - t0) * 1e3
+        ao = film.ao
+    else:
+        result = _with_progress(lambda progress: image.render_ao(
+            bvh, rays, options, image_shape=shape, progress=progress),
+            console, not args.no_progress)
+        ao = result.ao.reshape(camera.height, camera.width)
 
     t0 = time.perf_counter()
     args.out.parent.mkdir(parents=True, exist_ok=True)
@@ -103,19 +116,20 @@ def _render(args: argparse.Namespace, options: Any, console: Any) -> int:
         np.save(args.npy, ao.astype(np.float32))
     timings["write"] = (time.perf_counter() - t0) * 1e3
 
-    console.print(_table(scene, camera, bvh, result, timings))
+    table = (_film_table(scene, camera, film, options, timings) if options.filtered
+             else _table(scene, camera, bvh, result, timings))
+    console.print(table)
     written = f"{args.out}" + (f" and {args.npy}" if args.npy is not None else "")
     console.print(f"wrote {written}")
     return 0
 
 
-def _with_progress(bvh: Any, rays: tuple, options: Any, shape: tuple[int, int],
-                   console: Any, show: bool) -> Any:
+def _with_progress(render: Callable[[Any], Any], console: Any, show: bool) -> Any:
+    """`render(progress)` with a progress bar (progress None without one)."""
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-    from scenesort.backend.render import image
 
     if not show:
-        return image.render_ao(bvh, rays, options, image_shape=shape)
+        return render(None)
     columns = (
         TextColumn("{task.description:<10}"),
         BarColumn(),
@@ -128,7 +142,29 @@ def _with_progress(bvh: Any, rays: tuple, options: Any, shape: tuple[int, int],
         def progress(fraction: float, phase: str) -> None:
             bar.update(task, completed=fraction, description=phase)
 
-        return image.render_ao(bvh, rays, options, image_shape=shape, progress=progress)
+        return render(progress)
+
+
+def _film_table(scene: Any, camera: Any, film: Any, options: Any,
+                timings: dict[str, float]) -> Any:
+    """The filtered render's timings: every sample's camera and occlusion rays are one
+    phase ("film"), Warp's compile of the film kernel included on first use."""
+    from rich.table import Table
+
+    rmse = film.rmse_estimate
+    title = (f"{scene.name}: {scene.triangles:,} triangles, {camera.width}x{camera.height}, "
+             f"through {options.film}, spp mean {film.spp_mean:.1f} (max {film.spp_max}), "
+             f"est. RMSE {'-' if rmse is None else f'{rmse:.4f}'} (AO units, covered pixels)")
+    table = Table(title=title, min_width=len(title) + 4)
+    for name, justify in (("phase", "left"), ("ms", "right"), ("rays", "right"),
+                          ("MRays/s", "right")):
+        table.add_column(name, justify=justify)
+    total = sum(timings.values())
+    for name, t in (*timings.items(), ("total", total)):
+        n = film.rays if name in ("film", "total") else None
+        rate = f"{n / t / 1e3:.2f}" if n and t > 0 else ""
+        table.add_row(name, f"{t:.1f}", f"{n:,}" if n is not None else "", rate)
+    return table
 
 
 def _table(scene: Any, camera: Any, bvh: Any, result: Any, timings: dict[str, float]) -> Any:

@@ -1,6 +1,8 @@
 """A camera render, the work of a service job and of a frame of a bundle: the scene's BVH
-(cached, built or refit; of an instance list only what the camera may see), primary rays,
-AO with progress, the primary hits' depth and coverage, and the PNG."""
+(cached, built or refit; of an instance list only what the camera may see), AO with
+progress (through the pixel filter when the options ask for one and allow it:
+AoOptions.filtered, else through the pixel centres), coverage (the filtered alpha, or 0/1
+per centre), the pixel centres' depth, and the PNG."""
 
 from __future__ import annotations
 
@@ -53,27 +55,41 @@ def render_camera(
         job.add_timing(phase, 1000.0 * (time.perf_counter() - start))
         return out
 
-    view = View(camera, options.distance) if cull else None
+    view = View(camera, options.distance, _reach(options)) if cull else None
     views, job.build = timed("bvh", lambda: scene_views(store, scene, method, leaf_size, device,
                                                         view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
     origins, directions, tmin, tmax = timed("camera", camera.rays)
     shape = (camera.height, camera.width)
-    result = timed(
-        "ao", lambda: _render_ao(job, views, scene, origins, directions, tmin, tmax, options,
-                                 shape)
-    )
-    job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
-    # misses and holdouts: 0 spp
-    job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)
+    centres_only = _centres_only(views, passes)
+    filtered = options.filtered and centres_only is None
+    job.film = options.film if filtered or not options.filtered else (
+        f"pixel centres: {centres_only} renders one camera ray per pixel centre")
+    if camera.aperture_size > 0.0 and not filtered:
+        job.film += " (no depth of field: it needs the pixel filter's own camera rays)"
+    if filtered:
+        film = timed("ao", lambda: _render_film(job, views, scene, camera, options))
+        job.ao, job.coverage = film.ao, film.alpha
+        job.spp_mean, job.spp_max = film.spp_mean, film.spp_max  # over covered pixels
+        job.rmse_estimate, job.rays, job.denoised = film.rmse_estimate, film.rays, False
+        normals, held = None, None  # (no holdout: _centres_only)
+    else:
+        result = timed(
+            "ao", lambda: _render_ao(job, views, scene, origins, directions, tmin, tmax,
+                                     options, shape)
+        )
+        job.ao = np.asarray(result.ao, dtype=np.float32).reshape(shape)
+        # misses and holdouts: 0 spp
+        job.coverage = (result.spp_used > 0).astype(np.float32).reshape(shape)
+        stats = result.stats()
+        job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
+        job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
+        job.denoised = stats.denoised
+        normals, held = result.normals, result.holdout
     if getattr(scene, "visibility", None) is not None:  # an instance list with masks
-        held = np.zeros(shape, bool) if result.holdout is None else result.holdout
+        held = np.zeros(shape, bool) if held is None else held
         job.holdout = held.astype(np.float32).reshape(shape)
-    stats = result.stats()
-    job.spp_mean, job.spp_max = stats.spp_mean, stats.spp_max
-    job.rmse_estimate, job.rays = stats.rmse_estimate, stats.rays
-    job.denoised = stats.denoised
     job.png = timed("png", lambda: encode_png(job.ao))
     if not (depth or passes):
         return
@@ -84,7 +100,7 @@ def render_camera(
     if depth:
         job.depth = np.where(hit, z, BACKGROUND_DEPTH).astype(np.float32).reshape(shape)
     extras = {  # made only when asked for (JobRequest.passes)
-        "normal": lambda: result.normals.reshape(*shape, 3),
+        "normal": lambda: normals.reshape(*shape, 3),
         "position": lambda: np.where(hit[:, None], origins + t64 * directions,
                                      0.0).reshape(*shape, 3),
         "object": lambda: np.where(job.coverage.ravel() > 0, instance, -1).reshape(shape),
@@ -107,6 +123,35 @@ def seen_hits(
         nearer = held.t < t
         t, instance = np.where(nearer, held.t, t), np.where(nearer, held.instance, instance)
     return t, instance
+
+
+def _reach(options: AoOptions) -> float:
+    """How many pixels outside the image the render's camera rays start (its filter's)."""
+    from scenesort.kernels.render.film import filter_reach
+
+    return filter_reach(options.pixel_filter, options.filter_width) if options.filtered else 0.0
+
+
+def _centres_only(views: Views, passes: Sequence[str]) -> str | None:
+    """What makes a job render pixel centres whatever its filter (None: nothing): the
+    filtered film has no holdout and no per-pixel normal yet."""
+    reasons = [why for why, applies in (("a holdout", views.holdout is not None),
+                                        ("the normal pass", "normal" in passes)) if applies]
+    return " and ".join(reasons) or None
+
+
+def _render_film(job: Job, views: Views, scene: Any, camera: Any, options: AoOptions) -> Any:
+    """`kernels.render_film` of `camera` through the options' pixel filter with the scene's
+    normals, occlusion rays through the views' occluders, reporting progress between its
+    rounds; its `FilmResult`."""
+    from scenesort import kernels
+
+    def progress(fraction: float, phase: str) -> None:
+        job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
+
+    occluders = None if views.occluders is views.camera else views.occluders
+    return kernels.render_film(views.camera, camera, options, occluders=occluders,
+                               progress=progress, **shading(scene))
 
 
 def _render_ao(

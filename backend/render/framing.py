@@ -54,19 +54,14 @@ class FramedCamera(Camera):
             return self.frame_width >= self.ycor * self.frame_height
         return self.sensor_fit == "HORIZONTAL"
 
-    def raster_to_camera(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
-        """Image-plane points of raster coordinates counted in the window (see
-        `Camera.raster_to_camera`)."""
-        px = np.asarray(px, dtype=np.float64).ravel() + self.x0
-        py = np.asarray(py, dtype=np.float64).ravel() + self.y0
+    def raster_plane(self) -> tuple[tuple[float, float], ...]:
+        """`Camera.raster_plane` with raster coordinates counted in the window."""
         s = self.plane_scale()
         w, h = self.frame_width, self.frame_height
         pix = s / (w if self.horizontal_fit else self.ycor * h)
-        pts = np.empty((px.size, 3), dtype=np.float64)
-        pts[:, 0] = (px - 0.5 * w) * pix + self.shift_x * s
-        pts[:, 1] = (0.5 * h - py) * (pix * self.ycor) + self.shift_y * s
-        pts[:, 2] = -1.0 if self.type == "PERSP" else 0.0
-        return pts
+        # (px + x0 - w/2) * pix and (h/2 - py - y0) * pix * ycor, as Camera writes them
+        return ((0.5 * w - self.x0, 0.5 * h - self.y0), (pix, -(pix * self.ycor)),
+                (self.shift_x * s, self.shift_y * s))
 
 
 def framed(

@@ -1,5 +1,6 @@
 """One AO image of a scene, as `scenesort render` makes it: the BVH built (Warp's compile
-time apart from the build's), then `kernels.render_ao` over the camera's rays."""
+time apart from the build's), then `kernels.render_ao` over the camera's rays, or
+`kernels.render_film` through a pixel filter."""
 
 from __future__ import annotations
 
@@ -27,3 +28,11 @@ def render_ao(bvh: Any, rays: tuple[np.ndarray, ...], options: Any, **settings: 
     origins, directions, tmin, tmax = rays
     return kernels.render_ao(bvh, origins, directions, options, tmin=tmin, tmax=tmax,
                              **settings)
+
+
+def render_film(bvh: Any, camera: Any, options: Any, **settings: Any) -> Any:
+    """`kernels.render_film` of `camera` with these AoOptions (and its other keywords:
+    progress): its FilmResult."""
+    from scenesort import kernels
+
+    return kernels.render_film(bvh, camera, options, **settings)

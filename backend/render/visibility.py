@@ -27,11 +27,13 @@ def box_key(mesh_id: str) -> str:
 
 @dataclass(frozen=True)
 class View:
-    """What a camera render sees: the framed camera and the AO distance (None: the scene
-    default)."""
+    """What a camera render sees: the framed camera, the AO distance (None: the scene
+    default) and how many pixels outside the image its camera rays start (a pixel
+    filter's reach, `film.filter_reach`)."""
 
     camera: Any
     distance: float | None
+    reach: float = 0.0
 
 
 def placement(store: Store, scene: wire.InstanceScene) -> tuple[Any, np.ndarray]:
@@ -69,4 +71,4 @@ def visible(store: Store, scene: wire.InstanceScene, view: View) -> tuple[np.nda
     # The scene default over every instance: render_ao's from the culled scene's bounds,
     # which are the placement's (build_scene counts the culled instances' boxes).
     distance = default_distance(placed) if view.distance is None else view.distance
-    return visible_instances(placed, extents, view.camera, distance), placed
+    return visible_instances(placed, extents, view.camera, distance, view.reach), placed

@@ -146,6 +146,19 @@ class CameraModel(Strict):
     shift_y: Annotated[float, Field(allow_inf_nan=False)] = 0.0
     clip_start: Annotated[float, Field(ge=0, allow_inf_nan=False)] = 0.1
     clip_end: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1000.0
+    aperture_size: Annotated[float, Field(
+        ge=0, allow_inf_nan=False,
+        description="depth of field (PERSP, rendered through a pixel filter): the lens's "
+                    "radius in world units, Cycles' lens * 1e-3 / (2 * f-stop); 0: none")] = 0.0
+    focus_distance: Annotated[float, Field(
+        gt=0, allow_inf_nan=False, description="the camera-space depth in focus")] = 10.0
+    aperture_blades: Annotated[int, Field(
+        ge=0, le=16, description="0: a round aperture, else a polygon of 3..16 corners")] = 0
+    aperture_rotation: Annotated[float, Field(
+        allow_inf_nan=False, description="the polygon's rotation, radians")] = 0.0
+    aperture_ratio: Annotated[float, Field(
+        gt=0, allow_inf_nan=False, description="anamorphic squeeze of the aperture across x",
+    )] = 1.0
 
 
 class Window(Strict):
@@ -251,6 +264,16 @@ class JobRequest(AoSettings):
         description="extra images to keep for GET .../result: normal (world-space shading "
                     "normal, xyz), position (world-space hit point, xyz), object (the "
                     "instance index the camera ray hit, -1 on background and holdouts)")
+    pixel_filter: ao_setting("pixel_filter")
+    filter_width: ao_setting("filter_width")
+
+
+FILM_DOC = (
+    "what the image's pixels are: 'BLACKMAN_HARRIS 1.5 px' (the pixel filter and width it "
+    "was rendered through), 'pixel centres' (filter_width 0), or 'pixel centres: ...' "
+    "saying why a requested filter was not used (it needs engine bvh, no denoising, no "
+    "holdout and no normal pass)"
+)
 
 
 class JobStatus(Strict):
@@ -270,6 +293,7 @@ class JobStatus(Strict):
         default=None, description="what the job built, refit or reused (once it has its BVH)")
     denoised: bool | None = Field(default=None,
                                   description="the image is OIDN's output (denoise=true)")
+    film: str | None = Field(default=None, description=FILM_DOC)
     error: str | None
 
 

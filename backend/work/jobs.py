@@ -62,6 +62,7 @@ class Job:
     rays: int | None = None
     build: Any = None  # backend.frames.BuildReport: what the job built, refit or reused
     denoised: bool | None = None
+    film: str | None = None  # the pixels' film: JobStatus.film (wire/models.py)
     version: int = 0  # bumped on every change; server-sent events wait on it
     signal: StopSignal = field(default_factory=StopSignal)
     max_seconds: float = float("inf")  # the deadline, counted from the start of the run
@@ -143,6 +144,7 @@ class Job:
                 "rays": self.rays,
                 "build": None if self.build is None else self.build.to_dict(),
                 "denoised": self.denoised,
+                "film": self.film,
                 "error": self.error,
             }
 

@@ -3,7 +3,14 @@ filter, ambient occlusion with fixed or adaptive sample counts (of a mesh or a t
 scene; every setting in one `AoOptions`), and the culling of what a camera's image cannot
 depend on."""
 
-from scenesort.ao_options import AO_OPTIONS, DEFAULT_MAX_SPP, AoOptions, OptionError, OptionSpec
+from scenesort.ao_options import (
+    AO_OPTIONS,
+    DEFAULT_MAX_SPP,
+    PIXEL_FILTERS,
+    AoOptions,
+    OptionError,
+    OptionSpec,
+)
 
 from .ao import (
     AoRays,
@@ -17,7 +24,6 @@ from .ao import (
 )
 from .camera import Camera
 from .cull import mesh_box, view_planes, visible_instances, visible_triangles
-from .film import PIXEL_FILTERS
 from .filtered import FilmResult, render_film
 
 __all__ = [

@@ -78,13 +78,24 @@ Progress = Callable[[float, str], None]
 
 
 def sample_rounds(trace_round: RoundTracer, pixels: int, opts: AoOptions,
-                  report: Progress) -> tuple[SampleCounts, int]:
+                  report: Progress, counts: SampleCounts | None = None,
+                  ) -> tuple[SampleCounts, int]:
     """Trace the occlusion samples of `pixels` hit pixels round by round until `opts` is
     met; the counts and the number of rounds. `report(fraction, "occlusion")` is called
-    before each round."""
-    counts = SampleCounts(*(np.zeros(pixels, dtype=np.int64) for _ in range(3)))
+    before each round. `counts`: every pixel's first `opts.min_spp` samples, traced
+    already (`SampleCounts.trace` in one call: the filtered film's, whose first samples
+    find the covered pixels); the rounds go on from there."""
     rounds = 0
     min_spp = opts.min_spp
+    if counts is not None:
+        if not opts.adaptive or not pixels:
+            return counts, rounds
+        aim = None if opts.target_error is None else RMSE_AIM * opts.target_error
+        return counts, _adaptive_rounds(trace_round, counts, opts, report, aim,
+                                        counts.mse(), next_round(counts, aim,
+                                                                 opts.max_pixel_error,
+                                                                 opts.max_spp))
+    counts = SampleCounts(*(np.zeros(pixels, dtype=np.int64) for _ in range(3)))
     if not opts.adaptive:
         count = max(1, min(min_spp, ROUND_RAYS // max(pixels, 1)))
         everyone = np.arange(pixels)
@@ -94,10 +105,18 @@ def sample_rounds(trace_round: RoundTracer, pixels: int, opts: AoOptions,
             rounds += 1
             count = min(count, min_spp - int(counts.done[0]))
         return counts, rounds
-    select = np.arange(pixels)
     aim = None if opts.target_error is None else RMSE_AIM * opts.target_error
-    mse0 = None
-    while pixels and len(select):
+    return counts, _adaptive_rounds(trace_round, counts, opts, report, aim, None,
+                                    np.arange(pixels))
+
+
+def _adaptive_rounds(trace_round: RoundTracer, counts: SampleCounts, opts: AoOptions,
+                     report: Progress, aim: float | None, mse0: float | None,
+                     select: np.ndarray) -> int:
+    """sample_rounds' adaptive rounds from `select` on (`mse0`: the MSE after the first
+    round, None before it); the number of rounds traced."""
+    rounds = 0
+    while len(counts.done) and len(select):
         if aim is not None and mse0 is not None:
             report(error_progress(mse0, counts.mse(), aim), "occlusion")
         else:
@@ -107,11 +126,19 @@ def sample_rounds(trace_round: RoundTracer, pixels: int, opts: AoOptions,
             # doubling: Sobol prefixes of 2^k; the minimum's nested estimates (after a
             # quarter and a half of it) measure how fast the variance falls before the
             # first decision
-            counts.trace(trace_round, select[counts.done[select] == n], int(n) or min_spp)
+            counts.trace(trace_round, select[counts.done[select] == n], int(n) or opts.min_spp)
         rounds += 1
         mse0 = counts.mse() if mse0 is None else mse0
         select = next_round(counts, aim, opts.max_pixel_error, opts.max_spp)
-    return counts, rounds
+    return rounds
+
+
+def nested_marks(first: int, count: int) -> tuple[int, int]:
+    """The sample indices below which a launch of samples first..first+count-1 counts its
+    nested estimates (`RoundTracer`'s mid and quarter): about half and a quarter of the
+    samples at its end; -1: none."""
+    end = first + count
+    return max(end // 2, first), end // 4 if end % 4 == 0 else -1
 
 
 @dataclass
@@ -137,7 +164,7 @@ class SampleCounts:
         end = first + count
         # the nested estimates, after about end / 2 and end / 4 samples: counted in the
         # launch where they reach into it, else those kept from the rounds before
-        mid, quarter = max(end // 2, first), end // 4 if end % 4 == 0 else -1
+        mid, quarter = nested_marks(first, count)
         opened, opened_mid, opened_quarter = trace_round(select, first, count, mid, quarter)
         open_now = self.open[select]
         open_mid = open_now + opened_mid

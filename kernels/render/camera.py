@@ -40,6 +40,7 @@ SensorFit = Literal["AUTO", "HORIZONTAL", "VERTICAL"]
 CAMERA_TYPES: tuple[str, ...] = ("PERSP", "ORTHO")
 SENSOR_FITS: tuple[str, ...] = ("AUTO", "HORIZONTAL", "VERTICAL")
 MAX_RESOLUTION = 65536  # Blender's limit for resolution_x / resolution_y
+MAX_BLADES = 16  # Blender's limit for CameraDOFSettings.aperture_blades
 
 
 def _finite(name: str, value: Any) -> float:
@@ -110,6 +111,17 @@ class Camera:
     shift_y: float = 0.0
     clip_start: float = 0.1  # camera-space depth
     clip_end: float = 1000.0
+    # Depth of field, as Cycles' camera has it (PERSP only; rendered by the filtered film,
+    # kernels/render/filtered.py): the lens's radius in world units (Cycles' aperturesize,
+    # lens * 1e-3 / (2 * f-stop) from Blender's f-stop; 0: a pinhole), the camera-space
+    # depth in focus, and the aperture's shape (0 blades: round, else a regular polygon of
+    # that many corners turned by `aperture_rotation` radians, squeezed across x by
+    # `aperture_ratio` as an anamorphic lens).
+    aperture_size: float = 0.0
+    focus_distance: float = 10.0
+    aperture_blades: int = 0
+    aperture_rotation: float = 0.0
+    aperture_ratio: float = 1.0
     _r: np.ndarray = field(init=False, repr=False, compare=False)  # normalised rotation part
 
     def __post_init__(self) -> None:
@@ -127,6 +139,22 @@ class Camera:
             set_(self, name, _positive(name, getattr(self, name)))
         for name in ("shift_x", "shift_y", "clip_start", "clip_end"):
             set_(self, name, _finite(name, getattr(self, name)))
+        for name in ("aperture_size", "aperture_rotation"):
+            set_(self, name, _finite(name, getattr(self, name)))
+        for name in ("focus_distance", "aperture_ratio"):
+            set_(self, name, _positive(name, getattr(self, name)))
+        if self.aperture_size < 0.0:
+            raise ValueError(f"camera.aperture_size must be >= 0 (0: no depth of field), got "
+                             f"{self.aperture_size!r}")
+        if self.aperture_size > 0.0 and self.type != "PERSP":
+            raise ValueError("camera.aperture_size: depth of field is rendered for PERSP "
+                             "cameras only; set it to 0 for an ORTHO camera")
+        blades = self.aperture_blades
+        if isinstance(blades, bool) or not isinstance(blades, int | np.integer) or not (
+                blades == 0 or 3 <= blades <= MAX_BLADES):
+            raise ValueError(f"camera.aperture_blades must be 0 (round) or an integer in "
+                             f"3..{MAX_BLADES}, got {blades!r}")
+        set_(self, "aperture_blades", int(blades))
         if self.clip_start < 0.0:
             raise ValueError(f"camera.clip_start must be >= 0, got {self.clip_start!r}")
         if self.clip_end <= self.clip_start:
@@ -170,6 +198,18 @@ class Camera:
         sensor = self.sensor_height if self.sensor_fit == "VERTICAL" else self.sensor_width
         return sensor / self.lens
 
+    def raster_plane(self) -> tuple[tuple[float, float], ...]:
+        """The raster -> image-plane map, one affine map per axis, as (centre, step,
+        offset) pairs (x, y): plane = (raster - centre) * step + offset. The one
+        definition of where a raster point lies, for `raster_to_camera` and the device's
+        camera rays (filtered.py); a subclass that frames the image otherwise (a window,
+        non-square pixels: backend/render/framing.py) overrides this alone."""
+        s = self.plane_scale()
+        pix = s / (self.width if self.horizontal_fit else self.height)
+        # y: (H/2 - py) * pix, written as (py - H/2) * -pix (the same float64 numbers)
+        return ((0.5 * self.width, 0.5 * self.height), (pix, -pix),
+                (self.shift_x * s, self.shift_y * s))
+
     def raster_to_camera(self, px: np.ndarray, py: np.ndarray) -> np.ndarray:
         """Camera-space image-plane points (float64, (N,3)) for raster coordinates.
 
@@ -178,11 +218,10 @@ class Camera:
         """
         px = np.asarray(px, dtype=np.float64).ravel()
         py = np.asarray(py, dtype=np.float64).ravel()
-        s = self.plane_scale()
-        pix = s / (self.width if self.horizontal_fit else self.height)
+        centre, step, offset = self.raster_plane()
         pts = np.empty((px.size, 3), dtype=np.float64)
-        pts[:, 0] = (px - 0.5 * self.width) * pix + self.shift_x * s
-        pts[:, 1] = (0.5 * self.height - py) * pix + self.shift_y * s
+        pts[:, 0] = (px - centre[0]) * step[0] + offset[0]
+        pts[:, 1] = (py - centre[1]) * step[1] + offset[1]
         pts[:, 2] = -1.0 if self.type == "PERSP" else 0.0
         return pts
 

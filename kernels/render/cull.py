@@ -9,7 +9,9 @@ distance + lift + rounding outside one plane of the view volume can change no pi
 view volume widened by a ball of that radius lies inside the six half-spaces pushed out by
 it. Such instances are left out of the top level (`build_scene(visible=...)`), such
 triangles out of a single mesh's BVH; the image is the same (tests/kernels/render/
-test_cull.py). Valid for the camera's own rays (`Camera.rays()`).
+test_cull.py). Valid for the camera's own rays (`Camera.rays()`), and with `reach` for rays
+from raster points up to that many pixels outside the image (a pixel filter's samples:
+film.filter_reach).
 
 Whole instances, not triangles, are culled in two-level scenes: a mesh's BVH would become
 camera-dependent and a camera-only change would have to rebuild it, while the top level is
@@ -33,11 +35,12 @@ ROUNDING = 1e-5  # of the scene's and camera's largest coordinate: spawn offsets
 DISTANCE_MARGIN = 1e-3  # relative, on the AO distance
 
 
-def view_planes(camera: Camera) -> np.ndarray:
+def view_planes(camera: Camera, reach: float = 0.0) -> np.ndarray:
     """(6, 4) float64 rows (n, b), |n| = 1: the view volume is where n . p + b >= 0 for all
-    six (left, right, bottom, top, near, far), p in world space."""
-    corners = camera.raster_to_camera(np.array([0.0, camera.width]),
-                                      np.array([camera.height, 0.0]))
+    six (left, right, bottom, top, near, far), p in world space; its sides `reach` pixels
+    outside the image's edges."""
+    corners = camera.raster_to_camera(np.array([-reach, camera.width + reach]),
+                                      np.array([camera.height + reach, -reach]))
     (xa, ya, _), (xb, yb, _) = corners  # left-bottom and right-top of the image
     cs, ce = camera.clip_start, camera.clip_end
     if camera.type == "PERSP":  # through the eye: x >= xa depth, depth = -z
@@ -88,12 +91,13 @@ def mesh_box(vertices: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, flo
 
 
 def visible_instances(placed: Placement, extents: np.ndarray, camera: Camera,
-                      distance: float) -> np.ndarray:
+                      distance: float, reach: float = 0.0) -> np.ndarray:
     """(I,) bool: the placed instances (`place_instances`, from the meshes' boxes) whose
     geometry may change a pixel of the camera's AO image with this AO distance; `extents`
     (K,): each mesh's largest triangle box side (`mesh_box`). The others may be left out
-    (`build_scene(visible=...)`), and a mesh none of the visible ones uses left unbuilt."""
-    planes = view_planes(camera)
+    (`build_scene(visible=...)`), and a mesh none of the visible ones uses left unbuilt.
+    `reach`: camera rays start up to this many pixels outside the image (`view_planes`)."""
+    planes = view_planes(camera, reach)
     norm = np.abs(placed.frames["lin"]).sum(axis=2).max(axis=1)  # ||M||_inf per instance
     lift = 2.0 * np.sqrt(3.0) * norm * np.asarray(extents, np.float64)[placed.mesh_ids]
     lo, hi = placed.lo, placed.hi

@@ -30,26 +30,30 @@ filter. At N = 64 the measured parity (docs/kernels-api.md) shows no effect of i
 from __future__ import annotations
 
 import math
-from typing import Literal
 
 import numpy as np
 import warp as wp
+
+from scenesort.ao_options import AO_OPTIONS, OptionError
 
 from ..core.compile_options import MODULE_OPTIONS
 from .sampling import owen_scramble, pcg_hash, sample_2d_at
 
 wp.set_module_options(MODULE_OPTIONS)
 
-PixelFilter = Literal["BOX", "GAUSSIAN", "BLACKMAN_HARRIS"]
-PIXEL_FILTERS: tuple[str, ...] = ("BOX", "GAUSSIAN", "BLACKMAN_HARRIS")  # Cycles' enum names
 FILTER_TABLE_SIZE = 1024  # Cycles' FILTER_TABLE_SIZE
-FILTER_WIDTH_RANGE = (0.01, 10.0)  # Blender's soft range of scene.cycles.filter_width
 FILTER_KEY = wp.constant(wp.uint32(0x2545F491))  # separates the filter's scramble from AO's
 
 
 def _table_width(kind: str, width: float) -> float:
     """The support w of Cycles' table for a filter of `width` pixels (film.cpp)."""
     return {"BOX": 1.0, "GAUSSIAN": 3.0, "BLACKMAN_HARRIS": 2.0}[kind] * width
+
+
+def filter_reach(kind: str, width: float) -> float:
+    """How far, in pixels, a pixel's samples reach outside it: w / 2 - 1/2 (0 for no
+    filter), what culling must keep beyond the image's edges (cull.view_planes)."""
+    return max(0.0, 0.5 * _table_width(kind, width) - 0.5) if width > 0 else 0.0
 
 
 def filter_profile(kind: str, width: float, v: np.ndarray) -> np.ndarray:
@@ -69,15 +73,12 @@ def filter_profile(kind: str, width: float, v: np.ndarray) -> np.ndarray:
 
 
 def check_filter(kind: str, width: float) -> None:
-    """Raise ValueError naming `pixel_filter` or `filter_width` when either is invalid."""
-    if kind not in PIXEL_FILTERS:
-        raise ValueError(f"pixel_filter must be one of {PIXEL_FILTERS}, got {kind!r}")
-    lo, hi = FILTER_WIDTH_RANGE
-    if isinstance(width, bool) or not isinstance(width, int | float) or not lo <= width <= hi:
-        raise ValueError(
-            f"filter_width must be a number of pixels in [{lo}, {hi}] (0 renders pixel "
-            f"centres without a filter), got {width!r}"
-        )
+    """Raise OptionError (a ValueError) naming `pixel_filter` or `filter_width` when either
+    is not AoOptions' (the one definition of both) or the width is 0 (no filter)."""
+    AO_OPTIONS["pixel_filter"].check(kind)
+    if AO_OPTIONS["filter_width"].check(width) == 0.0:
+        raise OptionError("filter_width", "a pixel filter needs filter_width > 0 (0 renders "
+                          "pixel centres, without a filter)", "set filter_width > 0")
 
 
 def filter_table(kind: str, width: float) -> np.ndarray:
@@ -125,11 +126,19 @@ def filter_position(
 ) -> wp.vec2:
     """Sample `index`'s raster offset (x right, y down) from the corner of the pixel whose
     occlusion samples use `key`."""
-    seed = pcg_hash(key ^ FILTER_KEY)
-    # Burley 2020 (JCGT 9(4)), sec. 4: the index is Owen-scrambled too, else the filter's
-    # point i and the occlusion direction's point i share their strata (the same Sobol
+    u = decorrelated_2d(sampler, key, FILTER_KEY, index)
+    return wp.vec2(table_read(table, u[0]), table_read(table, u[1]))
+
+
+@wp.func
+def decorrelated_2d(sampler: int, key: wp.uint32, salt: wp.uint32, index: int) -> wp.vec2:
+    """Point `index` of the pixel's 2D sequence (of the pixel whose occlusion samples use
+    `key`) under its own scramble `salt`, decorrelated from the occlusion directions' and
+    from every other salt's: the filter's sub-pixel positions, the lens's points."""
+    seed = pcg_hash(key ^ salt)
+    # Burley 2020 (JCGT 9(4)), sec. 4: the index is Owen-scrambled too, else point i here
+    # and the occlusion direction's point i share their strata (the same Sobol
     # dimensions under two scrambles: the top bits agree or differ for every sample of a
     # pixel) and each pixel's estimate keeps a bias that more samples never remove. The
     # first 2^m indices go to an aligned block of 2^m, which is still a (0, m, 2)-net.
-    u = sample_2d_at(sampler, seed, owen_scramble(wp.uint32(index), pcg_hash(seed)))
-    return wp.vec2(table_read(table, u[0]), table_read(table, u[1]))
+    return sample_2d_at(sampler, seed, owen_scramble(wp.uint32(index), pcg_hash(seed)))

@@ -9,13 +9,19 @@ samples, so they converge to the filter-weighted integrals Cycles' film converge
 Sample i of pixel k uses point i of the pixel's Sobol (or random) sequence for its
 sub-pixel position (with the filter's own scramble) and for its occlusion direction.
 
-Scope today: a fixed `spp` (no error target), engine "bvh", no denoising; each pixel is one
-thread's, so the result is bit-identical for any `threads`. `filter_width=0` is today's
-pixel-centre render: `render_ao` over `Camera.rays()`, alpha 0 or 1.
+With an error target, the rounds of render_ao's adaptive controller (adaptive.py) over
+the covered pixels (any of whose first `min_spp` samples hit): each sample is 0 or 1 as
+an occlusion sample is, so a pixel's statistics include its edge's variance (the camera
+ray hitting or not) beside its occlusion's. Engine "bvh" only, no denoising
+(`AoOptions.film_fallback`); each pixel's samples in a round are one thread's, so the
+result is bit-identical for any `threads`. `filter_width=0` is the pixel-centre render:
+`render_ao` over `Camera.rays()`, alpha 0 or 1.
 """
 
 from __future__ import annotations
 
+import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -31,15 +37,18 @@ from ..core.launch import PARTS_PER_THREAD, host_threads, part_launcher, run_par
 from ..core.mesh import Shading
 from ..scene.api import Scene
 from ..scene.top import SceneArrays, SceneShading
-from .ao import default_distance, render_ao
+from .adaptive import ROUND_RAYS, Progress, SampleCounts, nested_marks, sample_rounds
+from .ao import AoResult, _monotone, default_distance, render_ao
 from .camera import Camera
-from .film import check_filter, filter_position, filter_table
+from .film import decorrelated_2d, filter_position, filter_table
 from .primary import scene_shading
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import occlusion_origin
 from .tracers import PART_RAYS, MeshTracer, check_tracer, closest_surface, occluded, scene_mesh
 
 wp.set_module_options(MODULE_OPTIONS)
+
+LENS_KEY = wp.constant(wp.uint32(0x68E31DA4))  # separates the lens's scramble from the others'
 
 
 @wp.struct
@@ -48,23 +57,75 @@ class FilmCamera:
 
     rotation: wp.mat33  # matrix_world's normalised 3x3 part
     position: wp.vec3
-    half_size: wp.vec2  # (W / 2, H / 2)
-    pix: float  # image-plane size of a pixel
-    shift: wp.vec2  # (shift_x, shift_y) * plane_scale
+    # Camera.raster_plane: plane x = (px - centre.x) * step.x + offset.x, y likewise
+    centre: wp.vec2
+    step: wp.vec2
+    offset: wp.vec2
     persp: int  # 1: PERSP (plane at z = -1), 0: ORTHO (plane at z = 0)
     clip_start: float
     clip_end: float
+    aperture: float  # the lens's radius (0: a pinhole); the others are Camera's fields
+    focus: float
+    blades: int
+    blade_rotation: float
+    inv_ratio: float
 
 
 @wp.func
-def camera_ray(cam: FilmCamera, px: float, py: float):
+def concentric_disk(u: wp.vec2) -> wp.vec2:
+    """A point of the unit disk for u in the unit square, area-preserving (Shirley and
+    Chiu 1997): uniform for uniform u, strata kept."""
+    a = 2.0 * u[0] - 1.0
+    b = 2.0 * u[1] - 1.0
+    if a == 0.0 and b == 0.0:
+        return wp.vec2(0.0, 0.0)
+    r = b
+    phi = 0.5 * wp.pi - 0.25 * wp.pi * (a / b)
+    if wp.abs(a) > wp.abs(b):
+        r = a
+        phi = 0.25 * wp.pi * (b / a)
+    return wp.vec2(r * wp.cos(phi), r * wp.sin(phi))
+
+
+@wp.func
+def polygon_point(corners: int, rotation: float, u: wp.vec2) -> wp.vec2:
+    """A uniform point of the regular polygon with `corners` corners on the unit circle,
+    turned by `rotation` (Cycles' regular_polygon_sample: a corner's triangle picked by
+    u.x, a uniform point in it)."""
+    n = float(corners)
+    corner = wp.floor(u[0] * n)
+    s = wp.sqrt(u[0] * n - corner)
+    t = u[1] * s
+    s = 1.0 - s
+    half = wp.pi / n
+    p = wp.vec2((s + t) * wp.cos(half), (s - t) * wp.sin(half))
+    angle = rotation + corner * 2.0 * half
+    c = wp.cos(angle)
+    sn = wp.sin(angle)
+    return wp.vec2(c * p[0] - sn * p[1], sn * p[0] + c * p[1])
+
+
+@wp.func
+def camera_ray(cam: FilmCamera, px: float, py: float, lens: wp.vec2):
     """(origin, unit direction, tmin, tmax) through raster point (px, py) (pixels from the
-    image's left and top edges), as `Camera.rays` builds them."""
-    x = (px - cam.half_size[0]) * cam.pix + cam.shift[0]
-    y = (cam.half_size[1] - py) * cam.pix + cam.shift[1]
+    image's left and top edges), as `Camera.rays` builds them; with an aperture, from the
+    lens point that `lens` (in the unit square) picks, through the point of the ray from
+    the camera's centre at the depth in focus (Cycles' camera_sample_perspective; the clip
+    range stays the centre ray's, as Cycles keeps it)."""
+    x = (px - cam.centre[0]) * cam.step[0] + cam.offset[0]
+    y = (py - cam.centre[1]) * cam.step[1] + cam.offset[1]
     if cam.persp == 1:
-        world = cam.rotation * wp.vec3(x, y, -1.0)
+        plane = wp.vec3(x, y, -1.0)
+        world = cam.rotation * plane
         length = wp.length(world)
+        if cam.aperture > 0.0:
+            uv = concentric_disk(lens)
+            if cam.blades > 0:
+                uv = polygon_point(cam.blades, cam.blade_rotation, lens)
+            p = wp.vec3(uv[0] * cam.inv_ratio * cam.aperture, uv[1] * cam.aperture, 0.0)
+            d = cam.rotation * (plane * cam.focus - p)
+            return (cam.position + cam.rotation * p, wp.normalize(d), cam.clip_start * length,
+                    cam.clip_end * length)
         return cam.position, world / length, cam.clip_start * length, cam.clip_end * length
     d = -wp.vec3(cam.rotation[0, 2], cam.rotation[1, 2], cam.rotation[2, 2])
     origin = cam.position + cam.rotation * wp.vec3(x, y, 0.0)
@@ -79,34 +140,53 @@ def film_kernel(
     cam: FilmCamera,
     width: int,
     table: wp.array(dtype=float),
-    spp: int,
     sampler: int,
     seed: int,
     distance: float,
-    pixel0: int,  # the first pixel of this launch (the outputs start there)
-    out_open: wp.array(dtype=int),  # per pixel: samples whose value is 1
-    out_hit: wp.array(dtype=int),  # per pixel: samples whose camera ray hit
+    active: wp.array(dtype=int),  # the pixel (row-major index) of each slot of this round
+    slot0: int,  # the first slot of this launch
+    first: int,  # the first sample index of this round (the same for every slot)
+    count: int,  # samples per slot this round
+    mid: int,  # out_open_mid counts the open samples with index below this (absolute)
+    quarter: int,  # out_open_quarter: those below this
+    out_open: wp.array(dtype=int),  # per slot: samples whose value is 1
+    out_open_mid: wp.array(dtype=int),
+    out_open_quarter: wp.array(dtype=int),
+    out_hit: wp.array(dtype=int),  # per slot: samples whose camera ray hit
 ):
-    t = wp.tid()
-    k = pixel0 + t
+    # One pixel's samples per thread: each slot is written by one thread of one launch.
+    j = slot0 + wp.tid()
+    k = active[j]
     key = pixel_key(k, seed)
     row = k / width
     col = k - row * width
     n_open = int(0)
+    n_mid = int(0)
+    n_quarter = int(0)
     n_hit = int(0)
-    for i in range(spp):
+    for s in range(count):
+        i = first + s
         offset = filter_position(table, sampler, key, i)
-        o, d, t0, t1 = camera_ray(cam, float(col) + offset[0], float(row) + offset[1])
-        s, hit = closest_surface(tracer, shading, o, d, t0, t1)
+        lens = wp.vec2(0.5, 0.5)  # the lens's centre: a pinhole
+        if cam.aperture > 0.0:
+            lens = decorrelated_2d(sampler, key, LENS_KEY, i)
+        o, d, t0, t1 = camera_ray(cam, float(col) + offset[0], float(row) + offset[1], lens)
+        surface, hit = closest_surface(tracer, shading, o, d, t0, t1)
+        is_open = True  # a miss counts 1, as render_ao's pixels do
         if hit:
             n_hit += 1
-            w = cosine_direction(s.n, sampler, key, i)
-            if not occluded(bvh, occlusion_origin(s, w), w, distance, True):
-                n_open += 1
-        else:
+            w = cosine_direction(surface.n, sampler, key, i)
+            is_open = not occluded(bvh, occlusion_origin(surface, w), w, distance, True)
+        if is_open:
             n_open += 1
-    out_open[t] = n_open
-    out_hit[t] = n_hit
+            if i < mid:
+                n_mid += 1
+                if i < quarter:
+                    n_quarter += 1
+    out_open[j] = n_open
+    out_open_mid[j] = n_mid
+    out_open_quarter[j] = n_quarter
+    out_hit[j] = n_hit
 
 
 for _tracer, _shading, _bvh in ((MeshTracer, Shading, BvhArrays),
@@ -116,84 +196,170 @@ for _tracer, _shading, _bvh in ((MeshTracer, Shading, BvhArrays),
 
 @dataclass
 class FilmResult:
-    """A filtered render of a camera's image, row-major with row 0 at the top."""
+    """A camera's image, row-major with row 0 at the top."""
 
     ao: np.ndarray  # (H, W) float32: the mean of the samples' values
     alpha: np.ndarray  # (H, W) float32: the fraction of samples that hit (coverage)
-    spp: int  # samples per pixel
+    spp_used: np.ndarray  # (H, W) int32: samples per pixel (pixel centres: 0 on a miss)
+    rays: int  # camera and occlusion rays traced
+    # the estimated RMSE of `ao` over the covered pixels (alpha > 0) against the converged
+    # image, as render_ao's (adaptive.py); None when nothing is covered
+    rmse_estimate: float | None
+    # filter_width=0: render_ao's result over the pixel centres (its statistics, normals,
+    # denoised image); None for a filtered render
+    centres: AoResult | None = None
+
+    @property
+    def spp_mean(self) -> float:
+        """Mean samples over the covered pixels (0 when none is)."""
+        covered = self.spp_used[self.alpha > 0]
+        return float(covered.mean()) if covered.size else 0.0
+
+    @property
+    def spp_max(self) -> int:
+        """Most samples a covered pixel took (0 when none is)."""
+        covered = self.spp_used[self.alpha > 0]
+        return int(covered.max()) if covered.size else 0
 
 
 def device_camera(camera: Camera) -> FilmCamera:
-    """`camera` as the kernel reads it."""
+    """`camera` as the kernel reads it (a framed camera too: its `raster_plane`)."""
     cam = FilmCamera()
-    s = camera.plane_scale()
     cam.rotation = wp.mat33(*camera.rotation.astype(np.float32).ravel())
     cam.position = wp.vec3(*camera.position.astype(np.float32))
-    cam.half_size = wp.vec2(0.5 * camera.width, 0.5 * camera.height)
-    cam.pix = s / (camera.width if camera.horizontal_fit else camera.height)
-    cam.shift = wp.vec2(camera.shift_x * s, camera.shift_y * s)
+    cam.centre, cam.step, cam.offset = (wp.vec2(*pair) for pair in camera.raster_plane())
     cam.persp = 1 if camera.type == "PERSP" else 0
     cam.clip_start = camera.clip_start
     cam.clip_end = camera.clip_end
+    cam.aperture = camera.aperture_size
+    cam.focus = camera.focus_distance
+    cam.blades = camera.aperture_blades
+    cam.blade_rotation = camera.aperture_rotation
+    cam.inv_ratio = 1.0 / camera.aperture_ratio
     return cam
 
 
 def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = None, *,
-                pixel_filter: str = "BLACKMAN_HARRIS", filter_width: float = 1.5,
                 normals: Any = None, terminator_offset: float | np.ndarray | None = None,
+                occluders: Bvh | Scene | None = None, progress: Progress | None = None,
                 **settings: Any) -> FilmResult:
-    """AO and alpha of `camera`'s image through the pixel filter (module docstring).
-    `pixel_filter` is one of film.PIXEL_FILTERS and `filter_width` its width in pixels
-    (Cycles' defaults: Blackman-Harris, 1.5), or 0 for pixel centres; the other arguments
-    are `render_ao`'s."""
+    """AO and alpha of `camera`'s image through the options' pixel filter (`pixel_filter`,
+    `filter_width`; module docstring), or with filter_width=0 through the pixel centres
+    (render_ao over `Camera.rays()`, any of its settings). A filter with denoising or
+    engine "dacrt" raises ValueError (AoOptions.film_fallback says why). With an error
+    target the rounds are render_ao's (adaptive.py) over the covered pixels: those that
+    any of their first `min_spp` samples hit. `normals`, `terminator_offset`, `occluders`
+    (what occlusion rays meet; None: `bvh`; of `bvh`'s kind) and `progress` are
+    `render_ao`'s; keywords set single fields of `options`."""
     opts = (options or AoOptions()).with_(**settings)
     offsets = opts.terminator_offset if terminator_offset is None else terminator_offset
-    if filter_width == 0:
+    shape = (camera.height, camera.width)
+    if opts.filter_width == 0.0:
         o, d, t0, t1 = camera.rays()
         r = render_ao(bvh, o, d, opts, tmin=t0, tmax=t1, normals=normals,
-                      terminator_offset=offsets)
-        shape = (camera.height, camera.width)
+                      terminator_offset=offsets, image_shape=shape, progress=progress,
+                      occluders=occluders)
         return FilmResult(ao=r.ao.reshape(shape),
                           alpha=(r.spp_used > 0).astype(np.float32).reshape(shape),
-                          spp=opts.spp)
-    check_filter(pixel_filter, filter_width)
-    if opts.adaptive or opts.denoise or opts.engine != "bvh":
-        raise ValueError("render_film renders a fixed spp with engine='bvh' and no denoising: "
-                         "drop target_error, max_pixel_error, denoise and engine='dacrt', or "
-                         "set filter_width=0")
+                          spp_used=r.spp_used.reshape(shape),
+                          rays=r.rays.primary + r.rays.occlusion,
+                          rmse_estimate=r.rmse_estimate, centres=r)
+    if opts.film_fallback is not None:
+        raise ValueError(f"render_film with filter_width > 0 renders with engine='bvh' and "
+                         f"no denoising: drop denoise and engine='dacrt', or set "
+                         f"filter_width=0 ({opts.film_fallback})")
     check_tracer(bvh, opts.engine)
+    if occluders is not None and (type(occluders) is not type(bvh)
+                                  or occluders.device != bvh.device):
+        raise ValueError("occluders must be of bvh's kind (both a Bvh or both a Scene) and on "
+                         "its device")
+    report = _monotone(progress)
+    trace = _film_tracer(bvh, camera, opts, normals, offsets, occluders or bvh)
+    n, m = camera.width * camera.height, opts.min_spp
+    # The first m samples of every pixel, in rounds of about ROUND_RAYS samples (a progress
+    # call, the cancellation point, before each): they find the covered pixels (with a
+    # fixed spp, all the work).
+    first_open, first_mid, first_quarter, hits = (np.zeros(n, np.int64) for _ in range(4))
+    mid, quarter = nested_marks(0, m)
+    share = 0.5 if opts.adaptive else 1.0  # of the progress bar
+    bounds = np.linspace(0, n, max(1, min(n, n * m // ROUND_RAYS)) + 1).astype(int)
+    for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+        report(share * float(a) / n, "film")
+        pixels = np.arange(a, b)
+        (first_open[a:b], first_mid[a:b], first_quarter[a:b],
+         hits[a:b]) = trace(pixels, 0, m, mid, quarter)
+    covered = np.flatnonzero(hits)
+
+    def trace_round(select: np.ndarray, first: int, count: int, mid: int,
+                    quarter: int) -> tuple[np.ndarray, ...]:
+        pixels = covered[select]
+        if first == 0:  # traced above
+            return first_open[pixels], first_mid[pixels], first_quarter[pixels]
+        opened, opened_mid, opened_quarter, hit = trace(pixels, first, count, mid, quarter)
+        hits[pixels] += hit
+        return opened, opened_mid, opened_quarter
+
+    counts = SampleCounts(*(np.zeros(len(covered), np.int64) for _ in range(3)))
+    if len(covered):
+        counts.trace(trace_round, np.arange(len(covered)), m)
+
+    def rounds_progress(fraction: float, phase: str) -> None:
+        report(share + (1.0 - share) * fraction, "film")
+
+    counts, _ = sample_rounds(trace_round, len(covered), opts, rounds_progress, counts)
+    report(1.0, "done")
+    done = np.full(n, m, np.int64)
+    done[covered] = counts.done
+    opened = first_open.copy()
+    opened[covered] = counts.open
+    return FilmResult(ao=(opened / done).astype(np.float32).reshape(shape),
+                      alpha=(hits / done).astype(np.float32).reshape(shape),
+                      spp_used=done.astype(np.int32).reshape(shape),
+                      rays=int(done.sum() + hits.sum()),
+                      rmse_estimate=math.sqrt(counts.mse()) if len(covered) else None)
+
+
+def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any,
+                 offsets: Any, occluders: Bvh | Scene) -> Callable[..., tuple[np.ndarray, ...]]:
+    """trace(pixels, first, count, mid, quarter): samples first..first+count-1 of these
+    pixels (row-major indices), each through its own filtered camera ray into `bvh` and an
+    occlusion ray through `occluders`: per pixel its open samples, those with index below
+    mid and below quarter, and its hits."""
     shading = scene_shading(bvh, normals, offsets)
+    arrays = occluders.arrays
     if isinstance(bvh, Scene):
-        tracer, arrays = bvh.arrays, bvh.arrays
+        tracer = bvh.arrays
     else:
         mesh = scene_mesh(bvh)
         tracer = MeshTracer()
         tracer.bvh = bvh.arrays
         tracer.vertices, tracer.indices = mesh.v, mesh.f
-        arrays = bvh.arrays
     device = bvh.device
-    n = camera.width * camera.height
-    out_open = wp.empty(n, dtype=int, device=device)
-    out_hit = wp.empty(n, dtype=int, device=device)
     dist = default_distance(bvh) if opts.distance is None else opts.distance
-    table = wp.array(filter_table(pixel_filter, filter_width), dtype=float, device=device)
-    # Contiguous runs of pixels in host threads (a CPU launch is serial); more parts than
-    # threads, taken in turn, since sky and geometry cost very different amounts.
-    nthreads = host_threads(device, opts.threads)
-    parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
-                       n * opts.spp // PART_RAYS, n))
-    bounds = np.linspace(0, n, parts + 1).astype(int)
+    table = wp.array(filter_table(opts.pixel_filter, opts.filter_width), dtype=float,
+                     device=device)
     wp.load_module(film_kernel.module, device=device)  # once, not in every thread at once
-    launch = part_launcher(film_kernel, [
-        tracer, shading, arrays, device_camera(camera), camera.width, table, opts.spp,
-        SAMPLERS[opts.sampler], opts.seed, dist, 0, out_open, out_hit], device)
+    nthreads = host_threads(device, opts.threads)
+    head = [tracer, shading, arrays, device_camera(camera), camera.width, table,
+            SAMPLERS[opts.sampler], opts.seed, dist]
 
-    def run(p: int) -> None:
-        a, b = int(bounds[p]), int(bounds[p + 1])
-        launch(b - a, {10: a, 11: out_open[a:b], 12: out_hit[a:b]})
+    def trace(pixels: np.ndarray, first: int, count: int, mid: int,
+              quarter: int) -> tuple[np.ndarray, ...]:
+        k = len(pixels)
+        active = wp.array(pixels.astype(np.int32), dtype=int, device=device)
+        outs = [wp.empty(k, dtype=int, device=device) for _ in range(4)]
+        launch = part_launcher(film_kernel, [*head, active, 0, int(first), int(count),
+                                             int(mid), int(quarter), *outs], device)
+        # Contiguous runs of pixels in host threads (a CPU launch is serial): more parts
+        # than threads, taken in turn, since sky and geometry cost very different amounts.
+        parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
+                           k * count // PART_RAYS, k))
+        bounds = np.linspace(0, k, parts + 1).astype(int)
 
-    run_parts(run, parts, nthreads)
-    shape = (camera.height, camera.width)
-    return FilmResult(ao=(out_open.numpy() / opts.spp).astype(np.float32).reshape(shape),
-                      alpha=(out_hit.numpy() / opts.spp).astype(np.float32).reshape(shape),
-                      spp=opts.spp)
+        def run(p: int) -> None:
+            launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p])})
+
+        run_parts(run, parts, nthreads)
+        return tuple(out.numpy().astype(np.int64) for out in outs)
+
+    return trace

@@ -86,6 +86,8 @@ def render_with_engine(scene: bpy.types.Scene, ao_distance: float, spp: int, see
     scene.world = bpy.data.worlds.new("World")
     scene.world.light_settings.distance = ao_distance
     scene.scenesort.spp, scene.scenesort.seed = spp, seed
+    # F12 renders through the scene's pixel filter: the pixel-centre one of the Cycles judge
+    scene.cycles.pixel_filter_type, scene.cycles.filter_width = "GAUSSIAN", 0.01
     scene.render.engine = "SCENESORT"
     scene.render.film_transparent = transparent
     scene.render.image_settings.file_format = "OPEN_EXR"
@@ -115,6 +117,41 @@ def shading(mesh) -> dict:  # noqa: ANN001 - an export.SceneMesh
     """`kernels.render_ao`'s normal arguments for an exported scene (none when it is flat)."""
     pairs = (("normals", mesh.normals), ("terminator_offset", mesh.terminator_offsets))
     return {name: value for name, value in pairs if value is not None}
+
+
+def direct_film(scene: bpy.types.Scene, mesh, cam: dict,  # noqa: ANN001 - a SceneMesh
+                **settings) -> tuple[np.ndarray, np.ndarray]:
+    """What F12 asks the service for, from the engine itself (no add-on, no service):
+    `kernels.render_film` of the exported `mesh` and `cam` (`camera.camera_dict`) with the
+    panel's samples, BVH and AO distance, the scene's pixel filter (pixel centres where the
+    options fall back, as the service does) and the mesh's normals; `settings` override
+    any of these (`normals=None`: flat). AO (a miss counts 1) and coverage, (H, W)."""
+    from scenesort.kernels import AoOptions, Camera
+
+    from addon import pipeline
+    from scenesort import kernels
+
+    props = scene.scenesort
+    bvh = kernels.build_bvh(mesh.vertices, mesh.indices, method=props.method,
+                            leaf_size=props.leaf_size, device="cpu")
+    pixel_filter, filter_width = pipeline.film_filter(scene)
+    shading_args = shading(mesh)  # render_film's keywords for the geometry's normals
+    for name in ("normals", "terminator_offset"):
+        if name in settings:
+            shading_args[name] = settings.pop(name)
+    options = AoOptions(spp=props.spp, seed=props.seed, distance=pipeline.ao_distance(scene),
+                        denoise=props.use_denoising, pixel_filter=pixel_filter,
+                        filter_width=filter_width).with_(**settings)
+    if options.film_fallback is not None:  # the service's rule (backend/render/camera_render)
+        options = options.with_(filter_width=0.0)
+    film = kernels.render_film(bvh, Camera.from_dict(cam), options, **shading_args)
+    return film.ao, film.alpha
+
+
+def ao_pass(ao: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+    """Cycles' AO pass of a job's AO (a miss counts 1) and coverage: the hits' samples,
+    as the add-on writes it (addon/image.py)."""
+    return np.maximum(ao + coverage - 1.0, 0.0)
 
 
 def ctrl_f12(scene: bpy.types.Scene, folder: Path, first: int = 1, last: int = 3) -> list:

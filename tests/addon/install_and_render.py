@@ -97,13 +97,14 @@ def _ctrl_f12(scene: bpy.types.Scene, out: Path) -> np.ndarray:
 
 def _parity(scene: bpy.types.Scene, out: Path) -> np.ndarray:
     """F12 at PARITY_SPP with the World's AO distance, and Cycles' AO pass twice at the
-    same samples (seeds 11 and 12) into OUT_DIR; F12's RGBA."""
+    same samples and pixel filter (seeds 11 and 12) into OUT_DIR; F12's RGBA."""
     from cycles_reference import write_cycles_ao
 
     scene.scenesort.spp, scene.scenesort.ao_distance = PARITY_SPP, 0.0  # 0: the World's
     scene.world.light_settings.distance = 2.0
+    film = (scene.cycles.pixel_filter_type, scene.cycles.filter_width)  # what F12 renders
     for seed in (11, 12):
-        write_cycles_ao(scene, out / f"cycles_{seed}", PARITY_SPP, seed=seed)
+        write_cycles_ao(scene, out / f"cycles_{seed}", PARITY_SPP, seed=seed, film=film)
     return _f12(scene, out / "parity.exr")
 
 
@@ -138,7 +139,8 @@ def main(zip_path: str, out_dir: str) -> None:
         info = {
             "camera": ext.camera.camera_dict(scene, depsgraph),
             "settings": {"spp": props.spp, "seed": props.seed, "distance": props.ao_distance,
-                         "method": props.method, "leaf_size": props.leaf_size},
+                         "method": props.method, "leaf_size": props.leaf_size,
+                         "film": list(ext.pipeline.film_filter(scene))},
             "argv": list(proc.args),
             "site_packages": str(ext.service.engine_root()),
             "url": status.url,

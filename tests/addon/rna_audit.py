@@ -17,10 +17,12 @@ from pathlib import Path
 
 import bpy
 
-# The types whose properties the add-on reads or writes (export, camera, engine, panel,
-# preferences, operators).
+# The types whose properties the add-on reads or writes (export, camera and its depth of
+# field, engine, panel, preferences, operators). Cycles' own settings (scene.cycles) are
+# an add-on's property group, looked up with getattr where read (pipeline.film_filter).
 STRUCTS = (
-    "Addon", "AddonPreferences", "Area", "BlendData", "Camera", "Collection", "Context",
+    "Addon", "AddonPreferences", "Area", "BlendData", "Camera", "CameraDOFSettings",
+    "Collection", "Context",
     "Depsgraph", "DepsgraphObjectInstance", "Image", "LayerCollection", "Mesh",
     "MeshLoopTriangle", "MeshVertex", "Object", "Operator", "Panel", "Preferences",
     "RenderEngine", "RenderLayer", "RenderPass", "RenderResult", "RenderSettings", "Scene",

@@ -79,7 +79,8 @@ def test_ctrl_f12_gives_render_frames_images(live, tmp_path: Path) -> None:
     for frame in FRAMES:
         rgba = read_image(tmp_path / "engine" / f"frame_{frame:04d}.exr")
         ao = np.load(tmp_path / "cli" / f"{frame:06d}.npy")
-        hit = rgba[..., 3] == 1.0
-        assert 0.2 < hit.mean() < 1.0
-        np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
-        np.testing.assert_array_equal(ao[~hit], 1.0)  # a miss is unoccluded in the job's AO
+        coverage = rgba[..., 3]  # the scene's pixel filter: partly covered at edges
+        assert 0.2 < (coverage == 1.0).mean() < 1.0 and ((coverage > 0) & (coverage < 1)).any()
+        # Cycles' AO pass: the hits' samples (the job's AO counts a miss as 1)
+        np.testing.assert_array_equal(rgba[..., 0], np.maximum(ao + coverage - 1.0, 0.0))
+        np.testing.assert_array_equal(ao[coverage == 0], 1.0)

@@ -22,16 +22,17 @@ import pytest
 from blender_scenes import (
     add_camera,
     add_object,
+    ao_pass,
     box_mesh,
     ctrl_f12,
+    direct_film,
     f12,
     free_port,
     grid_mesh,
-    shading,
 )
 
 import addon
-from addon import camera, engine, export, prefs, service
+from addon import camera, engine, export, pipeline, prefs, service
 from tests.waiting import until
 
 WIDTH, HEIGHT = 40, 30
@@ -103,25 +104,12 @@ def probe(live) -> Iterator[bpy.types.Scene]:
 
 
 def _direct(scene: bpy.types.Scene) -> tuple[np.ndarray, np.ndarray]:
-    """AO and coverage of the scene's camera rays from the engine itself (no add-on, no
-    service): `kernels.render_ao` on the exported triangles (denoised as the Sampling
-    panel's Denoise says)."""
-    from scenesort.kernels import Camera
-
-    from scenesort import kernels
-
+    """AO (a miss counts 1) and coverage of the scene's camera from the engine itself
+    (`direct_film`: through the scene's pixel filter, or pixel centres where the options
+    fall back, denoised as the Sampling panel's Denoise says)."""
     depsgraph = bpy.context.evaluated_depsgraph_get()
-    mesh = export.export_scene(depsgraph)
-    origins, directions, tmin, tmax = Camera.from_dict(camera.camera_dict(scene, depsgraph)).rays()
-    props = scene.scenesort
-    bvh = kernels.build_bvh(mesh.vertices, mesh.indices, method=props.method,
-                            leaf_size=props.leaf_size, device="cpu")  # fmt: skip
-    shape = camera.resolution(scene)[::-1]
-    result = kernels.render_ao(bvh, origins, directions, spp=props.spp, seed=props.seed,
-                               distance=props.ao_distance, tmin=tmin, tmax=tmax,
-                               denoise=props.use_denoising, image_shape=shape,
-                               **shading(mesh))  # fmt: skip
-    return result.ao.reshape(shape), (result.spp_used > 0).reshape(shape)
+    return direct_film(scene, export.export_scene(depsgraph),
+                       camera.camera_dict(scene, depsgraph))
 
 
 def test_engine_is_selectable_with_its_passes(live) -> None:
@@ -132,8 +120,7 @@ def test_engine_is_selectable_with_its_passes(live) -> None:
 
 def test_stats_line_reports_what_the_render_achieved() -> None:
     """The status bar and metadata line carries the job's estimated RMSE, mean and
-    largest spp and rays; an unknown estimate shows as '-'."""
-    from addon import pipeline
+    largest spp and rays, and the film; an unknown estimate shows as '-'."""
     from addon.connection import Connection
 
     outcome = pipeline.Outcome(rmse_estimate=0.0123, spp_mean=40.25, spp_max=256,
@@ -141,7 +128,9 @@ def test_stats_line_reports_what_the_render_achieved() -> None:
                                connection=Connection(None, {"device": "cuda:0"}, False))
     line = engine.stats_line(outcome, 1000)
     assert "est. RMSE 0.0123" in line and "spp 40.2 mean, 256 max" in line
-    assert line.endswith("123,456 rays | cuda:0")
+    assert line.endswith("123,456 rays | film - | cuda:0")
+    film = pipeline.Outcome(film="BLACKMAN_HARRIS 1.5 px")
+    assert "| film BLACKMAN_HARRIS 1.5 px |" in engine.stats_line(film, 1000)
     assert "est. RMSE -" in engine.stats_line(pipeline.Outcome(), 1000)
 
 
@@ -155,10 +144,12 @@ def test_f12_combined_is_the_engines_ao_with_zero_background(live, tmp_path) -> 
     assert service.running()
     props = live.scenesort  # the build's timings reach the panel's table
     assert props.has_build and props.build_triangles == FLOOR_TRIANGLES + BOX_TRIANGLES
-    ao, hit = _direct(live)
+    ao, coverage = _direct(live)
+    hit = coverage > 0
     assert rgba.shape == (HEIGHT, WIDTH, 4)
     assert 0.3 < hit.mean() < 1.0  # some sky above the floor
-    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+    assert ((coverage > 0) & (coverage < 1)).any()  # the scene's filter smooths its edges
+    np.testing.assert_array_equal(rgba[..., 0], ao_pass(ao, coverage))
     np.testing.assert_array_equal(rgba[..., 1], rgba[..., 0])
     np.testing.assert_array_equal(rgba[..., 2], rgba[..., 0])
     assert np.all(rgba[..., 3] == 1.0)
@@ -174,21 +165,23 @@ def test_denoise_checkbox_denoises_f12_and_says_so(probe, tmp_path) -> None:
         ao, hit = _direct(probe)
     finally:
         probe.scenesort.use_denoising = False
-    np.testing.assert_allclose(rgba[..., 0], np.where(hit, ao, 0.0), atol=1e-6)
-    raw, _ = _direct(probe)
-    assert np.abs(rgba[..., 0] - np.where(hit, raw, 0.0)).max() > 0.01  # it did denoise
+    np.testing.assert_allclose(rgba[..., 0], ao_pass(ao, hit), atol=1e-6)
+    raw, _ = _direct(probe)  # without denoising: through the filter
+    assert np.abs(rgba[..., 0] - ao_pass(raw, hit)).max() > 0.01  # it did denoise
     assert any("before denoising" in line for line in Probe.stats), Probe.stats
+    # the denoiser works on pixel centres, and the stats line says so
+    assert any("film pixel centres: denoise" in line for line in Probe.stats), Probe.stats
 
 
 def test_resolution_percentage_renders_fewer_pixels_of_the_same_view(live, tmp_path) -> None:
     live.render.resolution_percentage = 50
     try:
         rgba = f12(live, tmp_path / "half")
-        ao, hit = _direct(live)
+        ao, coverage = _direct(live)
     finally:
         live.render.resolution_percentage = 100
     assert rgba.shape == (HEIGHT // 2, WIDTH // 2, 4) == (*ao.shape, 4)
-    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+    np.testing.assert_array_equal(rgba[..., 0], ao_pass(ao, coverage))
 
 
 def test_film_transparent_background_alpha_is_exactly_zero(live, tmp_path) -> None:
@@ -197,22 +190,28 @@ def test_film_transparent_background_alpha_is_exactly_zero(live, tmp_path) -> No
         rgba = f12(live, tmp_path / "transparent")
     finally:
         live.render.film_transparent = False
-    _, hit = _direct(live)
-    np.testing.assert_array_equal(rgba[..., 3], hit.astype(np.float32))
-    assert np.all(rgba[~hit] == 0.0)
+    _, coverage = _direct(live)
+    np.testing.assert_array_equal(rgba[..., 3], coverage)
+    assert np.all(rgba[coverage == 0] == 0.0)
 
 
 def test_passes_ao_and_depth(probe, tmp_path) -> None:
-    """AO is Combined's grey; Depth is camera-space Z (1e10 on background): the floor
-    right below the view's centre lies about |camera - floor point| * cos away."""
-    f12(probe, tmp_path / "passes")
+    """AO is Combined's grey; Depth is camera-space Z at the pixel centre (1e10 on
+    background): the floor right below the view's centre lies about |camera - floor
+    point| * cos away. With Film > Transparent, AO is 0 where no filtered sample hit, and
+    every pixel whose centre hit is covered."""
+    probe.render.film_transparent = True
+    try:
+        f12(probe, tmp_path / "passes")
+    finally:
+        probe.render.film_transparent = False
     passes = Probe.passes
     assert set(passes) == {"Combined", "AO", "Depth"}
     combined, ao, depth = passes["Combined"], passes["AO"][..., 0], passes["Depth"][..., 0]
     np.testing.assert_array_equal(ao, combined[..., 0])
-    hit = combined[..., 3] > 0 if probe.render.film_transparent else depth < 1e10
-    assert np.all(depth[~hit] == 1e10) and (~hit).any() and hit.any()
-    assert np.all(ao[~hit] == 0.0)
+    hit, covered = depth < 1e10, combined[..., 3] > 0
+    assert (~hit).any() and hit.any() and not (hit & ~covered).any()
+    assert np.all(ao[~covered] == 0.0)
     # The centre pixel's ray (60 degrees from straight down) meets the floor (z = 0) at
     # ray length 4 / cos(60) = 8; its camera-space depth is that length (it is the axis).
     centre = depth[HEIGHT // 2 - 1 : HEIGHT // 2 + 1, WIDTH // 2 - 1 : WIDTH // 2 + 1]

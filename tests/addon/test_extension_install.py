@@ -259,24 +259,29 @@ def test_install_from_zip_then_render_with_no_other_step(
     bvh = kernels.build_bvh(
         data["vertices"], data["indices"], method=s["method"], leaf_size=s["leaf_size"]
     )
-    origins, directions, _, _ = Camera.from_dict(info["camera"]).rays()
-    direct = kernels.render_ao(
-        bvh, origins, directions, spp=s["spp"], distance=s["distance"], seed=s["seed"]
-    )
-    hit = direct.spp_used > 0  # the image is 0 with alpha 0 where the camera ray missed
+    cam = Camera.from_dict(info["camera"])
+    origins, directions, _, _ = cam.rays()
+    # Through the scene's pixel filter (that Blender's Cycles' defaults)
+    pixel_filter, filter_width = s["film"]
+    direct = kernels.render_film(bvh, cam, spp=s["spp"], distance=s["distance"], seed=s["seed"],
+                                 pixel_filter=pixel_filter, filter_width=filter_width)
+    alpha = direct.alpha.ravel()
+    hit = alpha > 0  # the image is 0 with alpha 0 where no sample hit
     # Bit for bit, also where that Blender's service ran the engine on numpy 2.
-    np.testing.assert_array_equal(data["ao"], np.where(hit, direct.ao, 0.0).astype(np.float32))
-    np.testing.assert_array_equal(data["alpha"], hit.astype(np.float32))
+    np.testing.assert_array_equal(data["ao"], np.maximum(direct.ao.ravel() + alpha - 1.0, 0.0))
+    np.testing.assert_array_equal(data["alpha"], alpha)
     assert hit.mean() > 0.3 and data["ao"][hit].std() > 0.05  # a shaded floor
     # F12 with the engine (Film > Transparent, a float EXR Blender wrote): the same image.
     np.testing.assert_array_equal(data["f12"][:, 0], data["ao"])
     np.testing.assert_array_equal(data["f12"][:, 3], data["alpha"])
     # Denoise works from the zip (its pyoidn wheel): the direct call's denoised image.
+    # Denoising renders pixel centres (AoOptions.film_fallback)
     denoised = kernels.render_ao(bvh, origins, directions, spp=s["spp"], distance=s["distance"],
                                  seed=s["seed"], denoise=True, image_shape=(HEIGHT, WIDTH))
-    np.testing.assert_allclose(data["denoised"][:, 0], np.where(hit, denoised.ao, 0.0),
+    centre = denoised.spp_used > 0
+    np.testing.assert_allclose(data["denoised"][:, 0], np.where(centre, denoised.ao, 0.0),
                                atol=1e-5)  # fmt: skip
-    assert np.abs(data["denoised"][hit, 0] - data["ao"][hit]).max() > 0.05  # it did denoise
+    assert np.abs(data["denoised"][centre, 0] - data["ao"][centre]).max() > 0.05  # denoised
     # Ctrl-F12 through that Blender's numbered output: frame 1 is F12's image, and the box
     # moved on frame 2.
     first, second = data["frames"]

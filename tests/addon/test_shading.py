@@ -17,11 +17,12 @@ import pytest
 from blender_scenes import (
     add_camera,
     add_object,
+    ao_pass,
     box_mesh,
     ctrl_f12,
+    direct_film,
     f12,
     grid_mesh,
-    shading,
 )
 from cycles_reference import clean_pixels, judge, render_cycles_ao
 from scenesort.backend.render.engine import count_degenerate
@@ -73,6 +74,9 @@ def scene() -> Iterator[bpy.types.Scene]:
     scn.world = bpy.data.worlds.new("World")
     scn.world.light_settings.distance = 1.5
     scn.scenesort.spp, scn.scenesort.seed = 16, 1
+    # F12 renders through the scene's filter: the one these pixel-centre comparisons with
+    # Cycles use (cycles_reference.py's default film)
+    scn.cycles.pixel_filter_type, scn.cycles.filter_width = "GAUSSIAN", 0.01
     scn.render.engine = "SCENESORT"
     scn.render.image_settings.file_format = "OPEN_EXR"
     scn.render.image_settings.color_depth = "32"
@@ -190,29 +194,18 @@ def test_mirrored_instances_keep_normals_outward_and_offsets_travel(scene) -> No
 
 
 def _direct(scn: bpy.types.Scene, distance: float, **kwargs) -> tuple[np.ndarray, np.ndarray]:
-    """AO and coverage from `kernels.render_ao` on the exported scene (subdivision at its
-    render level, as F12 exports it), without the add-on or the service."""
-    from scenesort.kernels import Camera
-
-    from scenesort import kernels
-
+    """AO and coverage from the engine itself on the exported scene (`direct_film`;
+    subdivision at its render level, as F12 exports it), without the add-on or the
+    service."""
     modifier = bpy.data.objects["Subd"].modifiers["Subdivision"]
     levels, modifier.levels = modifier.levels, modifier.render_levels
     try:
         depsgraph = bpy.context.evaluated_depsgraph_get()
         mesh = export.export_scene(depsgraph)
-        cam = Camera.from_dict(camera.camera_dict(scn, depsgraph))
+        cam = camera.camera_dict(scn, depsgraph)
     finally:
         modifier.levels = levels
-    o, d, tmin, tmax = cam.rays()
-    props = scn.scenesort
-    bvh = kernels.build_bvh(mesh.vertices, mesh.indices, method=props.method,
-                            leaf_size=props.leaf_size)
-    args = {**shading(mesh), **kwargs}
-    result = kernels.render_ao(bvh, o, d, spp=props.spp, seed=props.seed, distance=distance,
-                               tmin=tmin, tmax=tmax, **args)
-    shape = (HEIGHT, WIDTH)
-    return result.ao.reshape(shape), (result.spp_used > 0).reshape(shape)
+    return direct_film(scn, mesh, cam, distance=distance, **kwargs)
 
 
 def test_f12_shades_with_the_exported_normals_and_the_worlds_distance(scene, tmp_path) -> None:
@@ -222,24 +215,24 @@ def test_f12_shades_with_the_exported_normals_and_the_worlds_distance(scene, tmp
     props = scene.scenesort
     world = scene.world
     rgba = f12(scene, tmp_path / "world")
-    ao, hit = _direct(scene, 1.5)
-    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+    ao, coverage = _direct(scene, 1.5)
+    np.testing.assert_array_equal(rgba[..., 0], ao_pass(ao, coverage))
     flat, _ = _direct(scene, 1.5, normals=None)
-    assert np.mean(np.abs(flat - ao)[hit]) > 0.01  # the normals matter
+    assert np.mean(np.abs(flat - ao)[coverage > 0]) > 0.01  # the normals matter
     scene.world = None
     try:
         rgba = f12(scene, tmp_path / "no_world")
     finally:
         scene.world = world
-    ao, hit = _direct(scene, 10.0)
-    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+    ao, coverage = _direct(scene, 10.0)
+    np.testing.assert_array_equal(rgba[..., 0], ao_pass(ao, coverage))
     props.ao_distance = 0.5
     try:
         rgba = f12(scene, tmp_path / "override")
     finally:
         props.ao_distance = 0.0
-    ao, hit = _direct(scene, 0.5)
-    np.testing.assert_array_equal(rgba[..., 0], np.where(hit, ao, 0.0))
+    ao, coverage = _direct(scene, 0.5)
+    np.testing.assert_array_equal(rgba[..., 0], ao_pass(ao, coverage))
 
 
 def test_ctrl_f12_renders_three_frames_of_the_moving_smooth_sphere(scene, tmp_path) -> None:
@@ -280,11 +273,12 @@ def test_matches_cycles_ao_pass_statistically(scene, tmp_path) -> None:
         ours = f12(scene, tmp_path / "ours")[..., 0]
         cycles_a, alpha, _ = render_cycles_ao(scene, tmp_path / "cycles_a", SPP, seed=11)
         cycles_b, _, _ = render_cycles_ao(scene, tmp_path / "cycles_b", SPP, seed=12)
-        _, hit = _direct(scene, 1.5)
+        _, coverage = _direct(scene, 1.5)
         geometric, _ = _direct(scene, 1.5, normals=None)
         no_offset, _ = _direct(scene, 1.5, terminator_offset=0.0)
     finally:
         props.spp = 16
+    hit = coverage > 0
     sky = clean_pixels(~hit)  # (a silhouette within a pixel's filter may give 1/512)
     assert sky.sum() > 50 and np.all(alpha[sky] == 0.0) and np.all(cycles_a[sky] == 0.0)
     assert np.all(ours[~hit] == 0.0)  # background 0 in both

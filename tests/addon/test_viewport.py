@@ -37,6 +37,8 @@ def scene() -> Iterator[bpy.types.Scene]:
     scn.world = bpy.data.worlds.new("World")
     scn.render.engine = "SCENESORT"
     scn.scenesort.viewport_spp = 8
+    # F12 through the pixel-centre filter, as the viewport renders
+    scn.cycles.pixel_filter_type, scn.cycles.filter_width = "GAUSSIAN", 0.01
     prefs.preferences(bpy.context).start_on_render = True
     try:
         yield scn

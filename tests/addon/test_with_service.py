@@ -16,10 +16,9 @@ import sys
 from collections.abc import Iterator
 
 import bpy
-import httpx
 import numpy as np
 import pytest
-from blender_scenes import add_camera, add_object, box_mesh, grid_mesh
+from blender_scenes import add_camera, add_object, ao_pass, box_mesh, direct_film, grid_mesh
 
 import addon
 from addon import camera, connection, export, image, pipeline, prefs, service
@@ -97,28 +96,6 @@ def test_build_fills_timings_and_reuses_the_bvh(live) -> None:
         props.method, props.leaf_size = "sah", 8
 
 
-def _direct_ao(scene: bpy.types.Scene, scene_id: str) -> np.ndarray:
-    """The service's answer for the engine camera model's rays, sent without the add-on."""
-    from scenesort.kernels import Camera
-
-    desc = camera.camera_dict(scene, bpy.context.evaluated_depsgraph_get())
-    origins, directions, _, _ = Camera.from_dict(desc).rays()
-    props = scene.scenesort
-    body = np.concatenate([origins, directions], axis=1).astype("<f4").tobytes()
-    params = {"rays": len(origins), "spp": props.spp, "seed": props.seed,
-              "distance": props.ao_distance, "method": props.method,
-              "leaf_size": props.leaf_size}  # fmt: skip
-    url = bpy.context.window_manager.scenesort.url
-    resp = httpx.post(
-        f"{url}/v1/scenes/{scene_id}/ao", params=params, content=body,
-        headers={"Content-Type": "application/octet-stream",
-                 "Authorization": f"Bearer {service.token_for(url)}"},
-        timeout=600.0,
-    )  # fmt: skip
-    assert resp.status_code == 200, resp.text
-    return np.frombuffer(resp.content, dtype="<f4")
-
-
 def _image_rgba() -> np.ndarray:
     """`scenesort AO`'s pixels, (W*H, 4), the top row first."""
     img = bpy.data.images[image.IMAGE_NAME]
@@ -132,23 +109,25 @@ def _image_ao() -> np.ndarray:
     return _image_rgba()[:, 0]
 
 
-def test_render_matches_the_services_direct_result(live) -> None:
+def test_render_matches_the_engines_direct_result(live) -> None:
     live.scenesort.spp, live.scenesort.seed = 8, 3
     assert bpy.ops.scenesort.render_ao() == {"FINISHED"}
     img = bpy.data.images[image.IMAGE_NAME]
     assert tuple(img.size) == (WIDTH, HEIGHT)
     assert img.colorspace_settings.name == "Non-Color"
     rgba = _image_rgba()
-    ours, hit = rgba[:, 0], rgba[:, 3] == 1.0
-    assert np.all((rgba[:, 3] == 0.0) | hit)  # coverage alpha: one ray per pixel
-    mesh = export.export_scene(bpy.context.evaluated_depsgraph_get())
-    from addon.client import scene_id
-
-    direct = _direct_ao(live, scene_id(len(mesh.vertices), mesh.triangles, mesh.body()))
-    # The direct answer is 1.0 for a ray that misses; the image is 0 with alpha 0 there.
-    np.testing.assert_array_equal(ours, np.where(hit, direct, 0.0))
-    assert np.all(direct[~hit] == 1.0)
+    ours, coverage = rgba[:, 0], rgba[:, 3]
+    depsgraph = bpy.context.evaluated_depsgraph_get()
+    direct, alpha = direct_film(live, export.export_scene(depsgraph),
+                                camera.camera_dict(live, depsgraph))
+    # Through the scene's pixel filter (Cycles' default): alpha is the filtered coverage.
+    np.testing.assert_array_equal(coverage, alpha.ravel())
+    assert ((coverage > 0) & (coverage < 1)).any()
+    # The direct answer counts a miss as 1.0; the image holds the hits' samples only.
+    np.testing.assert_array_equal(ours, ao_pass(direct, alpha).ravel())
+    assert np.all(direct[alpha == 0] == 1.0)
     np.testing.assert_array_equal(rgba[:, 1], ours)
+    hit = coverage > 0
     assert 0.3 < hit.mean() < 1.0  # the floor fills most of the view, sky above it
     assert ours[hit].std() > 0.05  # shading varies: not a constant image
 
@@ -188,7 +167,7 @@ def test_interactive_job_path_gives_the_same_image(live) -> None:
     outcome = task.run()
     assert outcome.uploaded_bytes == 0  # the scene was already there
     assert any("%" in step for step in task.steps), task.steps  # progress was reported
-    np.testing.assert_array_equal(np.where(outcome.coverage == 1, outcome.ao, 0), scripted)
+    np.testing.assert_array_equal(ao_pass(outcome.ao, outcome.coverage), scripted)
 
 
 def test_stop_ends_the_service(live) -> None:

@@ -71,6 +71,25 @@ def test_shared_scene_by_name_writes_png_and_npy(tmp_path, capsys, scenes_dir):
     assert "sponza" in capsys.readouterr().out
 
 
+def test_filter_width_renders_through_the_pixel_filter(tmp_path, capsys, scenes_dir):
+    """--pixel-filter and --filter-width: the image is render_film's through that filter,
+    the table names it; with DACRT the render says it renders pixel centres."""
+    npy = tmp_path / "f.npy"
+    args = ["render", "--scene", "sponza", "--width", "64", "--height", "48", "--spp", "4",
+            "--seed", "3", "--out", str(tmp_path / "f.png"), "--npy", str(npy),
+            "--no-progress"]
+    assert main([*args, "--pixel-filter", "GAUSSIAN", "--filter-width", "1.5"]) == 0
+    scene = shared_scene("sponza", 64, 48)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    film = kernels.render_film(bvh, scene.camera, spp=4, seed=3, pixel_filter="GAUSSIAN",
+                               filter_width=1.5)
+    assert np.array_equal(np.load(npy), film.ao)
+    out = capsys.readouterr().out
+    assert "GAUSSIAN 1.5 px" in out and "film" in out
+    assert main([*args, "--engine", "dacrt", "--filter-width", "1.5"]) == 0
+    assert "pixel centres: engine dacrt" in " ".join(capsys.readouterr().out.split())
+
+
 def test_ply_path_with_camera_file_and_target_error(tmp_path, scenes_dir, capsys):
     cam = {
         "position": [0.1111, 0.2167, 0.4248],

@@ -81,6 +81,61 @@ def test_a_job_reports_what_it_achieved(api, box_scene, scene_id) -> None:
         assert status["spp_max"] >= 8 and status["rmse_estimate"] > 0
 
 
+def test_a_filtered_job_renders_what_render_film_renders(api, box_scene, scene_id) -> None:
+    """pixel_filter and filter_width reach the engine: AO and coverage are render_film's
+    filtered AO and alpha, sample for sample, and the status names the film."""
+    job = create(api, scene_id, 40, 30, spp=8, seed=3, pixel_filter="GAUSSIAN",
+                 filter_width=1.5)
+    status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+    assert status["state"] == "done", status
+    assert status["film"] == "GAUSSIAN 1.5 px"
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    film = kernels.render_film(bvh, Camera.from_dict(camera(40, 30)), spp=8, seed=3,
+                               pixel_filter="GAUSSIAN", filter_width=1.5)
+    for name, expected in (("f32", film.ao), ("coverage", film.alpha)):
+        raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
+        np.testing.assert_array_equal(np.frombuffer(raw.content, "<f4").reshape(30, 40),
+                                      expected)
+    assert ((film.alpha > 0) & (film.alpha < 1)).any()  # the box's edges are filtered
+    assert (status["spp_mean"], status["spp_max"], status["rays"]) == (8, 8, film.rays)
+    assert status["rmse_estimate"] == pytest.approx(film.rmse_estimate)
+
+
+def test_a_filtered_job_with_an_error_target_is_render_films(api, box_scene, scene_id) -> None:
+    """target_error with a filter: the adaptive rounds over the filtered pixels, as
+    render_film renders them (image, coverage, spp and the estimate)."""
+    params = {"spp": 8, "seed": 2, "target_error": 0.05, "filter_width": 1.5}
+    job = create(api, scene_id, 40, 30, **params)
+    status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+    assert status["state"] == "done", status
+    assert status["film"] == "BLACKMAN_HARRIS 1.5 px"
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    film = kernels.render_film(bvh, Camera.from_dict(camera(40, 30)), **params)
+    raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": "f32"})
+    np.testing.assert_array_equal(np.frombuffer(raw.content, "<f4").reshape(30, 40), film.ao)
+    assert status["rmse_estimate"] == pytest.approx(film.rmse_estimate)
+    assert (status["spp_mean"], status["spp_max"]) == (pytest.approx(film.spp_mean),
+                                                       film.spp_max)
+    assert film.spp_max > 8  # the rounds went on past the minimum
+
+
+def test_a_filter_with_dacrt_renders_pixel_centres_and_says_so(api, scene_id) -> None:
+    """DACRT traces pixel centres: a filter asked for with it is not used, and the status's
+    film says so (the image is the pixel-centre render's)."""
+    plain = create(api, scene_id, 40, 30, spp=8, seed=2, engine="dacrt")
+    asked = create(api, scene_id, 40, 30, spp=8, seed=2, engine="dacrt", filter_width=1.5)
+    images = []
+    for job in (plain, asked):
+        status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+        assert status["state"] == "done", status
+        raw = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": "f32"})
+        images.append(raw.content)
+    assert wait(api, plain["job_id"], {"done"})["film"] == "pixel centres"
+    film = wait(api, asked["job_id"], {"done"})["film"]
+    assert film.startswith("pixel centres: engine dacrt")
+    assert images[0] == images[1]
+
+
 def test_coverage_and_depth_layers_follow_the_primary_hits(api, box_scene, scene_id) -> None:
     """coverage is 1 exactly where AO sampled (a hit), depth is Cycles' Z pass: the
     closest hit's camera-space depth, 1e10 on background."""

@@ -9,6 +9,7 @@ import trimesh
 from scenesort.kernels import Camera
 from scenesort.kernels.render import default_distance
 from scenesort.kernels.render.cull import mesh_box, visible_instances
+from scenesort.kernels.render.film import filter_reach
 from scenesort.kernels.scene.api import place_instances
 
 from scenesort import kernels
@@ -42,11 +43,11 @@ CAMERAS = {
 }
 
 
-def visible(meshes, ids, ts, camera, dist):
+def visible(meshes, ids, ts, camera, dist, reach=0.0):
     """`visible_instances` from the meshes' data (no BVH), as backend/frames.py decides."""
     boxes, extents = zip(*(mesh_box(v, f) for v, f in meshes), strict=True)
     return visible_instances(place_instances(np.stack(boxes), ids, ts), np.array(extents),
-                             camera, dist)
+                             camera, dist, reach)
 
 
 @pytest.mark.parametrize("cam", sorted(CAMERAS))
@@ -73,6 +74,40 @@ def test_culled_instances_change_no_pixel(cam):
     # a shorter distance culls more, and still changes nothing
     near = visible([(v, f)], ids, ts, camera, 0.05)
     assert near.sum() < keep.sum() and not (near & ~keep).any()
+
+
+def test_a_filters_reach_keeps_what_its_samples_see():
+    """A pixel filter's samples start outside the image (Box 7 px: 3 px beyond its edges).
+    A floor under the image and a strip of small squares 2.2-2.7 px right of it: culled
+    for pixel centres (reach 0) the strip is left out and the filtered alpha changes;
+    culled with the filter's reach it is kept, and the image is the full scene's bit for
+    bit."""
+    w, h = 12, 8
+    m = np.eye(4)
+    m[2, 3] = 5.0  # looking down -z, one world unit per pixel, raster x = world x + w / 2
+    camera = Camera(matrix_world=m, width=w, height=h, type="ORTHO", ortho_scale=float(w))
+    floor = np.array([[-9, -9, 0], [w / 2, -9, 0], [w / 2, 9, 0], [-9, 9, 0]], np.float32)
+    quad = np.array([[0, 1, 2], [0, 2, 3]], np.int32)
+    x0, size = w / 2 + 2.2, 0.25  # squares of 0.25: the lift margin is under 1 px
+    squares = [np.array([[x, y, 1], [x + size, y, 1], [x + size, y + size, 1], [x, y + size, 1]],
+                        np.float32) for x in (x0, x0 + size) for y in np.arange(-h, h, size)]
+    strip = (np.concatenate(squares), np.concatenate([quad + 4 * i for i in range(len(squares))]))
+    meshes = [(floor, quad), strip]
+    ids, ts = np.array([0, 1]), np.tile(np.eye(4, dtype=np.float32)[:3], (2, 1, 1))
+    bvhs = [kernels.build_bvh(v, f) for v, f in meshes]
+    film = {"spp": 64, "distance": 0.05, "pixel_filter": "BOX", "filter_width": 7.0}
+    reach = filter_reach("BOX", 7.0)
+    assert reach == 3.0
+    full = kernels.render_film(kernels.build_scene(bvhs, ids, ts), camera, **film)
+    renders = {}
+    for name, r in (("reach", reach), ("centres", 0.0)):
+        keep = visible(meshes, ids, ts, camera, film["distance"], r)
+        assert keep.tolist() == [True, name == "reach"]
+        renders[name] = kernels.render_film(kernels.build_scene(bvhs, ids, ts, visible=keep),
+                                            camera, **film)
+    assert np.array_equal(renders["reach"].alpha, full.alpha)
+    assert np.array_equal(renders["reach"].ao, full.ao)
+    assert not np.array_equal(renders["centres"].alpha, full.alpha)
 
 
 def test_mesh_box_is_the_bvhs_box():

@@ -3,15 +3,16 @@ sub-pixel positions drawn from it, checked against the filter's own normalised p
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 import pytest
 import warp as wp
+from scenesort.backend.render.scenes import shared_scene
 from scenesort.kernels.render.camera import Camera
 from scenesort.kernels.render.film import (
     FILTER_TABLE_SIZE,
-    PIXEL_FILTERS,
     filter_position,
     filter_profile,
     filter_table,
@@ -20,6 +21,7 @@ from scenesort.kernels.render.filtered import FilmCamera, camera_ray, device_cam
 from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d_at
 
 from scenesort import kernels
+from scenesort.ao_options import PIXEL_FILTERS
 
 PIXELS = 256
 SAMPLES = 256  # a power of two: each pixel's Sobol points are a complete net
@@ -208,17 +210,40 @@ def test_filtered_render_does_not_depend_on_threads(shared_scene):
     scene = shared_scene("sponza")
     cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 96, 64)
     bvh = kernels.build_bvh(scene.vertices, scene.indices)
-    a = render_film(bvh, cam, spp=8, threads=1)
-    b = render_film(bvh, cam, spp=8, threads=2)
+    a = render_film(bvh, cam, spp=8, threads=1, filter_width=1.5)
+    b = render_film(bvh, cam, spp=8, threads=2, filter_width=1.5)
     assert np.array_equal(a.ao, b.ao) and np.array_equal(a.alpha, b.alpha)
 
 
 @pytest.mark.parametrize(("settings", "field"), [
-    ({"target_error": 0.02}, "target_error"), ({"pixel_filter": "MITCHELL"}, "pixel_filter"),
-    ({"filter_width": -1.0}, "filter_width")])
+    ({"engine": "dacrt", "filter_width": 1.5}, "dacrt"),
+    ({"denoise": True, "filter_width": 1.5}, "denoise"),
+    ({"pixel_filter": "MITCHELL"}, "pixel_filter"), ({"filter_width": -1.0}, "filter_width"),
+    ({"filter_width": 10.5}, "filter_width")])
 def test_bad_film_arguments_name_the_field(settings, field):
     with pytest.raises(ValueError, match=field):
         render_film(half_plane(0.0), ortho_camera(4, 4), **settings)
+
+
+def test_progress_is_called_between_rounds_and_cancels():
+    """A filtered render reports its rounds (monotone, ending at 1) and stops when the
+    progress callback raises: the service's cancellation point."""
+    seen = []
+    render_film(half_plane(0.0), ortho_camera(64, 64), spp=1024, filter_width=1.5,
+                progress=lambda f, phase: seen.append((f, phase)))
+    fractions = [f for f, _ in seen]
+    assert len(seen) >= 3 and fractions == sorted(fractions) and seen[-1] == (1.0, "done")
+
+    class Stop(Exception):
+        pass
+
+    def stop(fraction: float, phase: str) -> None:
+        if fraction > 0.0:
+            raise Stop
+
+    with pytest.raises(Stop):
+        render_film(half_plane(0.0), ortho_camera(64, 64), spp=1024, filter_width=1.5,
+                    progress=stop)
 
 
 def test_two_level_scene_renders_as_its_mesh():
@@ -227,8 +252,8 @@ def test_two_level_scene_renders_as_its_mesh():
     w, h = 16, 4
     bvh = half_plane(7.3 - w / 2)
     scene = kernels.build_scene([bvh], np.array([0]), np.eye(4, dtype=np.float32)[None, :3])
-    a = render_film(bvh, ortho_camera(w, h), spp=64)
-    b = render_film(scene, ortho_camera(w, h), spp=64)
+    a = render_film(bvh, ortho_camera(w, h), spp=64, filter_width=1.5)
+    b = render_film(scene, ortho_camera(w, h), spp=64, filter_width=1.5)
     assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
     assert 0.0 < a.alpha[0, 7] < 1.0
 
@@ -237,7 +262,8 @@ def test_two_level_scene_renders_as_its_mesh():
 def _centre_rays(cam: FilmCamera, width: int, out: wp.array2d(dtype=float)):
     k = wp.tid()
     row = k / width
-    o, d, t0, t1 = camera_ray(cam, float(k - row * width) + 0.5, float(row) + 0.5)
+    o, d, t0, t1 = camera_ray(cam, float(k - row * width) + 0.5, float(row) + 0.5,
+                              wp.vec2(0.5, 0.5))
     for j in range(3):
         out[k, j] = o[j]
         out[k, 3 + j] = d[j]
@@ -245,19 +271,33 @@ def _centre_rays(cam: FilmCamera, width: int, out: wp.array2d(dtype=float)):
     out[k, 7] = t1
 
 
+FRAMINGS = [  # backend/render/framing.py: a window of the frame, non-square pixels
+    ({"x": 3, "y": 5, "width": 7, "height": 9}, (1.0, 1.0)),
+    (None, (1.0, 2.0)),
+    ({"x": 0, "y": 4, "width": 12, "height": 10}, (3.0, 1.0)),
+]
+
+
+@pytest.mark.parametrize("framing", [None, *FRAMINGS])
 @pytest.mark.parametrize("settings", [
     {"type": "PERSP", "lens": 35.0, "sensor_fit": "AUTO", "shift_x": 0.1, "clip_start": 0.5},
     {"type": "PERSP", "sensor_fit": "VERTICAL", "shift_y": -0.2, "clip_end": 50.0},
     {"type": "ORTHO", "ortho_scale": 4.0, "sensor_fit": "HORIZONTAL", "shift_x": -0.3},
 ])
-def test_device_camera_is_the_camera_model(settings, device):
-    """The kernel's camera ray through each pixel centre is Camera.rays()'s (float32)."""
+def test_device_camera_is_the_camera_model(settings, framing, device):
+    """The kernel's camera ray through each pixel centre is Camera.rays()'s (float32), also
+    for the service's framed cameras (a window, non-square pixels): what a filtered job
+    renders is the frame's part the pixel-centre job renders."""
     angle = 0.3
     m = np.eye(4)
     m[:3, :3] = [[math.cos(angle), 0, math.sin(angle)], [0, 1, 0],
                  [-math.sin(angle), 0, math.cos(angle)]]
     m[:3, 3] = (1.0, -2.0, 3.0)
     cam = Camera(matrix_world=m, width=12, height=20, **settings)
+    if framing is not None:
+        from scenesort.backend.render.framing import framed
+
+        cam = framed(cam.to_dict(), *framing)
     out = wp.empty((cam.width * cam.height, 8), dtype=float, device=device)
     wp.launch(_centre_rays, dim=out.shape[0], inputs=[device_camera(cam), cam.width, out],
               device=device)
@@ -266,3 +306,89 @@ def test_device_camera_is_the_camera_model(settings, device):
         ref = np.asarray(ref, dtype=np.float64).reshape(len(got), -1)
         cols = slice(3 * i, 3 * i + 3) if i < 2 else slice(4 + i, 5 + i)
         np.testing.assert_allclose(got[:, cols], ref, rtol=1e-5, atol=1e-5)
+
+
+@functools.cache
+def bunny_reference() -> tuple:
+    """The bunny at 160x120, its BVH and an 8192-spp render through Blackman-Harris 1.5 px
+    (made once per session: 30 s on 2 cores)."""
+    scene = shared_scene("bunny", 160, 120)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    ref = render_film(bvh, scene.camera, spp=8192, seed=999, pixel_filter="BLACKMAN_HARRIS",
+                      filter_width=1.5)
+    return scene, bvh, ref
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("target", [0.05, 0.02])
+def test_error_target_holds_on_filtered_pixels(target):
+    """target_error through the filter (the bunny's silhouette against the sky at
+    160x120: 3276 covered pixels, 867 of them edges): the adaptive rounds run over the
+    covered pixels with the edges' variance in their statistics. Over 8 seeds the achieved
+    RMSE (against an 8192-spp filtered reference, its own estimated error subtracted) lies
+    in [0.7, 1.0] x the target (issue 32's calibration band) and the estimate within 25%
+    of it. Measured: 0.81-0.92x at 0.05, 0.79-0.90x at 0.02; estimates 0.81-1.01. (At
+    64x48, 634 covered pixels, the band does not hold: 0.58-0.99x, never above 1.)"""
+    scene, bvh, ref = bunny_reference()
+    film = {"pixel_filter": "BLACKMAN_HARRIS", "filter_width": 1.5}
+    covered = ref.alpha > 0
+    for seed in range(8):
+        r = render_film(bvh, scene.camera, spp=1, seed=seed, target_error=target, **film)
+        mse = np.mean((r.ao[covered].astype(np.float64) - ref.ao[covered]) ** 2)
+        achieved = math.sqrt(max(mse - ref.rmse_estimate**2, 0.0))
+        assert 0.7 * target <= achieved <= target, (seed, achieved / target)
+        assert abs(r.rmse_estimate / achieved - 1.0) <= 0.25, (seed, r.rmse_estimate, achieved)
+        assert r.spp_mean >= 8  # at least the minimum, on the covered pixels
+
+
+def disk_cdf(t: np.ndarray, radius: float) -> np.ndarray:
+    """P(x < t) for x the first coordinate of a uniform point of a disk of `radius`."""
+    r = np.clip(t / radius, -1.0, 1.0)
+    return 0.5 + (r * np.sqrt(1.0 - r * r) + np.arcsin(r)) / math.pi
+
+
+@pytest.mark.parametrize(("focus", "ratio"), [(5.0, 1.0), (2.5, 1.0), (10.0, 0.5)])
+def test_depth_of_field_blurs_an_edge_by_its_circle_of_confusion(focus, ratio):
+    """A half plane's straight edge 5 units below a lens of radius 0.3 (Box filter 1 px):
+    a ray from lens point L through the point in focus meets the plane at Z x_p + L_x (1 -
+    Z / F) (x_p: the raster point on the plane at depth 1), so each pixel's alpha is the
+    pixel's mean of the lens's x marginal (a disk's, squeezed by `aperture_ratio`) beyond
+    the edge, integrated here by quadrature: within 4 binomial sigmas at 1024 spp. In
+    focus (F = Z) the edge is as sharp as a pinhole's."""
+    w, h, spp, z, radius, edge = 16, 4, 1024, 5.0, 0.3, 0.1
+    m = np.eye(4)
+    m[2, 3] = z
+    cam = Camera(matrix_world=m, width=w, height=h, sensor_fit="HORIZONTAL",
+                 aperture_size=radius, focus_distance=focus, aperture_ratio=ratio)
+    r = render_film(half_plane(edge), cam, spp=spp, pixel_filter="BOX", filter_width=1.0)
+    pix = cam.plane_scale() / w
+    u = (np.arange(4000) + 0.5) / 4000
+    x_p = (np.arange(w)[:, None] + u[None, :] - w / 2) * pix  # (pixel, position)
+    k = abs(1.0 - z / focus)  # the lens offset's scale at the plane
+    gap = edge - z * x_p
+    sharp = (gap > 0).mean(axis=1)  # a pinhole's
+    expected = sharp if k == 0.0 else disk_cdf(gap / k, radius / ratio).mean(axis=1)
+    sigma = np.sqrt(expected * (1 - expected) / spp) + 1.0 / spp
+    assert np.all(np.abs(r.alpha[0] - expected) <= 4 * sigma), (r.alpha[0], expected)
+    assert k == 0.0 or np.abs(expected - sharp).max() > 0.1  # the test sees the blur
+
+
+def test_occluders_occlude_unseen():
+    """Ray visibility: occlusion rays go through `occluders`, camera rays through `bvh`.
+    A lid just above the floor, only among the occluders, darkens the floor under it to 0
+    and leaves alpha (the camera's) as the floor alone gives it."""
+    w, h = 16, 4
+    floor = half_plane(100.0)
+    lid = np.array([[-100, -100, 0.01], [100, -100, 0.01], [100, 100, 0.01],
+                    [-100, 100, 0.01]], np.float32)
+    lid_bvh = kernels.build_bvh(lid, np.array([[0, 2, 1], [0, 3, 2]], np.int32))
+    one = np.eye(4, dtype=np.float32)[None, :3]
+    seen = kernels.build_scene([floor], np.array([0]), one)
+    both = kernels.build_scene([floor, lid_bvh], np.array([0, 1]), np.concatenate([one, one]))
+    film = {"spp": 16, "distance": 0.5, "filter_width": 1.5}
+    alone = render_film(seen, ortho_camera(w, h), **film)
+    lidded = render_film(seen, ortho_camera(w, h), occluders=both, **film)
+    assert np.array_equal(lidded.alpha, alone.alpha) and np.all(alone.alpha == 1.0)
+    assert np.all(alone.ao == 1.0) and np.all(lidded.ao == 0.0)
+    with pytest.raises(ValueError, match="occluders"):
+        render_film(floor, ortho_camera(w, h), occluders=both, **film)
