@@ -86,9 +86,9 @@ AO_OPTIONS = {
         'doc': ("a camera render's pixel filter width in pixels (Cycles' default 1.5): each "
                 'sample traces its own camera ray from a sub-pixel position drawn from the '
                 'filter, so edges and alpha are anti-aliased as Cycles renders them; 0: one '
-                "camera ray through each pixel's centre, coverage 0 or 1. Filtered renders "
-                'take engine bvh and no denoising; otherwise they render pixel centres '
-                '(film_fallback)'),
+                "camera ray through each pixel's centre, coverage 0 or 1, as for a width up "
+                'to 0.05 px. Filtered renders take engine bvh and no denoising; otherwise '
+                'they render pixel centres (film_fallback)'),
     },
     'denoise': {
         'kind': 'bool', 'default': False, 'low': None, 'high': None, 'low_open': False,

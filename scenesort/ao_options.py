@@ -24,6 +24,10 @@ Engine = Literal["bvh", "dacrt"]
 PixelFilter = Literal["BOX", "GAUSSIAN", "BLACKMAN_HARRIS"]  # Cycles' pixel_filter_type names
 PIXEL_FILTERS: tuple[str, ...] = typing.get_args(PixelFilter)
 MAX_FILTER_WIDTH = 10.0  # Blender's limit for scene.cycles.filter_width, in pixels
+# A filter at most this wide (px) renders pixel centres: its samples would land within 1/20
+# of a pixel of the centre (Cycles' narrowest, 0.01 px, is how it renders without a filter)
+# while each would trace a camera ray of its own, doubling a render's work.
+CENTRE_FILTER_WIDTH = 0.05
 DEFAULT_MAX_SPP = 1024
 MIN_ADAPTIVE_SPP = 8  # fewest samples before a pixel's variance is trusted (measured: 4-16)
 DEFAULT_TERMINATOR_OFFSET = 0.1  # Blender's Object.shadow_terminator_geometry_offset default
@@ -174,8 +178,9 @@ class AoOptions:
         0.0, "a camera render's pixel filter width in pixels (Cycles' default 1.5): each "
         "sample traces its own camera ray from a sub-pixel position drawn from the filter, "
         "so edges and alpha are anti-aliased as Cycles renders them; 0: one camera ray "
-        "through each pixel's centre, coverage 0 or 1. Filtered renders take engine bvh and no "
-        "denoising; otherwise they render pixel centres (film_fallback)",
+        "through each pixel's centre, coverage 0 or 1, as for a width up to 0.05 px. Filtered "
+        "renders take engine bvh and no denoising; otherwise they render pixel centres "
+        "(film_fallback)",
         low=0.0, high=MAX_FILTER_WIDTH)
     denoise: bool = _option(
         False, "denoise the image with Intel Open Image Denoise, the shading normals as its "
@@ -218,6 +223,9 @@ class AoOptions:
         per pixel."""
         if self.filter_width == 0.0:
             return None
+        if self.filter_width <= CENTRE_FILTER_WIDTH:
+            return (f"pixel centres: a {self.filter_width:g} px filter's samples would all "
+                    "land within 1/20 px of them")
         reasons = [reason for reason, applies in (
             ("denoise", self.denoise), ("engine dacrt", self.engine == "dacrt")) if applies]
         if not reasons:

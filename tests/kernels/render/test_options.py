@@ -73,3 +73,15 @@ def test_options_and_keywords_render_the_same():
     assert np.array_equal(kernels.ambient_occlusion(bvh, o, d, opts), a.ao)
     with pytest.raises(TypeError, match="AoOptions"):
         kernels.render_ao(bvh, o, d, 8)
+
+
+def test_a_filter_narrower_than_a_twentieth_of_a_pixel_renders_pixel_centres() -> None:
+    """Cycles' narrowest filter (0.01 px, its 'no filter') would cost a camera ray per
+    sample for samples within 1/20 px of the centre: it renders pixel centres, and says so."""
+    from scenesort.ao_options import CENTRE_FILTER_WIDTH
+
+    narrow = AoOptions(pixel_filter="GAUSSIAN", filter_width=0.01)
+    assert not narrow.filtered and narrow.film.startswith("pixel centres: a 0.01 px filter")
+    assert not AoOptions(filter_width=CENTRE_FILTER_WIDTH).filtered
+    wide = AoOptions(filter_width=0.06)
+    assert wide.filtered and wide.film == "BLACKMAN_HARRIS 0.06 px"
