@@ -15,10 +15,11 @@ instance list carries), else sends the flattened scene. The Rendered viewport's
 `view_update`/`view_draw` hand the work to a `viewport.ViewSession`.
 
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
-alpha = coverage with Film > Transparent and 1 without; `AO` (one channel, 0 on
-background); `Depth` (camera-space Z, 1e10 on background); and those the view layer turns
-on (`image.OPTIONAL_PASSES`): Normal, Position, Object Index and the Denoising Normal,
-Albedo and Depth of Cycles' Denoising Data, so that the compositor's Denoise node works.
+alpha = coverage with Film > Transparent and 1 without; and those the view layer turns on
+(`image.OPTIONAL_PASSES`): `AO` (one channel, 0 on background), `Depth` (camera-space Z,
+1e10 on background; traced only when on), Normal, Position, Object Index and the Denoising
+Normal, Albedo and Depth of Cycles' Denoising Data, so that the compositor's Denoise node
+works.
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from .client import ServiceError
 from .tasks import Cancelled, Task
 
 POLL_S = 0.05
-PASSES = (("Combined", 4, "RGBA", "COLOR"), ("AO", 1, "X", "VALUE"), ("Depth", 1, "Z", "VALUE"))
+PASSES = (("Combined", 4, "RGBA", "COLOR"),)  # always; the others as the view layer says
 _EXPECTED = (ServiceError, service.LaunchError, ValueError)
 
 
@@ -89,7 +90,9 @@ class AoEngine:
         measured 0.3 ms for 320x240 RGBA, where assigning `rect` takes 90 ms)."""
         layer = result.layers[0]
         for name, pixels in passes.items():
-            layer.passes[name].rect.foreach_set(np.ascontiguousarray(pixels, np.float32).ravel())
+            found = layer.passes.get(name)
+            if found is not None:  # a pass the view layer turned off is not in the result
+                found.rect.foreach_set(np.ascontiguousarray(pixels, np.float32).ravel())
 
     def update_render_passes(self, scene: Any = None, renderlayer: Any = None) -> None:
         for name, channels, chan_id, kind in PASSES:
@@ -192,7 +195,8 @@ class AoEngine:
         target = prefs.target(bpy.context)
         outcome = self._run(
             lambda task: pipeline.render_job(task, target, settings, mesh, view,
-                                             image.service_passes(extras)),
+                                             image.service_passes(extras),
+                                             image.needs_depth(extras)),
             f"{mesh.triangles:,} triangles",
         )
         line = stats_line(outcome, mesh.triangles)

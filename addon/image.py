@@ -32,6 +32,9 @@ class ExtraPass:
 
 # Cycles' names and layouts, so that compositor setups made for Cycles connect as they are.
 OPTIONAL_PASSES = (
+    # made from the job's AO and depth (`result_passes`); Depth's Z trace only when on
+    ExtraPass(("AO", 1, "X", "VALUE"), "use_pass_ambient_occlusion", None),
+    ExtraPass(("Depth", 1, "Z", "VALUE"), "use_pass_z", None),
     ExtraPass(("Normal", 3, "XYZ", "VECTOR"), "use_pass_normal", "normal"),
     ExtraPass(("Position", 3, "XYZ", "VECTOR"), "use_pass_position", "position"),
     ExtraPass(("IndexOB", 1, "X", "VALUE"), "use_pass_object_index", "object", per_object=True),
@@ -58,6 +61,11 @@ def service_passes(extras: tuple[ExtraPass, ...]) -> tuple[str, ...]:
     return tuple(dict.fromkeys(p.source for p in extras if p.source is not None))
 
 
+def needs_depth(extras: tuple[ExtraPass, ...]) -> bool:
+    """Whether `extras` need the job's Z pass (a second trace of the camera rays)."""
+    return any(p.blender[0] in ("Depth", "Denoising Depth") for p in extras)
+
+
 def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
     """The passes' pixels (bottom row first, as Blender stores them) of a job's outcome."""
     width, height = outcome.size
@@ -67,11 +75,13 @@ def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
     # of the two float32 means must not take an uncovered pixel below 0.
     ao = np.maximum(outcome.ao.reshape(height, width)[::-1].reshape(-1, 1) + coverage - 1.0,
                     0.0)
-    depth = outcome.depth.reshape(height, width)[::-1].reshape(-1, 1)
     alpha = coverage if transparent else np.ones_like(coverage)
     if outcome.holdout is not None:  # a holdout is transparent whatever the film says
         alpha = alpha * (1.0 - outcome.holdout.reshape(height, width)[::-1].reshape(-1, 1))
-    return {"Combined": np.hstack([ao, ao, ao, alpha]), "AO": ao, "Depth": depth}
+    passes = {"Combined": np.hstack([ao, ao, ao, alpha]), "AO": ao}
+    if outcome.depth is not None:  # the job traced it (the Z pass is on)
+        passes["Depth"] = outcome.depth.reshape(height, width)[::-1].reshape(-1, 1)
+    return passes
 
 
 def extra_passes(outcome: Outcome, extras: tuple[ExtraPass, ...],
@@ -97,8 +107,9 @@ def extra_passes(outcome: Outcome, extras: tuple[ExtraPass, ...],
             out[name] = rows(outcome.extras[extra.source], channels)
         elif name == "Denoising Albedo":
             out[name] = np.repeat(coverage, 3, axis=1)
-        else:  # Denoising Depth
+        elif name == "Denoising Depth":
             out[name] = rows(outcome.depth, 1)
+        # AO and Depth: result_passes'
     return out
 
 

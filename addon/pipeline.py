@@ -281,15 +281,16 @@ def job_fields(settings: Settings) -> dict[str, Any]:
 
 def render_job(
     task: Task, target: Target, settings: Settings, mesh: SceneMesh | InstanceExport,
-    view: dict, passes: tuple[str, ...] = (),
+    view: dict, passes: tuple[str, ...] = (), depth: bool = True,
 ) -> Outcome:
     """The one render path (F12, animations, the panel's Render AO, scripts): scene, BVH,
     then a service job for `view` (`camera.view()`: camera, window, pixel aspect) with
-    progress, keeping the extra `passes` (JobRequest.passes); cancelling the task cancels
-    the job on the service."""
+    progress, keeping the extra `passes` (JobRequest.passes) and, with `depth`, the Z
+    pass; cancelling the task cancels the job on the service."""
     client, outcome, scene_id = prepare(task, target, settings, mesh)
     holdouts = isinstance(mesh, InstanceExport) and mesh.holdouts
-    return camera_job(task, client, outcome, scene_id, settings, view, passes, holdouts)
+    return camera_job(task, client, outcome, scene_id, settings, view, passes, holdouts,
+                      depth)
 
 
 def camera_job(task: Task, client: Client, outcome: Outcome, scene_id: str,

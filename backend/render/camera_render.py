@@ -91,8 +91,10 @@ def render_camera(
         held = np.zeros(shape, bool) if held is None else held
         job.holdout = held.astype(np.float32).reshape(shape)
     job.png = timed("png", lambda: encode_png(job.ao))
-    if not (depth or passes):
-        return
+    if "normal" in passes:
+        job.extras["normal"] = np.asarray(normals, np.float32).reshape(*shape, 3)
+    if not (depth or {"position", "object"} & set(passes)):
+        return  # nothing needs the camera rays' hits traced again
     t, instance = timed("depth", lambda: seen_hits(views, origins, directions, tmin, tmax))
     hit = np.isfinite(t)
     t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]
@@ -100,12 +102,12 @@ def render_camera(
     if depth:
         job.depth = np.where(hit, z, BACKGROUND_DEPTH).astype(np.float32).reshape(shape)
     extras = {  # made only when asked for (JobRequest.passes)
-        "normal": lambda: normals.reshape(*shape, 3),
         "position": lambda: np.where(hit[:, None], origins + t64 * directions,
                                      0.0).reshape(*shape, 3),
         "object": lambda: np.where(job.coverage.ravel() > 0, instance, -1).reshape(shape),
     }
-    job.extras = {name: extras[name]().astype(np.float32) for name in passes}
+    job.extras.update({name: extras[name]().astype(np.float32) for name in passes
+                       if name in extras})
 
 
 def seen_hits(

@@ -80,6 +80,8 @@ def live() -> Iterator[bpy.types.Scene]:
     scene.render.engine = "SCENESORT"
     scene.render.image_settings.file_format = "OPEN_EXR"
     scene.render.image_settings.color_depth = "32"
+    layer = scene.view_layers[0]  # Passes > Data > Z and Ambient Occlusion
+    layer.use_pass_z = layer.use_pass_ambient_occlusion = True
     try:
         yield scene
     finally:

@@ -19,7 +19,7 @@ import addon
 from addon import engine, prefs
 
 WIDTH, HEIGHT = 64, 48
-TOGGLES = ("use_pass_normal", "use_pass_position", "use_pass_object_index")
+TOGGLES = ("use_pass_z", "use_pass_normal", "use_pass_position", "use_pass_object_index")
 
 
 @pytest.fixture(scope="module")
@@ -74,14 +74,14 @@ def render_multilayer(scene: bpy.types.Scene, engine_name: str, path: Path) -> d
 def test_passes_follow_the_view_layer(scene) -> None:
     """Registered for the compositor as the toggles say, in Cycles' names."""
     names = [p.blender[0] for p in engine.image.wanted_passes(scene.view_layers[0])]
-    assert names == ["Normal", "Position", "IndexOB", "Denoising Normal",
+    assert names == ["Depth", "Normal", "Position", "IndexOB", "Denoising Normal",
                      "Denoising Albedo", "Denoising Depth"]
     layer = scene.view_layers[0]
     layer.use_pass_position = False
     layer.cycles.denoising_store_passes = False
     try:
         names = [p.blender[0] for p in engine.image.wanted_passes(layer)]
-        assert names == ["Normal", "IndexOB"]
+        assert names == ["Depth", "Normal", "IndexOB"]
     finally:
         layer.use_pass_position = True
         layer.cycles.denoising_store_passes = True
@@ -110,3 +110,27 @@ def test_passes_match_cycles(scene, tmp_path) -> None:
     assert np.array_equal(albedo, our_alpha) and {"Denoising Albedo.R"} <= set(
         k.split("ViewLayer.")[-1] for k in cycles)
     np.testing.assert_array_equal(channel(ours, "Denoising Depth.Z"), channel(ours, "Depth.Z"))
+
+
+def test_without_the_z_pass_no_depth_is_traced(scene, tmp_path, monkeypatch) -> None:
+    """Z, Denoising Data, Position and Object Index off: the result holds no Depth, and
+    the job traced none (the camera rays' second, closest-hit trace is what it costs)."""
+    from addon import pipeline
+
+    outcomes = []
+    real = pipeline.render_job
+    monkeypatch.setattr(pipeline, "render_job",
+                        lambda *a, **k: outcomes.append(real(*a, **k)) or outcomes[-1])
+    layer = scene.view_layers[0]
+    off = ("use_pass_z", "use_pass_position", "use_pass_object_index")
+    for name in off:
+        setattr(layer, name, False)
+    layer.cycles.denoising_store_passes = False
+    try:
+        names = set(render_multilayer(scene, "SCENESORT", tmp_path / "no_z"))
+    finally:
+        for name in off:
+            setattr(layer, name, True)
+        layer.cycles.denoising_store_passes = True
+    assert not any(".Depth." in n or "Denoising" in n for n in names), names
+    assert outcomes[-1].depth is None and "depth" not in outcomes[-1].timings_ms
