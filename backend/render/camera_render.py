@@ -2,7 +2,7 @@
 (cached, built or refit; of an instance list only what the camera may see), AO with
 progress (through the pixel filter when the options ask for one and allow it:
 AoOptions.filtered, else through the pixel centres), coverage (the filtered alpha, or 0/1
-per centre), the pixel centres' depth, and the PNG."""
+per centre) and the pixel centres' depth."""
 
 from __future__ import annotations
 
@@ -15,7 +15,6 @@ from scenesort.backend.render.ao import shading
 from scenesort.backend.render.bvhs import Views, scene_views
 from scenesort.backend.render.framing import framed
 from scenesort.backend.render.visibility import View
-from scenesort.backend.wire.binary import encode_png
 from scenesort.backend.work.jobs import Job
 
 from scenesort.ao_options import AoOptions
@@ -90,7 +89,7 @@ def render_camera(
     if getattr(scene, "visibility", None) is not None:  # an instance list with masks
         held = np.zeros(shape, bool) if held is None else held
         job.holdout = held.astype(np.float32).reshape(shape)
-    job.png = timed("png", lambda: encode_png(job.ao))
+    job.picture = True  # its PNG is made when asked for (Job.encoded_png)
     if "normal" in passes:
         job.extras["normal"] = np.asarray(normals, np.float32).reshape(*shape, 3)
     if not (depth or {"position", "object"} & set(passes)):

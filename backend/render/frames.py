@@ -71,7 +71,7 @@ class FrameRenderer:
         render_camera(job, self.store, scene, camera, options, request.method,
                       request.leaf_size, self.device, cull=self.cull)
         assert job.ao is not None and job.coverage is not None and job.depth is not None
-        return FrameResult(frame_number, job.ao, job.coverage, job.depth, job.png or b"",
+        return FrameResult(frame_number, job.ao, job.coverage, job.depth, job.encoded_png() or b"",
                            job.build or BuildReport(), dict(job.timings_ms))
 
 

@@ -161,7 +161,9 @@ async def job_result(
     job = service.job(job_id)
     # One read: the manager may forget the job meanwhile.
     layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth,
-             "holdout": job.holdout, "png": job.png}.get(format, job.extras.get(format))
+             "holdout": job.holdout}.get(format, job.extras.get(format))
+    if format == "png":  # encoded on first request, off the event loop
+        layer = await run_in_threadpool(job.encoded_png)
     if job.state == "done" and layer is None:
         raise ApiError(
             409, "format", f"job {job_id} made no {format} image",
