@@ -15,6 +15,7 @@ from scenesort.backend.render.ao import shading
 from scenesort.backend.render.bvhs import Views, scene_views
 from scenesort.backend.render.framing import framed
 from scenesort.backend.render.visibility import View
+from scenesort.backend.wire.binary import encode_png
 from scenesort.backend.work.jobs import Job
 
 from scenesort.ao_options import AoOptions
@@ -27,6 +28,14 @@ def job_camera(request: Any) -> Any:
     ValueError naming the camera field at fault."""
     window = None if request.window is None else request.window.model_dump()
     return framed(request.camera.model_dump(), window, request.pixel_aspect)
+
+
+def job_png(job: Job) -> bytes | None:
+    """A camera job's AO as an 8-bit grey PNG, encoded once; None for a job that makes no
+    picture or is not done."""
+    if job.png is None and job.picture and job.ao is not None:
+        job.png = encode_png(job.ao)
+    return job.png
 
 
 def render_camera(
@@ -89,7 +98,7 @@ def render_camera(
     if getattr(scene, "visibility", None) is not None:  # an instance list with masks
         held = np.zeros(shape, bool) if held is None else held
         job.holdout = held.astype(np.float32).reshape(shape)
-    job.picture = True  # its PNG is made when asked for (Job.encoded_png)
+    job.picture = True  # its PNG is made when asked for (job_png)
     if "normal" in passes:
         job.extras["normal"] = np.asarray(normals, np.float32).reshape(*shape, 3)
     if not (depth or {"position", "object"} & set(passes)):

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from scenesort.backend.render.bundle import Bundle, read_bundle
 from scenesort.backend.render.bvhs import BuildReport
-from scenesort.backend.render.camera_render import job_camera, render_camera
+from scenesort.backend.render.camera_render import job_camera, job_png, render_camera
 from scenesort.backend.wire import binary as wire
 from scenesort.backend.work.jobs import Job
 from scenesort.backend.work.store import Store
@@ -71,7 +71,7 @@ class FrameRenderer:
         render_camera(job, self.store, scene, camera, options, request.method,
                       request.leaf_size, self.device, cull=self.cull)
         assert job.ao is not None and job.coverage is not None and job.depth is not None
-        return FrameResult(frame_number, job.ao, job.coverage, job.depth, job.encoded_png() or b"",
+        return FrameResult(frame_number, job.ao, job.coverage, job.depth, job_png(job) or b"",
                            job.build or BuildReport(), dict(job.timings_ms))
 
 

@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
-from scenesort.backend.wire.binary import encode_png
 from scenesort.backend.work.stop import Stopped, StopSignal
 from scenesort.backend.work.worker import DeviceWorker, QueueFull
 
@@ -55,8 +54,8 @@ class Job:
     # the extra images a request asked for (JobRequest.passes), by name: normal and
     # position (height, width, 3), object (height, width); float32
     extras: dict[str, np.ndarray] = field(default_factory=dict)
-    # a camera job's AO is a picture: `encoded_png` makes its PNG when first asked for (a
-    # client reading floats, as F12 and the viewport do, never pays the ~10 ms of zlib)
+    # a camera job's AO is a picture: render.camera_render.job_png makes its PNG when first
+    # asked for (a client reading floats, as F12 and the viewport do, never pays ~10 ms of zlib)
     picture: bool = False
     png: bytes | None = None
     spp_mean: float | None = None
@@ -79,13 +78,6 @@ class Job:
         """Bytes held by the finished images (float32 layers and PNG)."""
         layers = (self.ao, self.coverage, self.depth, self.holdout, *self.extras.values())
         return sum(a.nbytes for a in layers if a is not None) + len(self.png or b"")
-
-    def encoded_png(self) -> bytes | None:
-        """The AO as an 8-bit grey PNG (wire.binary.encode_png), made once; None for a job
-        that makes no picture or is not done."""
-        if self.png is None and self.picture and self.ao is not None:
-            self.png = encode_png(self.ao)
-        return self.png
 
     def report(self, phase: str | None = None, progress: float | None = None) -> None:
         """Update phase/progress from the worker; raise Stopped once it must stop."""

@@ -15,7 +15,7 @@ from scenesort.backend.api.openapi import COMMON_ERRORS
 from scenesort.backend.api.params import JobId, SceneId
 from scenesort.backend.api.requests import read_body, server_timing
 from scenesort.backend.api.service import Service, Shared
-from scenesort.backend.render.camera_render import job_camera, render_camera
+from scenesort.backend.render.camera_render import job_camera, job_png, render_camera
 from scenesort.backend.render.surface_render import render_surface
 from scenesort.backend.wire import binary as wire
 from scenesort.backend.wire.models import (
@@ -163,7 +163,7 @@ async def job_result(
     layer = {"f32": job.ao, "coverage": job.coverage, "depth": job.depth,
              "holdout": job.holdout}.get(format, job.extras.get(format))
     if format == "png":  # encoded on first request, off the event loop
-        layer = await run_in_threadpool(job.encoded_png)
+        layer = await run_in_threadpool(job_png, job)
     if job.state == "done" and layer is None:
         raise ApiError(
             409, "format", f"job {job_id} made no {format} image",
