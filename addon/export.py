@@ -190,15 +190,13 @@ def _renderable_collections(view_layer: bpy.types.ViewLayer) -> set[str]:
     return names
 
 
-def _object_shown(
-    obj: bpy.types.Object, view_layer: bpy.types.ViewLayer, collections: set[str]
-) -> bool:
-    """Whether a real (non-instanced) object is visible and renderable in this view layer."""
+def _object_shown(obj: bpy.types.Object, view_layer: bpy.types.ViewLayer,
+                  collections: set[str], in_root: set[str]) -> bool:
+    """Whether a real (non-instanced) object is visible and renderable in this view layer
+    (`in_root`: the names of the scene collection's own objects)."""
     if obj.hide_render or obj.hide_viewport or not obj.visible_get(view_layer=view_layer):
         return False
-    scene_collection = view_layer.layer_collection.collection
-    in_scene_root = obj.name in scene_collection.objects
-    return in_scene_root or any(c.name in collections for c in obj.users_collection)
+    return obj.name in in_root or any(c.name in collections for c in obj.users_collection)
 
 
 def _instances(depsgraph: bpy.types.Depsgraph) -> Iterator[bpy.types.DepsgraphObjectInstance]:
@@ -216,12 +214,14 @@ def _instances(depsgraph: bpy.types.Depsgraph) -> Iterator[bpy.types.DepsgraphOb
         return
     view_layer = depsgraph.view_layer  # the original view layer, with the user's switches
     collections = _renderable_collections(view_layer)
+    # a set: `name in collection.objects` looks through them one by one, for every object
+    in_root = set(view_layer.layer_collection.collection.objects.keys())
     shown: dict[str, bool] = {}
 
     def visible(obj: bpy.types.Object) -> bool:
         original = obj.original
         if original.name not in shown:
-            shown[original.name] = _object_shown(original, view_layer, collections)
+            shown[original.name] = _object_shown(original, view_layer, collections, in_root)
         return shown[original.name]
 
     for inst in depsgraph.object_instances:

@@ -222,9 +222,10 @@ def prepare(
     return client, outcome, scene_id
 
 
-JOB_POLL_S = 0.03  # a finished job waits this long at most to be seen (one small GET a poll)
-FIRST_POLL_S = 0.002  # the first waits, doubling up to JOB_POLL_S: a short job (a viewport
-# round) is seen within a few ms of its end
+# A poll waits on the service for the job's end (a long poll: a short job, as a viewport
+# round, is seen as it ends) but no longer than this, so that the task's cancel reaches the
+# service's job this soon.
+JOB_POLL_S = 0.03
 
 
 def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
@@ -232,15 +233,12 @@ def follow(task: Task, client: Client, job: dict, outcome: Outcome) -> dict:
     the job. A job that did not finish is a ServiceError; a finished one's size, timings
     and statistics go into `outcome`, and its last status is returned."""
     outcome.job_id = job["job_id"]
-    wait = FIRST_POLL_S
     while job["state"] in {"queued", "running"}:
         if task.cancelled:
             client.cancel_job(job["job_id"])  # then set_step raises Cancelled
         progress = float(job["progress"])
         task.set_step(f"{job['state']}: {job['phase'] or 'AO'} {100 * progress:.0f}%", progress)
-        time.sleep(wait)
-        wait = min(2.0 * wait, JOB_POLL_S)
-        job = client.job_status(job["job_id"])
+        job = client.job_status(job["job_id"], wait=JOB_POLL_S)
     if job["state"] != "done":
         raise ServiceError(
             f"The render job {job['state']}: {job.get('error') or 'no reason given'}"

@@ -7,11 +7,13 @@ The engine's `view_update` and `view_draw` are thin (engine.py); the work is a
   caches as F12: a mesh is sent only when the service lacks it (so moving an object sends
   the list alone and builds the top level, an edit re-sends and refits that mesh, and an
   F12 afterwards sends and builds nothing); it is exported again only after an update
-  that can change AO (geometry or transforms, not materials or lights);
+  that can change AO (geometry or transforms, not materials or lights); while it is the
+  same scene, a restart sends its first job at once, on the connection kept from the
+  last (a 404 sends it again);
 - the view is the region's own projection (`region_camera`): perspective, orthographic
   and the camera view with its zoom and offset, at the region's size over Blender's
   viewport Pixel Size;
-- rounds of service jobs: a first image at twice the pixel size and 1 sample per pixel,
+- rounds of service jobs: a first image at 4x the pixel size and 1 sample per pixel,
   then at full size 1 sample per pixel, then doubling, each round with seeds of its own,
   averaged into the image until the Viewport Samples are reached; or, with a Viewport
   Target Error T, after the 1-sample round the final render's adaptive jobs to 4T, 2T and
@@ -33,7 +35,8 @@ import numpy as np
 
 from . import export, pipeline
 from .ao_options import MIN_ADAPTIVE_SPP
-from .connection import Target
+from .client import ServiceError
+from .connection import Connection, Target
 from .tasks import Cancelled, Task
 
 ROUND_SEED = 7919  # round k's seed is the render seed + k * ROUND_SEED: independent samples
@@ -88,14 +91,18 @@ def region_view(view_matrix: Any, window_matrix: Any, width: int, height: int,
             "pixel_aspect": [1.0, 1.0]}
 
 
+PREVIEW_SCALE = 4  # the first look's pixel size over the view's: 1/16 of the rays (Cycles
+# starts coarser still, near 64 pixels across)
+
+
 def coarser(view: dict) -> dict | None:
-    """`view` at twice the pixel size (the same frustum), or None when that is too small
-    to show anything."""
+    """`view` at PREVIEW_SCALE times the pixel size (the same frustum), or None when that
+    is too small to show anything (under 8 pixels across)."""
     cam = view["camera"]
-    if min(cam["width"], cam["height"]) < 16:
+    if min(cam["width"], cam["height"]) < 8 * PREVIEW_SCALE:
         return None
-    return {**view, "camera": {**cam, "width": cam["width"] // 2,
-                               "height": cam["height"] // 2}}
+    return {**view, "camera": {**cam, "width": cam["width"] // PREVIEW_SCALE,
+                               "height": cam["height"] // PREVIEW_SCALE}}
 
 
 def pixel_size(scene: Any, preferences_scale: float = 1.0) -> int:
@@ -165,12 +172,16 @@ class ViewSession:
         self.transparent = False
         self.exports = 0  # how often the scene was read from Blender
         self.meshes = export.MeshCache()  # its meshes, while no geometry changes
-        self.outcomes: list[pipeline.Outcome] = []  # every round's, oldest first
+        # every round's, oldest first (their images let go once shown)
+        self.outcomes: list[pipeline.Outcome] = []
+        self.checks: list[pipeline.Outcome] = []  # what each check of a new scene sent
         self.started = 0.0  # time.perf_counter() of the last start over
         self.error: str | None = None
         self._frame: Frame | None = None
         self._task: Task | None = None
         self._lock = threading.Lock()
+        # worker threads': the connection and the id of the scene last checked on it
+        self._checked: tuple[Connection, str] | None = None
 
     # --- main thread ------------------------------------------------------------------
 
@@ -239,44 +250,67 @@ class ViewSession:
     def _rounds(self, task: Task, scene: export.InstanceExport, view: dict,
                 settings: pipeline.Settings) -> None:
         try:
-            client, outcome, scene_id = pipeline.prepare(task, self.target, settings, scene)
-
-            def job(spp: int, seed: int, of: dict, target: float = 0.0) -> pipeline.Outcome:
-                got = pipeline.camera_job(
-                    task, client, pipeline.Outcome(connection=outcome.connection), scene_id,
-                    replace(settings, spp=spp, seed=seed, target_error=target), of,
-                    holdouts=scene.holdouts, depth=False)
-                self.outcomes.append(got)
-                return got
-
-            coarse = coarser(view)
-            if coarse is not None:  # a first look at a quarter of the rays
-                got = job(1, settings.seed, coarse)
-                self._publish(got, got.ao, 1, None, False)
-            if settings.target_error > 0.0:
-                got = job(1, settings.seed, view)
-                self._publish(got, got.ao, 1, None, False)
-                for k, scale in enumerate((4.0, 2.0, 1.0)):  # each independent, replacing
-                    target = min(scale * settings.target_error, MAX_TARGET)
-                    got = job(MIN_ADAPTIVE_SPP, settings.seed + (k + 1) * ROUND_SEED, view,
-                              target)
-                    self._publish(got, got.ao, round(got.spp_mean), got.rmse_estimate,
-                                  scale == 1.0)
-                return
-            total, mean = 0, None
-            rounds = schedule(settings.spp)
-            for k, n in enumerate(rounds):
-                got = job(n, settings.seed + k * ROUND_SEED, view)
-                w = n / (total + n)
-                mean = got.ao if mean is None else (1.0 - w) * mean + w * got.ao
-                total += n
-                self._publish(got, mean, total, binomial_rmse(mean, got.coverage, total),
-                              k == len(rounds) - 1)
+            try:
+                self._run(task, scene, view, settings, self._ready(task, scene, settings))
+            except ServiceError as exc:
+                if exc.status != 404:
+                    raise
+                self._checked = None  # the service forgot the scene (or restarted): again
+                self._run(task, scene, view, settings, self._ready(task, scene, settings))
             self.error = None
         except Cancelled:
             pass
         except Exception as exc:  # noqa: BLE001 - shown in the viewport's text
+            self._checked = None
             self.error = str(exc)
+
+    def _ready(self, task: Task, scene: export.InstanceExport,
+               settings: pipeline.Settings) -> tuple[Connection, str]:
+        """The connection and the scene's id on it: as last time while the scene is the
+        same (a view change makes no request before its job), else `pipeline.prepare`'s."""
+        checked = self._checked
+        if checked is None or checked[1] != scene.scene_id:
+            client, outcome, scene_id = pipeline.prepare(task, self.target, settings, scene)
+            outcome.requests = list(client.requests)
+            self.checks.append(outcome)
+            assert outcome.connection is not None
+            checked = self._checked = (outcome.connection, scene_id)
+        return checked
+
+    def _run(self, task: Task, scene: export.InstanceExport, view: dict,
+             settings: pipeline.Settings, ready: tuple[Connection, str]) -> None:
+        connection, scene_id = ready
+
+        def job(spp: int, seed: int, of: dict, target: float = 0.0) -> pipeline.Outcome:
+            got = pipeline.camera_job(
+                task, connection.client, pipeline.Outcome(connection=connection), scene_id,
+                replace(settings, spp=spp, seed=seed, target_error=target), of,
+                holdouts=scene.holdouts, depth=False)
+            self.outcomes.append(got)
+            return got
+
+        coarse = coarser(view)
+        if coarse is not None:  # a first look at a sixteenth of the rays
+            got = job(1, settings.seed, coarse)
+            self._publish(got, got.ao, 1, None, False)
+        if settings.target_error > 0.0:
+            got = job(1, settings.seed, view)
+            self._publish(got, got.ao, 1, None, False)
+            for k, scale in enumerate((4.0, 2.0, 1.0)):  # each independent, replacing
+                target = min(scale * settings.target_error, MAX_TARGET)
+                got = job(MIN_ADAPTIVE_SPP, settings.seed + (k + 1) * ROUND_SEED, view, target)
+                self._publish(got, got.ao, round(got.spp_mean), got.rmse_estimate,
+                              scale == 1.0)
+            return
+        total, mean = 0, None
+        rounds = schedule(settings.spp)
+        for k, n in enumerate(rounds):
+            got = job(n, settings.seed + k * ROUND_SEED, view)
+            w = n / (total + n)
+            mean = got.ao if mean is None else (1.0 - w) * mean + w * got.ao
+            total += n
+            self._publish(got, mean, total, binomial_rmse(mean, got.coverage, total),
+                          k == len(rounds) - 1)
 
     def _publish(self, got: pipeline.Outcome, mean: np.ndarray, spp: int,
                  rmse: float | None, done: bool) -> None:
@@ -290,6 +324,7 @@ class ViewSession:
         with self._lock:
             self._frame = Frame(np.ascontiguousarray(rgba, np.float32), spp, rmse, done,
                                 time.perf_counter())
+        got.ao = got.coverage = got.holdout = None  # a long session keeps no old images
 
 
 def draw_frame(frame: Frame, width: int, height: int) -> None:

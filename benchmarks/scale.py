@@ -130,8 +130,8 @@ def measure(target: int, statues: tuple[str, ...], repeat: int, size: int,
     before = rss_kib("VmRSS")
     reset_peak()
     bvh = kernels.build_bvh(v, f, workers=threads)
-    peak = rss_kib("VmHWM")
     kept = rss_kib("VmRSS")
+    peak = rss_kib("VmHWM")  # read second: the kernel takes it as at least the RSS now
     first = bvh.stats
     builds = []
     for _ in range(repeat):

@@ -224,22 +224,31 @@ class JobManager:
         if not job.start():
             return  # cancelled while queued: already final
         start = time.perf_counter()
+        state: JobState = "done"
+        error: str | None = None
         try:
             work(job)
         except Stopped as exc:
-            job.finish("cancelled" if job.signal.stopped else "failed", str(exc))
+            state, error = "cancelled" if job.signal.stopped else "failed", str(exc)
         except ValueError as exc:  # the engine rejected the input: the client's to fix
-            job.finish("failed", f"invalid input: {exc}")
+            state, error = "failed", f"invalid input: {exc}"
         except MemoryError:
-            job.finish("failed", TOO_LARGE)
+            state, error = "failed", TOO_LARGE
         except Exception as exc:  # noqa: BLE001 - an engine fault fails this job, not the worker
             log.exception("job %s failed", job.job_id)
-            job.finish("failed", f"internal error: {type(exc).__name__}: {exc}")
-        else:
-            job.finish("done")
-        finally:
+            state, error = "failed", f"internal error: {type(exc).__name__}: {exc}"
+        finally:  # before it is final: whoever sees it final sees its whole time
             job.add_timing("total", 1000.0 * (time.perf_counter() - start))
-            self._forget_old()  # a finished image counts against the budget now
+        job.finish(state, error)
+        self._forget_old()  # a finished image counts against the budget now
+
+
+async def until_final(job: Job, timeout: float) -> None:
+    """Return once `job` is final (its worker task over), or after `timeout` seconds: a
+    long poll, so that a client sees a short job end when it ends, not at its next poll."""
+    if job.future is None or job.snapshot()["state"] in FINAL_STATES:
+        return
+    await asyncio.wait({asyncio.wrap_future(job.future)}, timeout=timeout)
 
 
 async def job_events(

@@ -105,6 +105,46 @@ def test_proxies_are_ignored(server: str, monkeypatch: pytest.MonkeyPatch) -> No
     assert client.Client(server).has_scene("known")
 
 
+class _KeptAlive(BaseHTTPRequestHandler):
+    """HTTP/1.1 that keeps connections open (as uvicorn does), counting them; with the
+    server's `close_idle`, it closes each after one answer without saying so, as a
+    server's idle timeout closes a kept connection between two calls."""
+
+    protocol_version = "HTTP/1.1"
+
+    def log_message(self, *args: object) -> None:
+        pass
+
+    def setup(self) -> None:
+        super().setup()
+        self.server.connections += 1  # type: ignore[attr-defined]
+
+    def do_GET(self) -> None:  # noqa: N802
+        body = b'{"status": "ok"}'
+        self.send_response(200)
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+        self.close_connection = self.server.close_idle  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("close_idle", [False, True], ids=["kept", "closed-while-idle"])
+def test_calls_share_a_connection_and_survive_its_closing(close_idle: bool) -> None:
+    httpd = ThreadingHTTPServer(("127.0.0.1", 0), _KeptAlive)
+    httpd.connections, httpd.close_idle = 0, close_idle  # type: ignore[attr-defined]
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        c = client.Client(f"http://127.0.0.1:{httpd.server_address[1]}")
+        assert [c.health() for _ in range(3)] == [{"status": "ok"}] * 3
+        assert httpd.connections == (3 if close_idle else 1)  # type: ignore[attr-defined]
+        c.close()
+    finally:
+        httpd.shutdown()
+        httpd.server_close()
+
+
 def test_scene_id_rule() -> None:
     """sha256 of a header naming the counts, then the body: 32 hex characters."""
     import hashlib

@@ -121,6 +121,8 @@ class Watch:
 
     def __init__(self, scene) -> None:
         self.session = viewport.ViewSession(prefs.target(bpy.context))
+        self.rounds = self.checks = 0
+        self.sent: list[str] = []
         self.session.update_scene(bpy.context.evaluated_depsgraph_get(), first=True)
         self.session.look(camera_view(scene))
         bpy.app.handlers.depsgraph_update_post.append(self.updated)
@@ -129,23 +131,19 @@ class Watch:
         self.session.update_scene(depsgraph)
 
     def settle(self) -> list[pipeline.Outcome]:
-        """Wait for the rounds; the outcomes of this settling's rounds."""
-        start = len(self.session.outcomes)
+        """Wait for the rounds; the outcomes of the rounds since the last settling (and
+        in `sent`, the meshes their scene checks uploaded)."""
         self.session.wait(60)
         assert self.session.error is None, self.session.error
-        return self.session.outcomes[start:]
+        rounds, checks = self.session.outcomes[self.rounds:], self.session.checks[self.checks:]
+        self.rounds, self.checks = len(self.session.outcomes), len(self.session.checks)
+        self.sent = [r for o in checks for r in o.requests if r.startswith("PUT /v1/meshes")]
+        return rounds
 
     def close(self) -> None:
         bpy.app.handlers.depsgraph_update_post.remove(self.updated)
         self.session.stop()
         self.session.wait(10)
-
-
-def sent(outcomes) -> list[str]:
-    """The mesh uploads of these rounds (the rounds of one start share a client and its
-    list of requests)."""
-    lists = {id(o.requests): o.requests for o in outcomes}.values()
-    return [r for requests in lists for r in requests if r.startswith("PUT /v1/meshes")]
 
 
 def built(outcomes, kind: str) -> set[str]:
@@ -156,9 +154,9 @@ def test_each_update_does_only_what_it_must(scene) -> None:
     watch = Watch(scene)
     try:
         first = watch.settle()
-        # a first look at half the size, then 1, 1, 2, 4 samples at full size
+        # a first look at a quarter of the size, then 1, 1, 2, 4 samples at full size
         assert [(o.size, o.spp_max) for o in first] == [
-            ((WIDTH // 2, HEIGHT // 2), 1), *(((WIDTH, HEIGHT), n) for n in (1, 1, 2, 4))]
+            ((WIDTH // 4, HEIGHT // 4), 1), *(((WIDTH, HEIGHT), n) for n in (1, 1, 2, 4))]
         assert all(o.depth is None for o in first)  # no Z pass traced for the viewport
         assert watch.session.frame().spp == 8 and watch.session.frame().done
         exports = watch.session.exports
@@ -167,7 +165,7 @@ def test_each_update_does_only_what_it_must(scene) -> None:
                                                 WIDTH // 2, HEIGHT // 2, 1))
         moved_view = watch.settle()
         assert moved_view and watch.session.exports == exports
-        assert not sent(moved_view) and not built(moved_view, "built")
+        assert not watch.sent and not built(moved_view, "built")
         # a material's colour: nothing at all (assigning one is a geometry update for
         # Blender: read again, but the same instance list, so nothing is traced)
         red = bpy.data.materials.new("Red")
@@ -184,7 +182,7 @@ def test_each_update_does_only_what_it_must(scene) -> None:
         bpy.context.view_layer.update()
         moved = watch.settle()
         assert all(mesh is read[name] for name, mesh in watch.session.scene.meshes.items())
-        assert moved and not sent(moved) and not built(moved, "built")
+        assert moved and not watch.sent and not built(moved, "built")
         assert not built(moved, "refit")
         # an edit of the shared mesh's vertices: that mesh sent and refit, no other
         bumps = bpy.data.meshes["Bumps"]
@@ -192,7 +190,7 @@ def test_each_update_does_only_what_it_must(scene) -> None:
         bumps.update()
         bpy.context.view_layer.update()
         edited = watch.settle()
-        assert len(sent(edited)) == 1 and len(built(edited, "refit")) == 1
+        assert len(watch.sent) == 1 and len(built(edited, "refit")) == 1
         assert not built(edited, "built")
     finally:
         watch.close()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import time
 
 import httpx
 import numpy as np
@@ -253,6 +254,27 @@ def test_a_cancelled_job_stops_and_the_worker_goes_on(api, scene_id) -> None:
     assert no_result.status_code == 409 and no_result.json()["parameter"] == "job_id"
     small = create(api, scene_id, 16, 12, spp=1)
     assert wait(api, small["job_id"], {"done", "failed", "cancelled"})["state"] == "done"
+
+
+def test_a_long_poll_answers_as_the_job_ends(api, scene_id) -> None:
+    """?wait=S: a running job's status after S seconds; a short job's as soon as it ends,
+    its whole time counted; a final job's at once; S over 10 is refused, naming wait."""
+    big = create(api, scene_id, 512, 384, spp=4096)  # a minute's work, cancelled below
+    start = time.perf_counter()
+    held = api.client.get(f"/v1/jobs/{big['job_id']}", params={"wait": 0.3})
+    assert held.status_code == 200 and held.json()["state"] in ("queued", "running")
+    assert time.perf_counter() - start >= 0.3
+    api.client.delete(f"/v1/jobs/{big['job_id']}")
+    small = create(api, scene_id, 16, 12, spp=1)
+    start = time.perf_counter()
+    ended = api.client.get(f"/v1/jobs/{small['job_id']}", params={"wait": 10}, timeout=30)
+    assert ended.json()["state"] == "done" and "total" in ended.json()["timings_ms"]
+    assert time.perf_counter() - start < 9.0  # the end, not the 10 s, answered it
+    start = time.perf_counter()
+    again = api.client.get(f"/v1/jobs/{small['job_id']}", params={"wait": 10}, timeout=30)
+    assert again.json() == ended.json() and time.perf_counter() - start < 9.0
+    refused = api.client.get(f"/v1/jobs/{small['job_id']}", params={"wait": 11})
+    assert refused.status_code == 422 and "wait" in refused.text
 
 
 def test_denoise_reaches_the_engine_and_the_status_says_so(api, box_scene, scene_id) -> None:

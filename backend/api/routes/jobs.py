@@ -27,13 +27,14 @@ from scenesort.backend.wire.models import (
     error_responses,
 )
 from scenesort.backend.wire.problems import ApiError, busy
-from scenesort.backend.work.jobs import Job
+from scenesort.backend.work.jobs import Job, until_final
 from scenesort.backend.work.jobs import job_events as progress_events
 from scenesort.backend.work.worker import QueueFull
 from starlette.background import BackgroundTask
 from starlette.concurrency import run_in_threadpool
 
 router = APIRouter()
+MAX_WAIT_S = 10.0  # a long poll holds a connection: short enough to see a cancelled client
 
 
 @router.post(
@@ -112,9 +113,17 @@ def _queue(service: Service, response: Response, scene_id: str, width: int, heig
 
 
 @router.get("/v1/jobs/{job_id}", response_model=JobStatus, responses=error_responses(404, 422))
-async def job_status(job_id: JobId, service: Shared) -> JobStatus:
-    """State, phase, progress (0..1) and per-phase timings of a job."""
-    return JobStatus(**service.job(job_id).snapshot())
+async def job_status(
+    job_id: JobId, service: Shared,
+    wait: Annotated[float, Query(ge=0.0, le=MAX_WAIT_S, description=(
+        "seconds to wait for the job to end before answering (a long poll)"))] = 0.0,
+) -> JobStatus:
+    """State, phase, progress (0..1) and per-phase timings of a job; with `wait`, as soon
+    as the job ends or after `wait` seconds."""
+    job = service.job(job_id)
+    if wait > 0.0:
+        await until_final(job, wait)
+    return JobStatus(**job.snapshot())
 
 
 @router.delete("/v1/jobs/{job_id}", response_model=JobStatus,
