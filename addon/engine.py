@@ -38,6 +38,7 @@ from .client import ServiceError
 from .tasks import Cancelled, Task
 
 POLL_S = 0.05
+CANCEL_WAIT_S = 0.3  # Esc gives control back this soon, whatever the worker is waiting on
 PASSES = (("Combined", 4, "RGBA", "COLOR"),)  # always; the others as the view layer says
 _EXPECTED = (ServiceError, service.LaunchError, ValueError)
 
@@ -157,7 +158,8 @@ class AoEngine:
         try:
             work()
         except Cancelled:
-            self._say("INFO", f"{what} cancelled; the service's job was cancelled")
+            self._say("INFO", f"{what} cancelled; the service stops its job (a BVH build "
+                              "under way ends and is kept for the next render)")
         except Exception as exc:  # noqa: BLE001 - reported in words, never a traceback
             message = str(exc)
             if not isinstance(exc, _EXPECTED):  # a bug: the console gets the traceback
@@ -273,12 +275,19 @@ class AoEngine:
         return f"scenesort bake {self._images_baked}"
 
     def _run(self, work: Callable[[Task], pipeline.Outcome], what: str) -> pipeline.Outcome:
-        """`work` on a worker thread while this one polls Esc and shows progress."""
+        """`work` on a worker thread while this one polls Esc and shows progress. After
+        Esc, control comes back within CANCEL_WAIT_S: a request that cannot be cut short
+        (a BVH build) is left to end on the worker, which then stops (it only talks to
+        the service: the scene was read on this thread)."""
         self.task = Task(work)
         self.task.start()
+        cancelled_at = None
         while not self.task.done:
-            if self.stopped():
+            if cancelled_at is None and self.stopped():
                 self.task.cancel()
+                cancelled_at = time.perf_counter()
+            if cancelled_at is not None and time.perf_counter() - cancelled_at > CANCEL_WAIT_S:
+                raise Cancelled()
             self.update_progress(self.task.fraction)
             self.show(f"{self.task.step} ({what})")
             time.sleep(POLL_S)

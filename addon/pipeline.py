@@ -302,6 +302,7 @@ def camera_job(task: Task, client: Client, outcome: Outcome, scene_id: str,
     if passes:
         payload["passes"] = list(passes)
     start = time.perf_counter()
+    task.set_step("queueing the render job")  # a task cancelled by now creates none
     job = follow(task, client, client.create_job(payload), outcome)
     pixels = outcome.size[0] * outcome.size[1]
     outcome.ao = client.job_result(job["job_id"], pixels)

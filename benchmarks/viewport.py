@@ -10,8 +10,9 @@ a 30,720-triangle smooth sphere, and one 10,368-triangle grid of its own; a 640x
 service started, meshes sent and built), interleaved rounds of: a camera orbit step (a
 new view), one instance moved, the grid's vertices moved (topology unchanged). For each,
 the time from the update to the first image (the first round, 1 sample per pixel at 4x
-the pixel size, published; the service job's phases are printed apart), and the main-thread time of the call that took the update
-(`look`, as `view_draw` does; `update_scene`, as `view_update` does). Then the time the
+the pixel size, published; the service job's phases are printed apart), and the
+main-thread time of the call that took the update (`look`, as `view_draw` does;
+`update_scene`, as `view_update` does). Then the time the
 viewport with Viewport Target Error 0.02 takes to its image at estimated RMSE 0.02 (after
 its preview, a 1-sample round and the adaptive jobs to 0.08 and 0.04) against an F12 of
 the same view with Target Error 0.02 (the same estimator). Floors: orbit <= 120 ms, one

@@ -406,6 +406,37 @@ def test_esc_cancels_the_services_job(probe, tmp_path) -> None:
     assert until(ended, f"job {job_id} to end", 60.0) == "cancelled"
 
 
+def test_esc_during_a_bvh_build_gives_control_back_before_it_ends(probe, tmp_path) -> None:
+    """Esc while the service builds a 2M-triangle scene's BVH (one request, which cannot
+    be cut short): F12 ends before the service has answered it, the build goes on there
+    and is kept (its answer reaches the service's log later)."""
+    import bmesh
+
+    mesh = bpy.data.meshes.new("Big")
+    bm = bmesh.new()
+    bmesh.ops.create_grid(bm, x_segments=1000, y_segments=1000, size=3.0)
+    bm.to_mesh(mesh)
+    bm.free()
+    big = add_object(probe, "Big", mesh, (0.0, 0.0, -0.05))
+    Probe.stop_when = lambda eng: any(s.startswith("building the BVH") for s in eng.task.steps)
+
+    def answered() -> int:  # builds the service has answered (its log: once it runs)
+        log = service.log_path()
+        text = log.read_text() if log is not None else ""
+        return len(re.findall(r"POST /v1/scenes/[0-9a-f]+/bvh -> 200", text))
+
+    before = answered()
+    try:
+        probe.render.filepath = str(tmp_path / "cancelled")
+        bpy.ops.render.render()
+        assert answered() == before  # control came back while the service still built
+        assert any("cancelled" in line for line in Probe.stats), Probe.stats[-3:]
+        assert until(lambda: answered() > before or None, "the build's answer", 120.0)
+    finally:
+        bpy.data.objects.remove(big)
+        bpy.data.meshes.remove(mesh)
+
+
 def test_empty_scene_gives_a_transparent_image_and_says_so(probe, tmp_path) -> None:
     objects = [bpy.data.objects["Floor"], bpy.data.objects["Box"]]
     for obj in objects:
