@@ -13,7 +13,7 @@ import http.client
 import json
 import threading
 import urllib.parse
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -38,10 +38,23 @@ class ServiceError(Exception):
         self.status = status
 
 
-def scene_id(vertex_count: int, triangle_count: int, body: bytes) -> str:
+# A request body: whole, or as blocks sent one after another (a scene's arrays, not joined)
+Body = bytes | Sequence[memoryview]
+
+
+def _blocks(body: Body) -> Sequence[bytes | memoryview]:
+    return [body] if isinstance(body, bytes) else body
+
+
+def _length(body: Body) -> int:
+    return sum(memoryview(block).nbytes for block in _blocks(body))
+
+
+def scene_id(vertex_count: int, triangle_count: int, body: Body) -> str:
     """The service's content id of a scene upload (same rule as backend/wire/binary.py)."""
     digest = hashlib.sha256(b"scenesort-scene-v1 %d %d\n" % (vertex_count, triangle_count))
-    digest.update(body)
+    for block in _blocks(body):
+        digest.update(block)
     return digest.hexdigest()[:SCENE_HASH_CHARS]
 
 
@@ -52,14 +65,16 @@ def instances_id(mesh_count: int, instance_count: int, body: bytes) -> str:
     return digest.hexdigest()[:SCENE_HASH_CHARS]
 
 
-def _chunks(body: bytes, stop: Callable[[], bool]) -> Iterator[memoryview]:
-    """`body` in UPLOAD_CHUNK pieces, raising Cancelled (which ends the request: the
-    service sees the body cut short and keeps nothing) before a piece once `stop()`."""
-    view = memoryview(body)
-    for start in range(0, len(view), UPLOAD_CHUNK):
-        if stop():
-            raise Cancelled()
-        yield view[start:start + UPLOAD_CHUNK]
+def _chunks(body: Body, stop: Callable[[], bool]) -> Iterator[memoryview]:
+    """`body` in pieces of at most UPLOAD_CHUNK, raising Cancelled (which ends the
+    request: the service sees the body cut short and keeps nothing) before a piece once
+    `stop()`."""
+    for block in _blocks(body):
+        view = memoryview(block).cast("B")
+        for start in range(0, len(view), UPLOAD_CHUNK):
+            if stop():
+                raise Cancelled()
+            yield view[start:start + UPLOAD_CHUNK]
 
 
 def _error_text(status: int, reason: str, payload: bytes) -> str:
@@ -106,7 +121,7 @@ class Client:
         for connection in idle:
             connection.close()
 
-    def _exchange(self, method: str, path: str, body: bytes | None, headers: dict[str, str],
+    def _exchange(self, method: str, path: str, body: Body | None, headers: dict[str, str],
                   timeout: float, stop: Callable[[], bool] | None,
                   ) -> tuple[int, str, dict[str, str], bytes]:
         """One request and its whole answer, on a kept connection if one is idle. One
@@ -127,7 +142,7 @@ class Client:
         return kind(self._parts.hostname, self._parts.port)
 
     def _once(self, connection: http.client.HTTPConnection, method: str, path: str,
-              body: bytes | None, headers: dict[str, str], timeout: float,
+              body: Body | None, headers: dict[str, str], timeout: float,
               stop: Callable[[], bool] | None) -> tuple[int, str, dict[str, str], bytes]:
         connection.timeout = timeout
         if connection.sock is not None:
@@ -151,12 +166,12 @@ class Client:
         self,
         method: str,
         path: str,
-        body: bytes | None = None,
+        body: Body | None = None,
         content_type: str | None = None,
         timeout: float = HEALTH_TIMEOUT_S,
         stop: Callable[[], bool] | None = None,
     ) -> tuple[int, dict[str, str], bytes]:
-        headers = {} if body is None else {"Content-Length": str(len(body))}
+        headers = {} if body is None else {"Content-Length": str(_length(body))}
         if content_type:
             headers["Content-Type"] = content_type
         if self.token:
@@ -207,7 +222,7 @@ class Client:
         status, _, _ = self._request("HEAD", f"/v1/scenes/{scene_id}", timeout=HEALTH_TIMEOUT_S)
         return status == 200
 
-    def upload_scene(self, vertex_count: int, triangle_count: int, body: bytes,
+    def upload_scene(self, vertex_count: int, triangle_count: int, body: Body,
                      blocks: dict[str, str] | None = None,
                      stop: Callable[[], bool] | None = None) -> dict:
         """`POST /v1/scenes`: the raw scene body, with `blocks` the flags of its optional
@@ -226,7 +241,7 @@ class Client:
         status, _, _ = self._request("HEAD", f"/v1/meshes/{mesh_id}", timeout=HEALTH_TIMEOUT_S)
         return status == 200
 
-    def put_mesh(self, mesh_id: str, vertex_count: int, triangle_count: int, body: bytes,
+    def put_mesh(self, mesh_id: str, vertex_count: int, triangle_count: int, body: Body,
                  blocks: dict[str, str] | None = None,
                  stop: Callable[[], bool] | None = None) -> dict:
         """`PUT /v1/meshes/{id}`: one mesh of an instance list, in its own space (`stop`:

@@ -93,14 +93,19 @@ class SceneMesh:
         blocks = (self.vertices, self.indices, self.normals, self.terminator_offsets)
         return sum(4 * a.size for a in blocks if a is not None)
 
-    def body(self) -> bytes:
-        """The upload body of `POST /v1/scenes`: V*3 float32, T*3 int32, then the normal
-        and terminator blocks when present (`query()` says which), little-endian."""
+    def blocks(self) -> list[memoryview]:
+        """The upload body of `POST /v1/scenes` as its blocks, not joined (sent and
+        hashed one after another): V*3 float32, T*3 int32, then the normal and
+        terminator blocks when present (`query()` says which), little-endian."""
         parts = [np.ascontiguousarray(self.vertices, dtype="<f4"),
                  np.ascontiguousarray(self.indices, dtype="<i4")]
         parts += [np.ascontiguousarray(a, dtype="<f4")
                   for a in (self.normals, self.terminator_offsets) if a is not None]
-        return b"".join(a.tobytes() for a in parts)
+        return [memoryview(a.reshape(-1).view(np.uint8)) for a in parts]
+
+    def body(self) -> bytes:
+        """`blocks()` joined."""
+        return b"".join(self.blocks())
 
     def query(self) -> dict[str, str]:
         """The upload's block flags (docs/api.md), only those that are on."""
@@ -110,54 +115,77 @@ class SceneMesh:
 
 @dataclass(frozen=True)
 class _MeshArrays:
-    """One mesh in its local space: vertices (float64), loop-triangle indices, and the
-    loop triangles' corner normals (float32, zero on flat ones), None when no face is
-    smooth."""
+    """One mesh in its local space: vertices (float32 read from a mesh, float64 made by
+    strands.py), loop-triangle indices, and the loop triangles' corner normals (float32,
+    zero on flat ones), None when no face is smooth."""
 
     vertices: np.ndarray
     indices: np.ndarray
     normals: np.ndarray | None
 
 
-_EMPTY = _MeshArrays(np.zeros((0, 3)), np.zeros((0, 3), np.int32), None)
+_EMPTY = _MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), None)
+
+
+def _source_key(obj: bpy.types.Object) -> int:
+    """Objects sharing mesh data share this key (their geometry is read once)."""
+    return obj.data.as_pointer() if obj.type == "MESH" and obj.data else obj.as_pointer()
 
 
 def _source_arrays(obj: bpy.types.Object, cache: dict[int, _MeshArrays]) -> _MeshArrays:
     """The object's evaluated mesh in its own space, read once per mesh data."""
-    key = obj.data.as_pointer() if obj.type == "MESH" and obj.data else obj.as_pointer()
+    key = _source_key(obj)
     if key not in cache:
-        if obj.type == "MESH":
-            cache[key] = _mesh_arrays(obj.data)
-        elif obj.type in _STRANDS:
-            cache[key] = _MeshArrays(*_STRANDS[obj.type](obj.data))
-        else:
-            mesh = obj.to_mesh()
-            try:
-                cache[key] = _mesh_arrays(mesh) if mesh else _EMPTY
-            finally:
-                obj.to_mesh_clear()
+        cache[key] = _mesh_arrays(obj.data) if _is_mesh(obj) else _converted(obj)
     return cache[key]
+
+
+def _is_mesh(obj: bpy.types.Object) -> bool:
+    return obj.type == "MESH" and obj.data is not None
+
+
+def _converted(obj: bpy.types.Object) -> _MeshArrays:
+    """A mesh-like object that is not a mesh (curves, text, hair, points), made one."""
+    if obj.type in _STRANDS:
+        return _MeshArrays(*_STRANDS[obj.type](obj.data))
+    mesh = obj.to_mesh()
+    try:
+        return _mesh_arrays(mesh) if mesh else _EMPTY
+    finally:
+        obj.to_mesh_clear()
+
+
+def _smooth(mesh: bpy.types.Mesh) -> np.ndarray:
+    """Each loop triangle's smooth flag (`calc_loop_triangles` done)."""
+    smooth = np.empty(len(mesh.loop_triangles), dtype=bool)
+    mesh.loop_triangles.foreach_get("use_smooth", smooth)
+    return smooth
 
 
 def _mesh_arrays(mesh: bpy.types.Mesh) -> _MeshArrays:
     """Local-space vertices, loop-triangle vertex indices and corner normals of one mesh."""
     mesh.calc_loop_triangles()
-    verts = np.empty(len(mesh.vertices) * 3, dtype=np.float32)
-    mesh.vertices.foreach_get("co", verts)
     count = len(mesh.loop_triangles)
-    tris = np.empty(count * 3, dtype=np.int32)
-    mesh.loop_triangles.foreach_get("vertices", tris)
-    smooth = np.empty(count, dtype=bool)
-    mesh.loop_triangles.foreach_get("use_smooth", smooth)
-    normals = None
-    if smooth.any():
+    vertices = np.empty((len(mesh.vertices), 3), np.float32)
+    indices = np.empty((count, 3), np.int32)
+    normals = np.empty((count, 3, 3), np.float32) if _smooth(mesh).any() else None
+    _read_mesh(mesh, vertices, indices, normals)
+    return _MeshArrays(vertices, indices, normals)
+
+
+def _read_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, indices: np.ndarray,
+               normals: np.ndarray | None) -> None:
+    """Read one mesh into arrays of its sizes (contiguous: parts of a scene's arrays too):
+    vertices, loop-triangle indices and, unless None, corner normals (zero on flat
+    triangles)."""
+    mesh.calc_loop_triangles()
+    mesh.vertices.foreach_get("co", vertices.reshape(-1))
+    mesh.loop_triangles.foreach_get("vertices", indices.reshape(-1))
+    if normals is not None:
         # The corner normals per triangle in one read: split_normals are corner_normals
         # by loop index (tests/addon/test_shading.py), read in a seventh of the time.
-        normals = np.empty(count * 9, dtype=np.float32)
-        mesh.loop_triangles.foreach_get("split_normals", normals)
-        normals = normals.reshape(-1, 3, 3)
-        normals[~smooth] = 0.0
-    return _MeshArrays(verts.reshape(-1, 3).astype(np.float64), tris.reshape(-1, 3), normals)
+        mesh.loop_triangles.foreach_get("split_normals", normals.reshape(-1))
+        normals[~_smooth(mesh)] = 0.0
 
 
 def _world_normals(normals: np.ndarray, linear: np.ndarray) -> np.ndarray:
@@ -235,68 +263,123 @@ def _instances(depsgraph: bpy.types.Depsgraph) -> Iterator[bpy.types.DepsgraphOb
         yield inst
 
 
+PLACE_ROWS = 1 << 16  # rows transformed at once: float64 temporaries of 1.5 MB
+
+
+@dataclass
+class _Source:
+    """A geometry of the flattened scene (mesh data, or an object made a mesh): its sizes,
+    the instances yet to place it, and its local arrays while more than one will."""
+
+    vertices: int
+    triangles: int
+    smooth: bool
+    uses: int = 0
+    arrays: _MeshArrays | None = None
+
+
+def _sized(obj: bpy.types.Object, sources: dict[int, _Source]) -> _Source:
+    """The object's source with its sizes; a mesh's data is not read yet."""
+    key = _source_key(obj)
+    if key not in sources:
+        if _is_mesh(obj):
+            mesh = obj.data
+            mesh.calc_loop_triangles()
+            sources[key] = _Source(len(mesh.vertices), len(mesh.loop_triangles),
+                                   bool(_smooth(mesh).any()))
+        else:
+            arrays = _converted(obj)
+            sources[key] = _Source(len(arrays.vertices), len(arrays.indices),
+                                   arrays.normals is not None, arrays=arrays)
+    return sources[key]
+
+
 def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
     """World-space triangles of every visible, renderable mesh-like object and instance,
-    with their shading normals and terminator offsets (see the module docstring)."""
-    cache: dict[int, _MeshArrays] = {}
-    vertex_parts: list[np.ndarray] = []
-    index_parts: list[np.ndarray] = []
-    normal_parts: list[np.ndarray | None] = []
-    offset_parts: list[float] = []
+    with their shading normals and terminator offsets (see the module docstring).
+
+    Two passes over the depsgraph: every part's sizes, then each part read and placed
+    straight into the scene's arrays (a mesh that one object uses goes from Blender into
+    its place and is transformed there), so that the export holds little more than the
+    upload."""
+    sources: dict[int, _Source] = {}
+    order: list[_Source] = []
+    for inst in _rendered(depsgraph):
+        source = _sized(inst.object, sources)
+        if source.triangles:
+            source.uses += 1
+            order.append(source)
+    if not order:
+        return SceneMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), 0)
+    triangles = sum(source.triangles for source in order)
+    vertices = np.empty((sum(source.vertices for source in order), 3), np.float32)
+    indices = np.empty((triangles, 3), np.int32)
+    normals = (np.empty((triangles, 3, 3), np.float32)
+               if any(source.smooth for source in order) else None)
     spans: dict[str, Span] = {}
-    offset = 0
-    count = 0
-    triangles = 0
+    offsets: list[float] = []
+    at_v = at_t = 0
+    parts = iter(order)
     for inst in _rendered(depsgraph):
         obj = inst.object
-        arrays = _source_arrays(obj, cache)
-        tris, normals = arrays.indices, arrays.normals
-        if len(tris) == 0:
+        source = sources[_source_key(obj)]
+        if not source.triangles:
             continue
-        m = np.array(inst.matrix_world, dtype=np.float64)
-        world = arrays.vertices @ m[:3, :3].T + m[:3, 3]
-        normals = None if normals is None else _world_normals(normals, m[:3, :3])
-        mirrored = bool(np.linalg.det(m[:3, :3]) < 0.0)
-        if mirrored:
-            tris = tris[:, ::-1]  # a mirroring transform flips winding; keep faces outward
-            normals = None if normals is None else normals[:, ::-1]  # corners follow
+        if next(parts, None) is not source:
+            raise RuntimeError("The scene changed while it was read: render again")
+        t = slice(at_t, at_t + source.triangles)
+        mirrored = _place(obj, source, np.array(inst.matrix_world, dtype=np.float64), at_v,
+                          vertices[at_v:at_v + source.vertices], indices[t],
+                          None if normals is None else normals[t])
         if not inst.is_instance:
-            spans[obj.original.name] = Span(triangles, len(tris), mirrored)
-        triangles += len(tris)
-        vertex_parts.append(world.astype(np.float32))
-        index_parts.append(tris + offset)
-        normal_parts.append(normals)
-        offset_parts.append(terminator_offset(obj))
-        offset += len(arrays.vertices)
-        count += 1
-    if not vertex_parts:
-        return SceneMesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), 0)
-    indices = np.ascontiguousarray(np.concatenate(index_parts), dtype=np.int32)
-    return SceneMesh(
-        np.ascontiguousarray(np.concatenate(vertex_parts)),
-        indices,
-        count,
-        *_shading(index_parts, normal_parts, offset_parts),
-        spans,
-    )
+            spans[obj.original.name] = Span(at_t, source.triangles, mirrored)
+        offsets.append(terminator_offset(obj))
+        at_v, at_t = at_v + source.vertices, at_t + source.triangles
+    return SceneMesh(vertices, indices, len(order), normals,
+                     _terminators(order, offsets, normals is not None), spans)
 
 
-def _shading(index_parts: list[np.ndarray], normal_parts: list[np.ndarray | None],
-             offset_parts: list[float]) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """The scene's normal and terminator blocks from its instances' parts: None when no
-    instance has a smooth face, and offsets None when every smooth one has the default."""
-    smooth = [n is not None for n in normal_parts]
-    if not any(smooth):
-        return None, None
-    sizes = [len(t) for t in index_parts]
-    normals = np.concatenate([n if n is not None else np.zeros((size, 3, 3), np.float32)
-                              for n, size in zip(normal_parts, sizes, strict=True)])
-    normals = np.ascontiguousarray(normals, dtype=np.float32)
-    used = {np.float32(o) for o, s in zip(offset_parts, smooth, strict=True) if s}
-    if used == {np.float32(DEFAULT_TERMINATOR_OFFSET)}:
-        return normals, None
-    offsets = np.repeat(np.asarray(offset_parts, np.float32), sizes)
-    return normals, np.ascontiguousarray(offsets, dtype=np.float32)
+def _place(obj: bpy.types.Object, source: _Source, matrix: np.ndarray, first_vertex: int,
+           vertices: np.ndarray, indices: np.ndarray, normals: np.ndarray | None) -> bool:
+    """One instance of `source` into its part of the scene's arrays, through `matrix`;
+    whether the transform mirrors (then each triangle's corners are reversed, keeping
+    faces outward, and its corner normals follow)."""
+    arrays = source.arrays
+    if arrays is None and source.uses > 1:  # read once, for this and the other instances
+        arrays = source.arrays = _mesh_arrays(obj.data)
+    if arrays is None:  # its only instance: read straight into place, transformed there
+        local_normals = normals if source.smooth else None
+        _read_mesh(obj.data, vertices, indices, local_normals)
+        arrays = _MeshArrays(vertices, indices, local_normals)
+    source.uses -= 1
+    if not source.uses:
+        source.arrays = None
+    linear = matrix[:3, :3]
+    mirrored = bool(np.linalg.det(linear) < 0.0)
+    for a in range(0, len(vertices), PLACE_ROWS):
+        rows = arrays.vertices[a:a + PLACE_ROWS].astype(np.float64)
+        vertices[a:a + PLACE_ROWS] = rows @ linear.T + matrix[:3, 3]
+    for a in range(0, len(indices), PLACE_ROWS):
+        rows = arrays.indices[a:a + PLACE_ROWS]
+        indices[a:a + PLACE_ROWS] = (rows[:, ::-1] if mirrored else rows) + first_vertex
+        if normals is None:
+            continue
+        if arrays.normals is None:
+            normals[a:a + PLACE_ROWS] = 0.0  # flat: the geometric normal
+            continue
+        world = _world_normals(arrays.normals[a:a + PLACE_ROWS], linear)
+        normals[a:a + PLACE_ROWS] = world[:, ::-1] if mirrored else world
+    return mirrored
+
+
+def _terminators(order: list[_Source], offsets: list[float], smooth: bool,
+                 ) -> np.ndarray | None:
+    """Per-triangle terminator offsets: None without smooth faces, or when every smooth
+    part has the default."""
+    used = {np.float32(o) for o, source in zip(offsets, order, strict=True) if source.smooth}
+    if not smooth or used == {np.float32(DEFAULT_TERMINATOR_OFFSET)}:
+        return None
+    return np.repeat(np.asarray(offsets, np.float32), [source.triangles for source in order])
 
 
 @dataclass(frozen=True)
@@ -354,7 +437,7 @@ def _local_mesh(arrays: _MeshArrays, terminator_offset: float) -> SceneMesh:
 
 def mesh_id(mesh: SceneMesh) -> str:
     """The service's id of a mesh: the content hash of its upload body."""
-    return content_id(len(mesh.vertices), mesh.triangles, mesh.body())
+    return content_id(len(mesh.vertices), mesh.triangles, mesh.blocks())
 
 
 def ray_visibility(inst: bpy.types.DepsgraphObjectInstance, view_layer: bpy.types.ViewLayer,
