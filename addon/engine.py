@@ -11,7 +11,9 @@ Frame ranges (Ctrl-F12) with the BVH engine send the scene as an instance list
 only when the service lacks it, and the list of instances is sent when it changed; the
 service then builds only what changed (backend/render/bvhs.py). F12 does the same when the
 scene has instances, ray visibility or holdouts, or an Object Index pass (what only an
-instance list carries), else sends the flattened scene. The Rendered viewport's
+instance list carries), else sends the flattened scene. With Persistent Data on (Render
+Properties > Performance) the export is kept between F12s and only what changed is read
+again (persistent.py). The Rendered viewport's
 `view_update`/`view_draw` hand the work to a `viewport.ViewSession`.
 
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
@@ -33,7 +35,18 @@ from typing import Any
 import bpy
 import numpy as np
 
-from . import bake, camera, export, image, pipeline, prefs, service, timings, viewport
+from . import (
+    bake,
+    camera,
+    export,
+    image,
+    persistent,
+    pipeline,
+    prefs,
+    service,
+    timings,
+    viewport,
+)
 from .client import ServiceError
 from .tasks import Cancelled, Task
 
@@ -179,7 +192,7 @@ class AoEngine:
         instanced = scene.scenesort.engine == "bvh" and (
             self.is_animation or export.has_instances(depsgraph)
             or any(extra.per_object for extra in extras))
-        mesh = (export.export_instances if instanced else export.export_scene)(depsgraph)
+        mesh = (persistent.export_instances if instanced else persistent.export_scene)(depsgraph)
         if not instanced and export.custom_visibility(depsgraph):
             self._say("WARNING", "Ray visibility and holdout are ignored by the DACRT engine: "
                                  "choose the BVH engine to honour them")
@@ -379,4 +392,5 @@ def unregister() -> None:
     for panel in _added_to:
         panel.COMPAT_ENGINES.discard(SCENESORT_RE_ao.bl_idname)
     _added_to.clear()
+    persistent.clear()
     bpy.utils.unregister_class(SCENESORT_RE_ao)

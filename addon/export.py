@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import bpy
 import numpy as np
@@ -107,6 +108,12 @@ class SceneMesh:
         """`blocks()` joined."""
         return b"".join(self.blocks())
 
+    @cached_property
+    def content_id(self) -> str:
+        """The service's id of this upload: the hash of its body, made once (a scene kept
+        between renders is not hashed again)."""
+        return content_id(len(self.vertices), self.triangles, self.blocks())
+
     def query(self) -> dict[str, str]:
         """The upload's block flags (docs/api.md), only those that are on."""
         flags = {"normals": self.normals, "terminator_offsets": self.terminator_offsets}
@@ -127,14 +134,14 @@ class _MeshArrays:
 _EMPTY = _MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), None)
 
 
-def _source_key(obj: bpy.types.Object) -> int:
+def source_key(obj: bpy.types.Object) -> int:
     """Objects sharing mesh data share this key (their geometry is read once)."""
     return obj.data.as_pointer() if obj.type == "MESH" and obj.data else obj.as_pointer()
 
 
 def _source_arrays(obj: bpy.types.Object, cache: dict[int, _MeshArrays]) -> _MeshArrays:
     """The object's evaluated mesh in its own space, read once per mesh data."""
-    key = _source_key(obj)
+    key = source_key(obj)
     if key not in cache:
         cache[key] = _mesh_arrays(obj.data) if _is_mesh(obj) else _converted(obj)
     return cache[key]
@@ -280,7 +287,7 @@ class _Source:
 
 def _sized(obj: bpy.types.Object, sources: dict[int, _Source]) -> _Source:
     """The object's source with its sizes; a mesh's data is not read yet."""
-    key = _source_key(obj)
+    key = source_key(obj)
     if key not in sources:
         if _is_mesh(obj):
             mesh = obj.data
@@ -304,7 +311,7 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
     upload."""
     sources: dict[int, _Source] = {}
     order: list[_Source] = []
-    for inst in _rendered(depsgraph):
+    for inst in rendered(depsgraph):
         source = _sized(inst.object, sources)
         if source.triangles:
             source.uses += 1
@@ -320,9 +327,9 @@ def export_scene(depsgraph: bpy.types.Depsgraph) -> SceneMesh:
     offsets: list[float] = []
     at_v = at_t = 0
     parts = iter(order)
-    for inst in _rendered(depsgraph):
+    for inst in rendered(depsgraph):
         obj = inst.object
-        source = sources[_source_key(obj)]
+        source = sources[source_key(obj)]
         if not source.triangles:
             continue
         if next(parts, None) is not source:
@@ -435,11 +442,6 @@ def _local_mesh(arrays: _MeshArrays, terminator_offset: float) -> SceneMesh:
                      np.ascontiguousarray(arrays.indices, np.int32), 1, arrays.normals, offsets)
 
 
-def mesh_id(mesh: SceneMesh) -> str:
-    """The service's id of a mesh: the content hash of its upload body."""
-    return content_id(len(mesh.vertices), mesh.triangles, mesh.blocks())
-
-
 def ray_visibility(inst: bpy.types.DepsgraphObjectInstance, view_layer: bpy.types.ViewLayer,
                    ) -> int:
     """The instance's mask as Cycles reads it: Ray Visibility > Camera and Shadow of its
@@ -457,7 +459,7 @@ def ray_visibility(inst: bpy.types.DepsgraphObjectInstance, view_layer: bpy.type
     return mask
 
 
-def _rendered(depsgraph: bpy.types.Depsgraph,
+def rendered(depsgraph: bpy.types.Depsgraph,
               ) -> Iterator[bpy.types.DepsgraphObjectInstance]:
     """`_instances` that have mesh-like geometry (hair and points included)."""
     for inst in _instances(depsgraph):
@@ -485,7 +487,7 @@ def custom_visibility(depsgraph: bpy.types.Depsgraph) -> bool:
     """Whether some object's ray visibility or holdout is not the default."""
     view_layer = depsgraph.view_layer
     return any(ray_visibility(inst, view_layer) != DEFAULT_VISIBILITY
-               for inst in _rendered(depsgraph))
+               for inst in rendered(depsgraph))
 
 
 def has_instances(depsgraph: bpy.types.Depsgraph) -> bool:
@@ -495,7 +497,7 @@ def has_instances(depsgraph: bpy.types.Depsgraph) -> bool:
     default (only an instance list carries them). Reads no mesh."""
     view_layer = depsgraph.view_layer
     seen: set[int] = set()
-    for inst in _rendered(depsgraph):
+    for inst in rendered(depsgraph):
         obj = inst.object
         data = obj.data.as_pointer() if obj.type == "MESH" and obj.data else None
         if inst.is_instance or data in seen or ray_visibility(
@@ -509,16 +511,27 @@ def has_instances(depsgraph: bpy.types.Depsgraph) -> bool:
 @dataclass
 class MeshCache:
     """Meshes read by `export_instances`, kept between exports of one depsgraph whose
-    geometry did not change (the Rendered viewport after moving objects: its evaluated
-    meshes stay where they were): the arrays by evaluated data, and each (arrays,
-    terminator offset)'s local mesh and id. Clear it after any geometry update."""
+    geometry did not change (the Rendered viewport after moving objects, F12 with
+    Persistent Data: evaluated meshes stay where they were): the arrays by `source_key`,
+    and each (arrays, terminator offset)'s local mesh and id. An export keeps only what
+    it used."""
 
     arrays: dict[int, _MeshArrays] = field(default_factory=dict)
     local: dict[tuple[int, float], tuple[str, SceneMesh]] = field(default_factory=dict)
 
     def clear(self) -> None:
-        self.arrays.clear()
-        self.local.clear()
+        self.keep(set())
+
+    def forget(self, key: int) -> None:
+        """Drop one source (its geometry changed)."""
+        self.keep(set(self.arrays) - {key})
+
+    def keep(self, keys: set[int]) -> None:
+        """Keep only the sources of `keys`, and their local meshes (which are keyed by
+        the arrays' `id()`: never kept past their arrays, whose id a new one may reuse)."""
+        self.arrays = {k: a for k, a in self.arrays.items() if k in keys}
+        live = {id(a) for a in self.arrays.values()}
+        self.local = {k: v for k, v in self.local.items() if k[0] in live}
 
 
 def export_instances(depsgraph: bpy.types.Depsgraph,
@@ -535,15 +548,17 @@ def export_instances(depsgraph: bpy.types.Depsgraph,
     masks: list[int] = []
     pass_index: list[int] = []
     view_layer = depsgraph.view_layer
-    for inst in _rendered(depsgraph):
+    used: set[int] = set()
+    for inst in rendered(depsgraph):
         obj = inst.object
+        used.add(source_key(obj))
         arrays = _source_arrays(obj, cache.arrays)
         if len(arrays.indices) == 0:
             continue
         key = (id(arrays), terminator_offset(obj))
         if key not in local:
             mesh = _local_mesh(arrays, key[1])
-            local[key] = (mesh_id(mesh), mesh)
+            local[key] = (mesh.content_id, mesh)
         name, mesh = local[key]
         if name not in meshes:
             position[name] = len(meshes)
@@ -552,6 +567,7 @@ def export_instances(depsgraph: bpy.types.Depsgraph,
         transforms.append(np.array(inst.matrix_world, dtype=np.float32)[:3])
         masks.append(ray_visibility(inst, view_layer))
         pass_index.append(obj.pass_index)
+    cache.keep(used)  # what the scene no longer renders is let go
     placed = np.asarray(transforms, np.float32).reshape(-1, 3, 4)
     # instances scaled to nothing have no area (and no inverse for the service)
     keep = np.linalg.det(placed[:, :, :3].astype(np.float64)) != 0.0

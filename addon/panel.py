@@ -206,6 +206,17 @@ class SCENESORT_PT_film(_EnginePanel, bpy.types.Panel):
     groups = ((("film_transparent", "Transparent"),),)
 
 
+class SCENESORT_PT_performance(_EnginePanel, bpy.types.Panel):
+    """Performance > Final Render > Persistent Data, as Cycles draws it: F12 keeps the
+    exported scene and reads again only what changed (persistent.py)."""
+
+    bl_label = "Performance"
+    bl_order = 2
+    bl_options = {"DEFAULT_CLOSED"}
+    source = "render"
+    groups = ((("use_persistent_data", "Persistent Data"),),)
+
+
 class SCENESORT_OBJECT_PT_ray_visibility(bpy.types.Panel):
     """Object > Visibility > Ray Visibility, as Cycles and EEVEE draw it: the two kinds
     of ray an AO render has (Mask > Holdout is Blender's own panel's)."""
@@ -230,8 +241,8 @@ class SCENESORT_OBJECT_PT_ray_visibility(bpy.types.Panel):
         col.prop(context.object, "visible_shadow", text="Shadow")
 
 
-CLASSES = (SCENESORT_PT_sampling, SCENESORT_PT_film, SCENESORT_PT_render, SCENESORT_PT_view3d,
-           SCENESORT_OBJECT_PT_ray_visibility)
+CLASSES = (SCENESORT_PT_sampling, SCENESORT_PT_film, SCENESORT_PT_performance,
+           SCENESORT_PT_render, SCENESORT_PT_view3d, SCENESORT_OBJECT_PT_ray_visibility)
 
 
 def register() -> None:

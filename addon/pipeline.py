@@ -13,7 +13,6 @@ from typing import Any
 import numpy as np
 
 from .client import Client, ServiceError
-from .client import scene_id as content_id
 from .connection import Connection, Target, connect
 from .export import InstanceExport, SceneMesh
 from .tasks import Task
@@ -150,13 +149,13 @@ def ensure_scene(task: Task, client: Client, mesh: SceneMesh, outcome: Outcome) 
         raise ServiceError(NOTHING_TO_SEND)
     check_size(outcome, mesh, "The scene")
     task.set_step("hashing the scene")
-    body = mesh.blocks()  # not joined: a copy of the scene less in Blender's memory
-    scene_id = content_id(len(mesh.vertices), mesh.triangles, body)
+    scene_id = mesh.content_id
     task.set_step("checking the service's scene cache")
     if not client.has_scene(scene_id):
         task.set_step(f"uploading {mesh.triangles:,} triangles ({mesh.nbytes / 1e6:.1f} MB)")
-        answer = client.upload_scene(len(mesh.vertices), mesh.triangles, body, mesh.query(),
-                                     stop=lambda: task.cancelled)
+        # the blocks, not joined: a copy of the scene less in Blender's memory
+        answer = client.upload_scene(len(mesh.vertices), mesh.triangles, mesh.blocks(),
+                                     mesh.query(), stop=lambda: task.cancelled)
         outcome.uploaded_bytes = mesh.nbytes
         if answer.get("scene_id", scene_id) != scene_id:
             # Not fatal: use the service's id, but the next render will upload again.
