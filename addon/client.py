@@ -305,8 +305,8 @@ class Client:
 
     def job_result(self, job_id: str, pixels: int, layer: str = "f32") -> np.ndarray:
         """`GET /v1/jobs/{id}/result?format=...` (f32, coverage, depth, holdout, normal,
-        position, object): `pixels` float32 values (pixels times the layer's channels),
-        row 0 at the top."""
+        position, object, triangle): `pixels` float32 values (pixels times the layer's
+        channels), row 0 at the top."""
         _, _, data = self._request(
             "GET", f"/v1/jobs/{job_id}/result?format={layer}", timeout=UPLOAD_TIMEOUT_S
         )

@@ -10,8 +10,8 @@ Frame ranges (Ctrl-F12) with the BVH engine send the scene as an instance list
 (`export.export_instances`): per frame each mesh is asked for by its hash (HEAD) and sent
 only when the service lacks it, and the list of instances is sent when it changed; the
 service then builds only what changed (backend/render/bvhs.py). F12 does the same when the
-scene has instances, ray visibility or holdouts, or an Object Index pass (what only an
-instance list carries), else sends the flattened scene. With Persistent Data on (Render
+scene has instances, ray visibility or holdouts, or an Object or Material Index pass (what
+only an instance list carries), else sends the flattened scene. With Persistent Data on (Render
 Properties > Performance) the export is kept between F12s and only what changed is read
 again (persistent.py). The Rendered viewport's
 `view_update`/`view_draw` hand the work to a `viewport.ViewSession`.
@@ -19,9 +19,9 @@ again (persistent.py). The Rendered viewport's
 Passes, as Cycles writes them: Combined RGB = AO and 0 where the camera ray missed,
 alpha = coverage with Film > Transparent and 1 without; and those the view layer turns on
 (`image.OPTIONAL_PASSES`): `AO` (one channel, 0 on background), `Depth` (camera-space Z,
-1e10 on background; traced only when on), Normal, Position, Object Index and the Denoising
-Normal, Albedo and Depth of Cycles' Denoising Data, so that the compositor's Denoise node
-works.
+1e10 on background; traced only when on), Normal, Position, Object and Material Index and
+the Denoising Normal, Albedo and Depth of Cycles' Denoising Data, so that the compositor's
+Denoise node works.
 """
 
 from __future__ import annotations

@@ -124,11 +124,13 @@ class SceneMesh:
 class _MeshArrays:
     """One mesh in its local space: vertices (float32 read from a mesh, float64 made by
     strands.py), loop-triangle indices, and the loop triangles' corner normals (float32,
-    zero on flat ones), None when no face is smooth."""
+    zero on flat ones), None when no face is smooth; each loop triangle's material slot,
+    None when the mesh has at most one material."""
 
     vertices: np.ndarray
     indices: np.ndarray
     normals: np.ndarray | None
+    slots: np.ndarray | None = None
 
 
 _EMPTY = _MeshArrays(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), None)
@@ -177,7 +179,11 @@ def _mesh_arrays(mesh: bpy.types.Mesh) -> _MeshArrays:
     indices = np.empty((count, 3), np.int32)
     normals = np.empty((count, 3, 3), np.float32) if _smooth(mesh).any() else None
     _read_mesh(mesh, vertices, indices, normals)
-    return _MeshArrays(vertices, indices, normals)
+    slots = None
+    if len(mesh.materials) > 1:
+        slots = np.empty(count, np.int32)
+        mesh.loop_triangles.foreach_get("material_index", slots)
+    return _MeshArrays(vertices, indices, normals, slots)
 
 
 def _read_mesh(mesh: bpy.types.Mesh, vertices: np.ndarray, indices: np.ndarray,
@@ -401,6 +407,23 @@ class InstanceExport:
     # (N,) float32 each instance's object's Pass Index (the Object Index pass); not sent
     pass_index: np.ndarray = field(default_factory=lambda: np.zeros(0, np.float32),
                                    compare=False)
+    # Per instance, for the Material Index pass (not sent): its mesh's material slot per
+    # triangle (None: slot 0) and the Pass Index of the material in each of its object's
+    # slots (0 for an empty slot or none, as Cycles' default surface).
+    materials: tuple[tuple[np.ndarray | None, np.ndarray], ...] = field(default=(),
+                                                                       compare=False)
+
+    def material_index(self, instance: np.ndarray, triangle: np.ndarray) -> np.ndarray:
+        """The Material Index pass's value where each (instance, triangle in its mesh) was
+        hit (instance -1: background, 0), the slot clamped to the object's slots as
+        Cycles clamps it."""
+        out = np.zeros(len(instance), np.float32)
+        for i in np.unique(instance[instance >= 0]):
+            at = instance == i
+            slots, table = self.materials[i]
+            slot = 0 if slots is None else np.clip(slots[triangle[at]], 0, len(table) - 1)
+            out[at] = table[slot]
+        return out
 
     @property
     def triangles(self) -> int:
@@ -534,6 +557,12 @@ class MeshCache:
         self.local = {k: v for k, v in self.local.items() if k[0] in live}
 
 
+def _material_passes(obj: bpy.types.Object) -> np.ndarray:
+    """The Pass Index of the material in each of the object's slots (at least one)."""
+    return np.array([slot.material.pass_index if slot.material is not None else 0
+                     for slot in obj.material_slots] or [0], np.float32)
+
+
 def export_instances(depsgraph: bpy.types.Depsgraph,
                      cache: MeshCache | None = None) -> InstanceExport:
     """What `export_scene` renders, as meshes and instances: instanced meshes are read and
@@ -547,6 +576,7 @@ def export_instances(depsgraph: bpy.types.Depsgraph,
     transforms: list[np.ndarray] = []
     masks: list[int] = []
     pass_index: list[int] = []
+    materials: list[tuple[np.ndarray | None, np.ndarray]] = []
     view_layer = depsgraph.view_layer
     used: set[int] = set()
     for inst in rendered(depsgraph):
@@ -567,6 +597,7 @@ def export_instances(depsgraph: bpy.types.Depsgraph,
         transforms.append(np.array(inst.matrix_world, dtype=np.float32)[:3])
         masks.append(ray_visibility(inst, view_layer))
         pass_index.append(obj.pass_index)
+        materials.append((arrays.slots, _material_passes(obj)))
     cache.keep(used)  # what the scene no longer renders is let go
     placed = np.asarray(transforms, np.float32).reshape(-1, 3, 4)
     # instances scaled to nothing have no area (and no inverse for the service)
@@ -585,4 +616,5 @@ def export_instances(depsgraph: bpy.types.Depsgraph,
         placed[keep],
         None if (visibility == DEFAULT_VISIBILITY).all() else visibility,
         np.asarray(pass_index, np.float32)[keep],
+        tuple(m for m, kept in zip(materials, keep, strict=True) if kept),
     )

@@ -38,6 +38,8 @@ OPTIONAL_PASSES = (
     ExtraPass(("Normal", 3, "XYZ", "VECTOR"), "use_pass_normal", "normal"),
     ExtraPass(("Position", 3, "XYZ", "VECTOR"), "use_pass_position", "position"),
     ExtraPass(("IndexOB", 1, "X", "VALUE"), "use_pass_object_index", "object", per_object=True),
+    ExtraPass(("IndexMA", 1, "X", "VALUE"), "use_pass_material_index", "triangle",
+              per_object=True),
     # Denoising Data: what the compositor's Denoise node takes beside the image
     ExtraPass(("Denoising Normal", 3, "XYZ", "VECTOR"), "denoising_store_passes", "normal",
               cycles=True),
@@ -57,8 +59,10 @@ def wanted_passes(view_layer: Any) -> tuple[ExtraPass, ...]:
 
 
 def service_passes(extras: tuple[ExtraPass, ...]) -> tuple[str, ...]:
-    """The service images `extras` are made from (JobRequest.passes), each once."""
-    return tuple(dict.fromkeys(p.source for p in extras if p.source is not None))
+    """The service images `extras` are made from (JobRequest.passes), each once; the
+    instance each pixel sees for every pass of the instance list."""
+    sources = [s for p in extras for s in (("object",) if p.per_object else ()) + (p.source,)]
+    return tuple(dict.fromkeys(s for s in sources if s is not None))
 
 
 def needs_depth(extras: tuple[ExtraPass, ...]) -> bool:
@@ -87,7 +91,8 @@ def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
 def extra_passes(outcome: Outcome, extras: tuple[ExtraPass, ...],
                  scene: SceneMesh | InstanceExport) -> dict[str, np.ndarray]:
     """The optional passes' pixels (bottom row first), as Cycles writes them: 0 on
-    background; Object Index the object's Pass Index (0 on background and holdouts);
+    background; Object Index the object's Pass Index, Material Index its material's
+    (0 on background and holdouts);
     Denoising Albedo 1 where covered (the AO image is a white surface's), Denoising Depth
     the Depth pass."""
     width, height = outcome.size
@@ -103,6 +108,14 @@ def extra_passes(outcome: Outcome, extras: tuple[ExtraPass, ...],
             index = outcome.extras["object"].astype(np.int64)
             table = np.append(getattr(scene, "pass_index", np.zeros(0)), 0.0)  # [-1]: none
             out[name] = rows(table[index].astype(np.float32), 1)
+        elif extra.source == "triangle":
+            halves = outcome.extras["triangle"].reshape(-1, 2).astype(np.int64)
+            instance = outcome.extras["object"].astype(np.int64)
+            if isinstance(scene, InstanceExport):
+                index = scene.material_index(instance, halves[:, 0] * 65536 + halves[:, 1])
+            else:  # a flattened scene (the DACRT engine) carries no materials
+                index = np.zeros(len(instance), np.float32)
+            out[name] = rows(index, 1)
         elif extra.source is not None:
             out[name] = rows(outcome.extras[extra.source], channels)
         elif name == "Denoising Albedo":

@@ -310,7 +310,7 @@ def camera_job(task: Task, client: Client, outcome: Outcome, scene_id: str,
     if holdouts:
         outcome.holdout = client.job_result(job["job_id"], pixels, "holdout")
     for name in passes:
-        channels = 1 if name == "object" else 3
+        channels = {"object": 1, "triangle": 2}.get(name, 3)
         outcome.extras[name] = client.job_result(job["job_id"], pixels * channels, name)
     outcome.render_ms = (time.perf_counter() - start) * 1e3
     outcome.requests = client.requests

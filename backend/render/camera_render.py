@@ -101,9 +101,10 @@ def render_camera(
     job.picture = True  # its PNG is made when asked for (job_png)
     if "normal" in passes:
         job.extras["normal"] = np.asarray(normals, np.float32).reshape(*shape, 3)
-    if not (depth or {"position", "object"} & set(passes)):
+    if not (depth or {"position", "object", "triangle"} & set(passes)):
         return  # nothing needs the camera rays' hits traced again
-    t, instance = timed("depth", lambda: seen_hits(views, origins, directions, tmin, tmax))
+    t, instance, triangle = timed("depth", lambda: seen_hits(views, origins, directions,
+                                                             tmin, tmax))
     hit = np.isfinite(t)
     t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]
     z = t64[:, 0] * (directions.astype(np.float64) @ camera.forward)
@@ -113,6 +114,10 @@ def render_camera(
         "position": lambda: np.where(hit[:, None], origins + t64 * directions,
                                      0.0).reshape(*shape, 3),
         "object": lambda: np.where(job.coverage.ravel() > 0, instance, -1).reshape(shape),
+        # two 16-bit halves: float32 holds each exactly, whatever the mesh's size
+        "triangle": lambda: np.where(job.coverage.ravel()[:, None] > 0,
+                                     np.stack([triangle >> 16, triangle & 0xFFFF], axis=1),
+                                     -1).reshape(*shape, 2),
     }
     job.extras.update({name: extras[name]().astype(np.float32) for name in passes
                        if name in extras})
@@ -121,18 +126,20 @@ def render_camera(
 def seen_hits(
     views: Views, origins: np.ndarray, directions: np.ndarray, tmin: np.ndarray,
     tmax: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per ray the closest seen hit's t (a holdout's too; inf on a miss) and the instance
-    hit (a single mesh's 0): the same closest-hit query as AO's primary rays."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per ray the closest seen hit's t (a holdout's too; inf on a miss), the instance
+    hit (a single mesh's 0) and the triangle in its mesh: the same closest-hit query as
+    AO's primary rays."""
     from scenesort import kernels
 
     hits = kernels.trace(views.camera, origins, directions, tmin, tmax)
-    t, instance = hits.t, hits.instance
+    t, instance, triangle = hits.t, hits.instance, hits.triangle
     if views.holdout is not None:
         held = kernels.trace(views.holdout, origins, directions, tmin, tmax)
         nearer = held.t < t
         t, instance = np.where(nearer, held.t, t), np.where(nearer, held.instance, instance)
-    return t, instance
+        triangle = np.where(nearer, held.triangle, triangle)
+    return t, instance, triangle
 
 
 def _reach(options: AoOptions) -> float:

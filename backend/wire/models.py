@@ -16,8 +16,9 @@ from scenesort.ao_options import AO_OPTIONS, AoOptions, OptionError
 
 OCTET = "application/octet-stream"
 Method = Literal["sah", "median"]  # the BVH builders
-ExtraPass = Literal["normal", "position", "object"]  # a job's images beside AO, coverage, depth
-EXTRA_PASSES = ("normal", "position", "object")
+# a job's images beside AO, coverage, depth
+ExtraPass = Literal["normal", "position", "object", "triangle"]
+EXTRA_PASSES = ("normal", "position", "object", "triangle")
 LeafSize = Annotated[int, Field(ge=1, le=64)]
 
 
@@ -263,7 +264,10 @@ class JobRequest(AoSettings):
         default_factory=list, max_length=len(EXTRA_PASSES),
         description="extra images to keep for GET .../result: normal (world-space shading "
                     "normal, xyz), position (world-space hit point, xyz), object (the "
-                    "instance index the camera ray hit, -1 on background and holdouts)")
+                    "instance index the camera ray hit, -1 on background and holdouts), "
+                    "triangle (the triangle it hit in its instance's mesh, as two values "
+                    "exact in float32: index // 65536 and index % 65536; -1 and -1 on "
+                    "background and holdouts)")
     pixel_filter: ao_setting("pixel_filter")
     filter_width: ao_setting("filter_width")
 

@@ -1,7 +1,7 @@
 """Passes that follow the view layer's toggles, headless with a real service, against
-Cycles' own passes of the same scene at pixel centres: Normal, Position, Object Index
-(a collection instance included) and the Denoising Data the compositor's Denoise node
-takes."""
+Cycles' own passes of the same scene at pixel centres: Normal, Position, Object and
+Material Index (a collection instance included) and the Denoising Data the compositor's
+Denoise node takes."""
 
 from __future__ import annotations
 
@@ -19,13 +19,16 @@ import addon
 from addon import engine, prefs
 
 WIDTH, HEIGHT = 64, 48
-TOGGLES = ("use_pass_z", "use_pass_normal", "use_pass_position", "use_pass_object_index")
+TOGGLES = ("use_pass_z", "use_pass_normal", "use_pass_position", "use_pass_object_index",
+           "use_pass_material_index")
 
 
 @pytest.fixture(scope="module")
 def scene() -> Iterator[bpy.types.Scene]:
     """A floor, a cube and a collection instance of a smaller cube, each with its own
-    Pass Index; the view layer's Normal, Position, Object Index and Denoising Data on."""
+    Pass Index and materials with theirs (the cube's faces in three slots, the last
+    empty; the instanced cube's material linked to its object); the view layer's Normal,
+    Position, Object and Material Index and Denoising Data on."""
     bpy.ops.wm.read_factory_settings(use_empty=True)
     addon.register()
     scn = bpy.context.scene
@@ -39,6 +42,18 @@ def scene() -> Iterator[bpy.types.Scene]:
     holder.instance_type, holder.instance_collection = "COLLECTION", group
     holder.location, holder.pass_index = (1.0, 0.0, 0.4), 4
     scn.collection.objects.link(holder)
+    materials = {name: bpy.data.materials.new(name) for name in ("F", "A", "B", "D", "O")}
+    for index, mat in enumerate(materials.values(), start=5):
+        mat.pass_index = index
+    scn.objects["Floor"].data.materials.append(materials["F"])
+    cube = scn.objects["Cube"].data
+    for name in ("A", "B", None):
+        cube.materials.append(materials.get(name))
+    for face in cube.polygons:  # the top B, the front A, the others (a side seen) empty
+        face.material_index = 1 if face.normal.z > 0.5 else 0 if face.normal.y < -0.5 else 2
+    small.data.materials.append(materials["D"])
+    small.material_slots[0].link = "OBJECT"  # the object's material, not its mesh's
+    small.material_slots[0].material = materials["O"]
     add_camera(scn, (0.0, -5.5, 3.0), (math.radians(62), 0.0, 0.0), WIDTH, HEIGHT)
     scn.world = bpy.data.worlds.new("World")
     scn.scenesort.spp = 16
@@ -74,14 +89,14 @@ def render_multilayer(scene: bpy.types.Scene, engine_name: str, path: Path) -> d
 def test_passes_follow_the_view_layer(scene) -> None:
     """Registered for the compositor as the toggles say, in Cycles' names."""
     names = [p.blender[0] for p in engine.image.wanted_passes(scene.view_layers[0])]
-    assert names == ["Depth", "Normal", "Position", "IndexOB", "Denoising Normal",
+    assert names == ["Depth", "Normal", "Position", "IndexOB", "IndexMA", "Denoising Normal",
                      "Denoising Albedo", "Denoising Depth"]
     layer = scene.view_layers[0]
     layer.use_pass_position = False
     layer.cycles.denoising_store_passes = False
     try:
         names = [p.blender[0] for p in engine.image.wanted_passes(layer)]
-        assert names == ["Depth", "Normal", "IndexOB"]
+        assert names == ["Depth", "Normal", "IndexOB", "IndexMA"]
     finally:
         layer.use_pass_position = True
         layer.cycles.denoising_store_passes = True
@@ -103,6 +118,12 @@ def test_passes_match_cycles(scene, tmp_path) -> None:
     np.testing.assert_array_equal(index[clean],
                                   channel(cycles, "IndexOB.X", "Object Index.X")[clean])
     assert {1.0, 2.0, 3.0} <= set(np.unique(index[clean]).tolist())
+    material = channel(ours, "IndexMA.X", "Material Index.X")
+    np.testing.assert_array_equal(material[clean],
+                                  channel(cycles, "IndexMA.X", "Material Index.X")[clean])
+    # the floor's, the cube's first two slots and its empty one, the instance's object's
+    assert {5.0, 6.0, 7.0, 0.0, 9.0} <= set(np.unique(material[clean]).tolist())
+    assert np.all(material[our_alpha == 0] == 0.0)
     for axis in "XYZ":
         np.testing.assert_array_equal(channel(ours, f"Denoising Normal.{axis}"),
                                       channel(ours, f"Normal.{axis}"))
@@ -113,7 +134,8 @@ def test_passes_match_cycles(scene, tmp_path) -> None:
 
 
 def test_without_the_z_pass_no_depth_is_traced(scene, tmp_path, monkeypatch) -> None:
-    """Z, Denoising Data, Position and Object Index off: the result holds no Depth, and
+    """Z, Denoising Data, Position, Object and Material Index off: the result holds no
+    Depth, and
     the job traced none (the camera rays' second, closest-hit trace is what it costs)."""
     from addon import pipeline
 
@@ -122,7 +144,8 @@ def test_without_the_z_pass_no_depth_is_traced(scene, tmp_path, monkeypatch) -> 
     monkeypatch.setattr(pipeline, "render_job",
                         lambda *a, **k: outcomes.append(real(*a, **k)) or outcomes[-1])
     layer = scene.view_layers[0]
-    off = ("use_pass_z", "use_pass_position", "use_pass_object_index")
+    off = ("use_pass_z", "use_pass_position", "use_pass_object_index",
+           "use_pass_material_index")
     for name in off:
         setattr(layer, name, False)
     layer.cycles.denoising_store_passes = False

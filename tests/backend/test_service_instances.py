@@ -372,7 +372,8 @@ def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
 
 def test_extra_passes_are_kept_when_asked_for(api, meshes) -> None:  # noqa: ANN001
     """A job's passes: the shading normals render_ao found, the hit points (on the
-    instances' world triangles), the instance each camera ray hit (-1 on background);
+    instances' world triangles), the instance each camera ray hit (-1 on background)
+    and the triangle in its mesh (two halves; -1, -1 on background);
     a pass not asked for is a 409 naming `format`."""
     from scenesort.kernels import Camera
 
@@ -385,7 +386,8 @@ def test_extra_passes_are_kept_when_asked_for(api, meshes) -> None:  # noqa: ANN
     camera = Camera.look_at((0.0, 2.0, 2.0), (0, 0, 0), (0, 1, 0), 50.0, 24, 18).to_dict()
     job = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera, "spp": 4,
                                             "seed": 2, "distance": 0.5,
-                                            "passes": ["normal", "position", "object"]})
+                                            "passes": ["normal", "position", "object",
+                                                       "triangle"]})
     assert job.status_code == 202, job.text
     status = job_ended(api.client, job.json()["job_id"])
 
@@ -403,6 +405,10 @@ def test_extra_passes_are_kept_when_asked_for(api, meshes) -> None:  # noqa: ANN
     np.testing.assert_array_equal(layer("normal", 3), direct.normals)
     np.testing.assert_array_equal(layer("object")[:, 0], np.where(hits.hit, hits.instance, -1))
     assert {0, 1} <= set(hits.instance.tolist())
+    halves = layer("triangle", 2).astype(np.int64)
+    np.testing.assert_array_equal(halves[:, 0] * 65536 + halves[:, 1],
+                                  np.where(hits.hit, hits.triangle, -65537))
+    assert len(set(hits.triangle[hits.hit].tolist())) > 4
     expected = np.where(hits.hit[:, None], o + hits.t[:, None].astype(np.float64) * d, 0.0)
     np.testing.assert_allclose(layer("position", 3), expected, rtol=1e-6, atol=1e-6)
     plain = _job(api, scene_id, camera)

@@ -154,6 +154,8 @@ async def cancel_job(job_id: JobId, service: Shared) -> JobStatus:
             "and 0.0 elsewhere (a scene sent with visibility masks); format=normal and "
             "format=position: height*width*3 float32 (x, y, z per pixel, 0 on background), "
             "format=object: height*width float32 instance indices (-1 on background), "
+            "format=triangle: height*width*2 float32, the triangle hit in its instance's "
+            "mesh as index // 65536 and index % 65536 (-1, -1 on background), "
             "each when the job's passes asked for it; format=png: "
             "8-bit grayscale PNG of the AO. X-Width/X-Height headers.",
         },
@@ -163,7 +165,7 @@ async def cancel_job(job_id: JobId, service: Shared) -> JobStatus:
 async def job_result(
     job_id: JobId, service: Shared,
     format: Literal["f32", "coverage", "depth", "holdout", "normal", "position", "object",
-                    "png"] = "f32",
+                    "triangle", "png"] = "f32",
 ) -> Response:
     """The finished image (AO, coverage, depth, holdout or an extra pass); 409 while the
     job is not done or did not make it."""
