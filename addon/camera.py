@@ -62,20 +62,22 @@ def camera_dict(
 
 def depth_of_field(obj: bpy.types.Object) -> dict[str, Any]:
     """The camera's depth of field as Cycles takes it (blender/camera.cpp): the lens's
-    radius lens * 1e-3 / (2 * f-stop) in world units, the focus distance (to the focus
-    object: its distance along the view axis), the aperture's blades, rotation and ratio;
-    nothing for an orthographic camera or with Depth of Field off (a pinhole)."""
+    radius in world units, lens * 1e-3 / (2 * f-stop) (1 / (2 * f-stop) for an
+    orthographic camera), the focus distance (to the focus object: its distance along the
+    view axis), the aperture's blades, rotation and ratio; nothing with Depth of Field off
+    (a pinhole) or for a camera type without it."""
     cam = obj.data
     dof = cam.dof
-    if not dof.use_dof or cam.type != "PERSP":
+    if not dof.use_dof or cam.type not in ("PERSP", "ORTHO"):
         return {}
+    scale = float(cam.lens) * 1e-3 if cam.type == "PERSP" else 1.0
     focus = float(dof.focus_distance)
     if dof.focus_object is not None:
         m = obj.matrix_world
         view = m.col[2].xyz.normalized()
         focus = abs(view.dot(m.translation - dof.focus_object.matrix_world.translation))
     return {
-        "aperture_size": float(cam.lens) * 1e-3 / (2.0 * max(float(dof.aperture_fstop), 1e-5)),
+        "aperture_size": scale / (2.0 * max(float(dof.aperture_fstop), 1e-5)),
         "focus_distance": max(focus, 1e-6),
         "aperture_blades": int(dof.aperture_blades) if dof.aperture_blades >= 3 else 0,
         "aperture_rotation": float(dof.aperture_rotation),

@@ -149,8 +149,9 @@ class CameraModel(Strict):
     clip_end: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1000.0
     aperture_size: Annotated[float, Field(
         ge=0, allow_inf_nan=False,
-        description="depth of field (PERSP, rendered through a pixel filter): the lens's "
-                    "radius in world units, Cycles' lens * 1e-3 / (2 * f-stop); 0: none")] = 0.0
+        description="depth of field (rendered through a pixel filter): the lens's radius in "
+                    "world units, Cycles' lens * 1e-3 / (2 * f-stop) for PERSP, 1 / (2 * "
+                    "f-stop) for ORTHO; 0: none")] = 0.0
     focus_distance: Annotated[float, Field(
         gt=0, allow_inf_nan=False, description="the camera-space depth in focus")] = 10.0
     aperture_blades: Annotated[int, Field(

@@ -111,9 +111,10 @@ class Camera:
     shift_y: float = 0.0
     clip_start: float = 0.1  # camera-space depth
     clip_end: float = 1000.0
-    # Depth of field, as Cycles' camera has it (PERSP only; rendered by the filtered film,
-    # kernels/render/filtered.py): the lens's radius in world units (Cycles' aperturesize,
-    # lens * 1e-3 / (2 * f-stop) from Blender's f-stop; 0: a pinhole), the camera-space
+    # Depth of field, as Cycles' camera has it (rendered by the filtered film,
+    # kernels/render/filtered.py): the lens's radius in world units (Cycles' aperturesize:
+    # lens * 1e-3 / (2 * f-stop) from Blender's f-stop for PERSP, 1 / (2 * f-stop) for
+    # ORTHO; 0: a pinhole), the camera-space
     # depth in focus, and the aperture's shape (0 blades: round, else a regular polygon of
     # that many corners turned by `aperture_rotation` radians, squeezed across x by
     # `aperture_ratio` as an anamorphic lens).
@@ -146,9 +147,6 @@ class Camera:
         if self.aperture_size < 0.0:
             raise ValueError(f"camera.aperture_size must be >= 0 (0: no depth of field), got "
                              f"{self.aperture_size!r}")
-        if self.aperture_size > 0.0 and self.type != "PERSP":
-            raise ValueError("camera.aperture_size: depth of field is rendered for PERSP "
-                             "cameras only; set it to 0 for an ORTHO camera")
         blades = self.aperture_blades
         if isinstance(blades, bool) or not isinstance(blades, int | np.integer) or not (
                 blades == 0 or 3 <= blades <= MAX_BLADES):

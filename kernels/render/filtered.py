@@ -106,12 +106,23 @@ def polygon_point(corners: int, rotation: float, u: wp.vec2) -> wp.vec2:
 
 
 @wp.func
+def lens_point(cam: FilmCamera, lens: wp.vec2) -> wp.vec3:
+    """The camera-space point of the aperture that `lens` (in the unit square) picks
+    (Cycles' camera_sample_aperture times its aperturesize)."""
+    uv = concentric_disk(lens)
+    if cam.blades > 0:
+        uv = polygon_point(cam.blades, cam.blade_rotation, lens)
+    return wp.vec3(uv[0] * cam.inv_ratio * cam.aperture, uv[1] * cam.aperture, 0.0)
+
+
+@wp.func
 def camera_ray(cam: FilmCamera, px: float, py: float, lens: wp.vec2):
     """(origin, unit direction, tmin, tmax) through raster point (px, py) (pixels from the
     image's left and top edges), as `Camera.rays` builds them; with an aperture, from the
-    lens point that `lens` (in the unit square) picks, through the point of the ray from
-    the camera's centre at the depth in focus (Cycles' camera_sample_perspective; the clip
-    range stays the centre ray's, as Cycles keeps it)."""
+    lens point that `lens` picks, through the point in focus of the ray the pinhole would
+    trace (Cycles' camera_sample_perspective, whose clip range stays the centre ray's, and
+    camera_sample_orthographic, whose ray starts at the near plane and runs as far as the
+    clip range is long)."""
     x = (px - cam.centre[0]) * cam.step[0] + cam.offset[0]
     y = (py - cam.centre[1]) * cam.step[1] + cam.offset[1]
     if cam.persp == 1:
@@ -119,16 +130,19 @@ def camera_ray(cam: FilmCamera, px: float, py: float, lens: wp.vec2):
         world = cam.rotation * plane
         length = wp.length(world)
         if cam.aperture > 0.0:
-            uv = concentric_disk(lens)
-            if cam.blades > 0:
-                uv = polygon_point(cam.blades, cam.blade_rotation, lens)
-            p = wp.vec3(uv[0] * cam.inv_ratio * cam.aperture, uv[1] * cam.aperture, 0.0)
+            p = lens_point(cam, lens)
             d = cam.rotation * (plane * cam.focus - p)
             return (cam.position + cam.rotation * p, wp.normalize(d), cam.clip_start * length,
                     cam.clip_end * length)
         return cam.position, world / length, cam.clip_start * length, cam.clip_end * length
-    d = -wp.vec3(cam.rotation[0, 2], cam.rotation[1, 2], cam.rotation[2, 2])
     origin = cam.position + cam.rotation * wp.vec3(x, y, 0.0)
+    if cam.aperture > 0.0:
+        p = lens_point(cam, lens)
+        d = wp.normalize(wp.vec3(0.0, 0.0, -cam.focus) - p)  # camera space, looking down -z
+        near = cam.clip_start / -d[2]
+        return (origin + cam.rotation * p, cam.rotation * d, near,
+                near + (cam.clip_end - cam.clip_start))
+    d = -wp.vec3(cam.rotation[0, 2], cam.rotation[1, 2], cam.rotation[2, 2])
     return origin, wp.normalize(d), cam.clip_start, cam.clip_end
 
 

@@ -93,23 +93,28 @@ def test_f12_matches_cycles_at_the_scenes_default_filter(scene, cycles, tmp_path
     _judge_against_cycles(rgba[..., 0], rgba[..., 3], cycles)
 
 
-def test_f12_depth_of_field_matches_cycles(scene, tmp_path) -> None:
-    """Camera > Depth of Field (f/0.1, focused by an object 3 units ahead, 6 blades): F12
+@pytest.mark.parametrize(("kind", "fstop"), [("PERSP", 0.1), ("ORTHO", 0.5)])
+def test_f12_depth_of_field_matches_cycles(scene, tmp_path, kind, fstop) -> None:
+    """Camera > Depth of Field (f/0.1 at 50 mm: a lens radius of 0.25; f/0.5 for an
+    orthographic camera: 1.0, as Cycles sizes it; focused by an object, 6 blades): F12
     blurs what is out of focus as Cycles does (the same judge, at Cycles' default filter),
     and the pinhole image's alpha fails that judge: the test sees the blur."""
-    dof = scene.camera.data.dof
-    dof.use_dof, dof.aperture_fstop, dof.aperture_blades = True, 0.1, 6
+    data = scene.camera.data
+    dof = data.dof
+    dof.use_dof, dof.aperture_fstop, dof.aperture_blades = True, fstop, 6
     dof.focus_object = bpy.data.objects[FOCUS]
+    data.type, data.ortho_scale = kind, 7.0
     try:
         ref, ref_alpha, _ = render_cycles_ao(scene, tmp_path / "ref", 16 * N, 0,
                                              CYCLES_DEFAULT)
         cyc, cyc_alpha, _ = render_cycles_ao(scene, tmp_path / "cyc", N, 1, CYCLES_DEFAULT)
         rgba = f12(scene, tmp_path / "f12")
+        dof.use_dof = False
+        sharp = f12(scene, tmp_path / "pinhole")[..., 3]
     finally:
-        dof.use_dof, dof.focus_object = False, None
+        dof.use_dof, dof.focus_object, data.type = False, None, "PERSP"
     blurred = (ref, ref_alpha, cyc, cyc_alpha)
     _judge_against_cycles(rgba[..., 0], rgba[..., 3], blurred)
-    sharp = f12(scene, tmp_path / "pinhole")[..., 3]
     everywhere = np.ones_like(ref_alpha, dtype=bool)
     sharp_rmse, _ = judge(sharp, ref_alpha, everywhere)
     cycles_rmse, _ = judge(cyc_alpha, ref_alpha, everywhere)

@@ -184,7 +184,6 @@ def test_object_scale_is_removed_before_use() -> None:
         ({"clip_start": -0.1}, "clip_start"),
         ({"clip_start": 5.0, "clip_end": 5.0}, "clip_end"),
         ({"aperture_size": -0.1}, "aperture_size"),
-        ({"aperture_size": 0.1, "type": "ORTHO"}, "aperture_size"),
         ({"focus_distance": 0.0}, "focus_distance"),
         ({"aperture_blades": 2}, "aperture_blades"),
         ({"aperture_blades": 17}, "aperture_blades"),

@@ -347,25 +347,29 @@ def disk_cdf(t: np.ndarray, radius: float) -> np.ndarray:
     return 0.5 + (r * np.sqrt(1.0 - r * r) + np.arcsin(r)) / math.pi
 
 
-@pytest.mark.parametrize(("focus", "ratio"), [(5.0, 1.0), (2.5, 1.0), (10.0, 0.5)])
-def test_depth_of_field_blurs_an_edge_by_its_circle_of_confusion(focus, ratio):
+@pytest.mark.parametrize(("kind", "focus", "ratio"), [
+    ("PERSP", 5.0, 1.0), ("PERSP", 2.5, 1.0), ("PERSP", 10.0, 0.5),
+    ("ORTHO", 5.0, 1.0), ("ORTHO", 2.5, 1.0), ("ORTHO", 10.0, 0.5)])
+def test_depth_of_field_blurs_an_edge_by_its_circle_of_confusion(kind, focus, ratio):
     """A half plane's straight edge 5 units below a lens of radius 0.3 (Box filter 1 px):
-    a ray from lens point L through the point in focus meets the plane at Z x_p + L_x (1 -
-    Z / F) (x_p: the raster point on the plane at depth 1), so each pixel's alpha is the
-    pixel's mean of the lens's x marginal (a disk's, squeezed by `aperture_ratio`) beyond
-    the edge, integrated here by quadrature: within 4 binomial sigmas at 1024 spp. In
-    focus (F = Z) the edge is as sharp as a pinhole's."""
+    a ray from lens point L through the point in focus meets the plane at x_p + L_x (1 -
+    Z / F) (x_p: where the pinhole's ray meets it: Z times the raster point at depth 1
+    for PERSP, the raster point itself for ORTHO, Cycles' camera_sample_orthographic), so
+    each pixel's alpha is the pixel's mean of the lens's x marginal (a disk's, squeezed by
+    `aperture_ratio`) beyond the edge, integrated here by quadrature: within 4 binomial
+    sigmas at 1024 spp. In focus (F = Z) the edge is as sharp as a pinhole's."""
     w, h, spp, z, radius, edge = 16, 4, 1024, 5.0, 0.3, 0.1
     m = np.eye(4)
     m[2, 3] = z
-    cam = Camera(matrix_world=m, width=w, height=h, sensor_fit="HORIZONTAL",
-                 aperture_size=radius, focus_distance=focus, aperture_ratio=ratio)
+    cam = Camera(matrix_world=m, width=w, height=h, sensor_fit="HORIZONTAL", type=kind,
+                 ortho_scale=3.0, aperture_size=radius, focus_distance=focus,
+                 aperture_ratio=ratio)
     r = render_film(half_plane(edge), cam, spp=spp, pixel_filter="BOX", filter_width=1.0)
-    pix = cam.plane_scale() / w
+    pix = (cam.plane_scale() if kind == "PERSP" else cam.ortho_scale) / w
     u = (np.arange(4000) + 0.5) / 4000
     x_p = (np.arange(w)[:, None] + u[None, :] - w / 2) * pix  # (pixel, position)
     k = abs(1.0 - z / focus)  # the lens offset's scale at the plane
-    gap = edge - z * x_p
+    gap = edge - (z if kind == "PERSP" else 1.0) * x_p
     sharp = (gap > 0).mean(axis=1)  # a pinhole's
     expected = sharp if k == 0.0 else disk_cdf(gap / k, radius / ratio).mean(axis=1)
     sigma = np.sqrt(expected * (1 - expected) / spp) + 1.0 / spp
