@@ -2,12 +2,14 @@
 Warp's `wp.Mesh` and Embree in the same run; and the wide BVH against the binary
 one and Embree side by side (`--part wide` runs only that); and ours against embreex on the
 same number of threads, a column per thread count, at several batch sizes
-(`--part threads` runs only that).
+(`--part threads` runs only that); and the per-ray speed of small calls against one call of
+1M rays (`--part calls`).
 
     python benchmarks/bvh.py [--scenes bunny,sponza] [--repeat 5] [--width 1024 --height 768]
     python benchmarks/bvh.py --part wide --width 1024 --height 1024
     python benchmarks/bvh.py --part wide --target-cpu x86-64 --no-docs   # a CPU without AVX2
     python benchmarks/bvh.py --part threads [--batches 256,512,1024]
+    python benchmarks/bvh.py --part calls --scenes bunny,conference [--calls 10000,100000]
 
 Times are medians of `--repeat` runs after one warm-up. Warp's kernel compile time is
 measured once, in a fresh kernel cache, and reported on its own. Writes the tables into
@@ -17,6 +19,7 @@ docs/benchmarks.md (between the bvh markers) and the raw figures to docs/figures
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -50,6 +53,8 @@ METHODS = ("sah", "median")
 WIDE_WIDTHS = (2, 4, 8)  # 2: the binary tree
 AO_PER_HIT = 4  # the wide-BVH floors' AO rays: 4 cosine rays per hit, tmax 0.1 x diagonal
 BATCHES = (256, 512, 1024)  # --part threads: square batches of camera rays
+CALLS = (10_000, 100_000)  # --part calls: rays per call, against one call of CALL_RAYS
+CALL_RAYS = 1 << 20
 
 
 def compile_seconds() -> dict[str, float]:
@@ -316,6 +321,74 @@ def thread_rows(name: str, scene, repeat: int, batches: tuple[int, ...]) -> list
     return rows
 
 
+def call_rows(name: str, scene, repeat: int, calls: tuple[int, ...]) -> list[dict]:
+    """Per-ray speed of calls of k rays against one call of CALL_RAYS, on the same rays (the
+    first CALL_RAYS camera rays of a 1024² image, and as many of their AO any-hit rays), on
+    1 thread and every core; embreex beside it, its rays split between Python threads the
+    same way. Timed interleaved: the whole set as CALL_RAYS / k calls, then as one."""
+    v, f = scene.vertices, scene.indices
+    cores = cpu_cores()
+    bvh = kernels.build_bvh(v, f)
+    embree = ThreadedEmbree(v, f, cores)
+    dist = default_distance(bvh)
+    cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": 1024,
+                                        "height": 1024})
+    o, d, _, _ = cam.rays()
+    hits = kernels.trace(bvh, o, d)
+    ao_o, ao_d = peers.ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=AO_PER_HIT)
+    rows = []
+    for kind, (ro, rd, tmax, any_hit) in {
+            "primary": (o, d, 1e30, False),
+            "AO": (ao_o[:CALL_RAYS], ao_d[:CALL_RAYS], dist, True)}.items():
+        n = len(ro)
+        ours = functools.partial(_ours_slice, bvh, ro, rd, tmax, any_hit)
+        theirs = functools.partial(_embree_slice, embree, ro, rd, tmax, any_hit)
+        for t in sorted({1, cores}):
+            for k in calls:
+                s = peers.timeit_each([functools.partial(_in_calls, fn, n, size, t)
+                                       for fn in (ours, theirs) for size in (k, n)], repeat)
+                rows.append({"scene": name, "rays": kind, "count": n, "threads": t,
+                             "call": k, "ours": n / s[0] / 1e6, "ours_whole": n / s[1] / 1e6,
+                             "embree": n / s[2] / 1e6, "embree_whole": n / s[3] / 1e6})
+    return rows
+
+
+def _in_calls(fn, n: int, k: int, threads: int) -> None:
+    """fn(a, b, threads) over [0, n) in calls of k."""
+    for a in range(0, n, k):
+        fn(a, min(a + k, n), threads)
+
+
+def _ours_slice(bvh, o, d, tmax, any_hit, a: int, b: int, threads: int) -> None:
+    kernels.trace(bvh, o[a:b], d[a:b], tmax=tmax, any_hit=any_hit, threads=threads)
+
+
+def _embree_slice(embree, o, d, tmax, any_hit, a: int, b: int, threads: int) -> None:
+    if any_hit:
+        embree.occluded(o[a:b], d[a:b], tmax, threads)
+    else:
+        embree.closest(o[a:b], d[a:b], threads)
+
+
+def calls_markdown(rows: list[dict], command: str, load: str) -> str:
+    out = [
+        f"Command: `{command}` on {platform.machine()} with {cpu_cores()} cores, CPU only (Warp "
+        f"{wp.config.version}), load before the run: {load}. The same rays traced as calls of "
+        f"k rays and as one call of all of them ({CALL_RAYS:,} camera rays of a 1024² image; "
+        f"as many AO any-hit rays, {AO_PER_HIT} per hit, tmax 0.1 x diagonal); MRays/s, "
+        "medians of interleaved runs; embreex on as many Python threads beside it. Issue 35's "
+        "floor: a 10k-ray call at >= 0.8x the per-ray speed of a 1M-ray call.", "",
+        "| scene | rays | threads | rays per call | ours | ours, one call | ours ratio | "
+        "Embree | Embree, one call | Embree ratio |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        out.append(f"| {r['scene']} | {r['rays']} | {r['threads']} | {r['call']:,} | "
+                   f"{r['ours']:.2f} | {r['ours_whole']:.2f} | "
+                   f"{r['ours'] / r['ours_whole']:.2f} | {r['embree']:.2f} | "
+                   f"{r['embree_whole']:.2f} | {r['embree'] / r['embree_whole']:.2f} |")
+    return "\n".join(out) + "\n"
+
+
 def threads_markdown(rows: list[dict], command: str, load: str) -> str:
     counts = [k for k in rows[0] if isinstance(k, int)]
     out = [
@@ -423,15 +496,28 @@ def markdown(build: list[dict], peer_build: dict, traces: list[dict], compile_s:
     return "\n".join(lines) + "\n"
 
 
+# --part: (rows of one scene, markdown, docs section, its title)
+TABLE_PARTS = {
+    "threads": (lambda name, scene, args: thread_rows(
+        name, scene, args.repeat, tuple(int(x) for x in args.batches.split(","))),
+        threads_markdown, "bvh_threads", "Ours against Embree on the same threads"),
+    "calls": (lambda name, scene, args: call_rows(
+        name, scene, args.repeat, tuple(int(x) for x in args.calls.split(","))),
+        calls_markdown, "bvh_calls", "Small calls against one large call"),
+}
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--scenes", default=",".join(shared_scene_infos()))
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--width", type=int, default=1024)
     parser.add_argument("--height", type=int, default=768)
-    parser.add_argument("--part", choices=("all", "wide", "threads"), default="all",
+    parser.add_argument("--part", choices=("all", "wide", "threads", "calls"), default="all",
                         help="wide: only the wide-BVH tables; threads: only ours against "
-                        "Embree on the same threads")
+                        "Embree on the same threads; calls: only small calls' speed")
+    parser.add_argument("--calls", default=",".join(map(str, CALLS)),
+                        help="--part calls: rays per call")
     parser.add_argument("--batches", default=",".join(map(str, BATCHES)),
                         help="--part threads: square batch sizes")
     parser.add_argument("--no-docs", action="store_true", help="print only")
@@ -448,19 +534,19 @@ def main(argv: list[str] | None = None) -> int:
     wp.init()
     load = "{:.2f}, {:.2f}, {:.2f} (1, 5, 15 min)".format(*os.getloadavg())
     compile_s = compile_seconds()
-    if args.part == "threads":
-        batches = tuple(int(x) for x in args.batches.split(","))
+    if args.part in TABLE_PARTS:
+        rows_of, markdown_of, section, title = TABLE_PARTS[args.part]
         rows = []
         for name in args.scenes.split(","):
-            rows += thread_rows(name, shared_scene(name), args.repeat, batches)
-            print(f"{name}: threads done", file=sys.stderr, flush=True)
-        text = threads_markdown(rows, command.strip(), load)
+            rows += rows_of(name, shared_scene(name), args)
+            print(f"{name}: {args.part} done", file=sys.stderr, flush=True)
+        text = markdown_of(rows, command.strip(), load)
         Console(width=220).print(Markdown(text))
         if not args.no_docs:
-            write_section("bvh_threads", "## Ours against Embree on the same threads "
-                          "(`benchmarks/bvh.py --part threads`)\n\n" + text)
+            write_section(section, f"## {title} (`benchmarks/bvh.py --part {args.part}`)\n\n"
+                          + text)
             FIGURES.mkdir(parents=True, exist_ok=True)
-            (FIGURES / "bvh_threads.json").write_text(json.dumps(rows, indent=1, default=str))
+            (FIGURES / f"{section}.json").write_text(json.dumps(rows, indent=1, default=str))
         return 0
     wide = []
     for name in args.scenes.split(","):

@@ -20,7 +20,9 @@ import numpy as np
 import warp as wp
 
 PARTS_PER_THREAD = 8  # launch_split: parts per host thread, for load balance
-MIN_PART = 4096  # launch_split: fewest items worth a launch of their own
+# launch_split: fewest items worth a launch of their own: a part's slices and arguments cost
+# ~50 us under the Python lock, and at 4096 a 10k-ray trace ran slower on 2 threads than on 1
+MIN_PART = 8192
 
 
 def get_device(device) -> wp.context.Device:
@@ -89,26 +91,41 @@ def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, ou
     run_parts(run, parts, threads)
 
 
+_recorded = threading.local()  # per host thread: {(kernel, device, argument kinds): Launch}
+
+
 def part_launcher(kernel, args: list, device) -> Callable[[int, dict[int, Any]], None]:
     """launch(dim, changes): `kernel` over dim items with its arguments `args` (inputs,
     then outputs), argument i replaced by changes[i] (every call names the same i), from
-    any host thread. Each thread records the launch once and then re-packs only what
-    changed: wp.launch resolves a generic kernel's overload and packs every argument each
-    time (on CPU, 47 us a launch of the AO kernel against 5 us re-launching a recorded one,
-    measured), and a split launch makes PARTS_PER_THREAD of them per thread."""
-    local = threading.local()
+    any host thread. wp.launch resolves a generic kernel's overload and packs every
+    argument each time (on CPU, 47 us a launch of the AO kernel against 5 us re-launching a
+    recorded one, measured; 62 us to record the trace kernel against 14 us to set all its
+    arguments in a recorded one), and a split launch makes PARTS_PER_THREAD of them per
+    thread: so each thread records a kernel's launch once per process and after that only
+    sets the arguments, all of them at its first launch of a call, then what changed."""
+    # a generic kernel's overload follows its arguments' kinds (which struct, which dtype)
+    key = (kernel, device.alias, tuple((type(x), getattr(x, "dtype", None),
+                                        getattr(x, "ndim", None)) for x in args))
+    call = object()  # which call's arguments a thread's launch holds
 
     def launch(dim: int, changes: dict[int, Any]) -> None:
-        cmd = getattr(local, "cmd", None)
-        if cmd is None:
-            local.cmd = cmd = wp.launch(kernel, dim=dim, inputs=[changes.get(i, x) for i, x in
-                                                                 enumerate(args)],
-                                        device=device, record_cmd=True)
+        kept = _recorded.__dict__.get(key)
+        if kept is None:
+            values = [changes.get(i, x) for i, x in enumerate(args)]
+            cmd = wp.launch(kernel, dim=dim, inputs=values, device=device, record_cmd=True)
+            # kept between calls: it must not keep this call's arrays alive (its packed
+            # parameters are plain pointers, set anew before it runs again)
+            cmd.fwd_args = cmd.adj_args = None
+            kept = _recorded.__dict__[key] = [cmd, call]
+        elif kept[1] is not call:
+            for i, x in enumerate(args):
+                kept[0].set_param_at_index(i, changes.get(i, x))
+            kept[1] = call
         else:
             for i, x in changes.items():
-                cmd.set_param_at_index(i, x)
-            cmd.set_dim(dim)
-        cmd.launch()
+                kept[0].set_param_at_index(i, x)
+        kept[0].set_dim(dim)
+        kept[0].launch()
 
     return launch
 
@@ -141,9 +158,9 @@ if hasattr(os, "register_at_fork"):
 
 
 def run_parts(fn: Callable[[int], None], parts: int, threads: int) -> None:
-    """fn(0) .. fn(parts - 1) on `threads` of the persistent host threads, each taking the
-    next part when it is done with one (as `ThreadPoolExecutor(threads).map` would); the
-    first exception is raised here."""
+    """fn(0) .. fn(parts - 1) on `threads` threads, the caller and persistent host threads,
+    each taking the next part when it is done with one (as `ThreadPoolExecutor(threads).map`
+    would); the first exception is raised here, once every thread has stopped."""
     if threads <= 1 or parts <= 1:
         for k in range(parts):
             fn(k)
@@ -159,6 +176,13 @@ def run_parts(fn: Callable[[int], None], parts: int, threads: int) -> None:
                 return
             fn(k)
 
-    pool = host_pool(threads)
-    for f in [pool.submit(runner) for _ in range(min(threads, parts))]:
+    # The caller runs parts too: waking a pool thread and waking the caller again at the end
+    # cost ~0.1 ms each, a tenth of a 10k-ray call's work.
+    helpers = [host_pool(threads - 1).submit(runner) for _ in range(min(threads, parts) - 1)]
+    try:
+        runner()
+    finally:
+        for f in helpers:
+            f.exception()  # wait: the parts write into the caller's arrays
+    for f in helpers:
         f.result()
