@@ -6,8 +6,7 @@ per centre) and the pixel centres' depth."""
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -56,19 +55,12 @@ def render_camera(
     reporting each phase; with
     `cull`, of an instance list only what the camera may see is built (render/bvhs.py)."""
 
-    def timed(phase: str, fn: Callable[[], Any]) -> Any:
-        job.report(phase)  # also the cancellation point between phases
-        start = time.perf_counter()
-        out = fn()
-        job.add_timing(phase, 1000.0 * (time.perf_counter() - start))
-        return out
-
     view = View(camera, options.distance, _reach(options)) if cull else None
-    views, job.build = timed("bvh", lambda: scene_views(store, scene, method, leaf_size, device,
+    views, job.build = job.timed("bvh", lambda: scene_views(store, scene, method, leaf_size, device,
                                                         view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
-    origins, directions, tmin, tmax = timed("camera", camera.rays)
+    origins, directions, tmin, tmax = job.timed("camera", camera.rays)
     shape = (camera.height, camera.width)
     centres_only = _centres_only(views, passes)
     filtered = options.filtered and centres_only is None
@@ -77,13 +69,13 @@ def render_camera(
     if camera.aperture_size > 0.0 and not filtered:
         job.film += " (no depth of field: it needs the pixel filter's own camera rays)"
     if filtered:
-        film = timed("ao", lambda: _render_film(job, views, scene, camera, options))
+        film = job.timed("ao", lambda: _render_film(job, views, scene, camera, options))
         job.ao, job.coverage = film.ao, film.alpha
         job.spp_mean, job.spp_max = film.spp_mean, film.spp_max  # over covered pixels
         job.rmse_estimate, job.rays, job.denoised = film.rmse_estimate, film.rays, False
         normals, held = None, None  # (no holdout: _centres_only)
     else:
-        result = timed(
+        result = job.timed(
             "ao", lambda: _render_ao(job, views, scene, origins, directions, tmin, tmax,
                                      options, shape)
         )
@@ -103,7 +95,7 @@ def render_camera(
         job.extras["normal"] = np.asarray(normals, np.float32).reshape(*shape, 3)
     if not (depth or {"position", "object", "triangle"} & set(passes)):
         return  # nothing needs the camera rays' hits traced again
-    t, instance, triangle = timed("depth", lambda: seen_hits(views, origins, directions,
+    t, instance, triangle = job.timed("depth", lambda: seen_hits(views, origins, directions,
                                                              tmin, tmax))
     hit = np.isfinite(t)
     t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]

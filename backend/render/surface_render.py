@@ -3,7 +3,6 @@ BVH (cached or built), then `kernels.surface_ao` with the scene's normals and pr
 
 from __future__ import annotations
 
-import time
 from typing import Any
 
 import numpy as np
@@ -22,16 +21,14 @@ def render_surface(
     was shaded, 0 on a triangle without area), statistics and timings."""
     from scenesort import kernels
 
-    job.report("bvh")
-    start = time.perf_counter()
-    bvh, job.build = scene_bvh(store, scene, method, leaf_size, device, None)
-    job.add_timing("bvh", 1000.0 * (time.perf_counter() - start))
-    job.report("ao")
+    bvh, job.build = job.timed("bvh", lambda: scene_bvh(store, scene, method, leaf_size,
+                                                       device, None))
 
     def progress(fraction: float, phase: str) -> None:
         job.report(f"ao.{phase}", fraction)  # raises Stopped inside the engine's loop
 
-    result = kernels.surface_ao(bvh, *points, options, progress=progress, **shading(scene))
+    result = job.timed("ao", lambda: kernels.surface_ao(bvh, *points, options,
+                                                        progress=progress, **shading(scene)))
     for name, ms in result.timings_ms.to_dict().items():
         job.add_timing(f"ao.{name}", float(ms))
     job.ao = np.asarray(result.ao, dtype=np.float32).reshape(1, -1)

@@ -17,11 +17,13 @@ import uuid
 from collections import OrderedDict
 from collections.abc import AsyncIterator, Awaitable, Callable
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 import numpy as np
 from scenesort.backend.work.stop import Stopped, StopSignal
 from scenesort.backend.work.worker import DeviceWorker, QueueFull
+
+T = TypeVar("T")
 
 log = logging.getLogger("scenesort.jobs")
 
@@ -93,6 +95,15 @@ class Job:
         with self._lock:
             self.timings_ms[name] = round(ms, 3)
             self.version += 1
+
+    def timed(self, phase: str, fn: Callable[[], T]) -> T:
+        """fn() as the job's phase `phase` (reported first: also the cancellation point
+        between phases), its milliseconds kept under that name."""
+        self.report(phase)
+        start = time.perf_counter()
+        out = fn()
+        self.add_timing(phase, 1000.0 * (time.perf_counter() - start))
+        return out
 
     def start(self) -> bool:
         """Queued -> running, unless it was cancelled first; whether it may run."""
