@@ -56,8 +56,8 @@ def render_camera(
     `cull`, of an instance list only what the camera may see is built (render/bvhs.py)."""
 
     view = View(camera, options.distance, _reach(options)) if cull else None
-    views, job.build = job.timed("bvh", lambda: scene_views(store, scene, method, leaf_size, device,
-                                                        view))
+    views, job.build = job.timed("bvh", lambda: scene_views(store, scene, method, leaf_size,
+                                                            device, view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
     origins, directions, tmin, tmax = job.timed("camera", camera.rays)
@@ -96,7 +96,7 @@ def render_camera(
     if not (depth or {"position", "object", "triangle"} & set(passes)):
         return  # nothing needs the camera rays' hits traced again
     t, instance, triangle = job.timed("depth", lambda: seen_hits(views, origins, directions,
-                                                             tmin, tmax))
+                                                                 tmin, tmax))
     hit = np.isfinite(t)
     t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]
     z = t64[:, 0] * (directions.astype(np.float64) @ camera.forward)
