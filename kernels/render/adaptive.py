@@ -6,8 +6,9 @@ Adaptive sampling, two stopping rules, which may be combined:
 - `target_error` is the image's RMSE over hit pixels against the converged AO (the
   expectation of infinitely many samples). The render estimates it as
   sqrt(mean_i efficiency(n_i) * v_i / n_i) over the hit pixels (`rmse_estimate`), v_i
-  the pixel's `posterior_variance` (about its sample variance where its samples disagree;
-  where they agree, not 0 but what a Beta prior fitted to the image says), and stops
+  the pixel's posterior variance (statistics.py; about its sample variance where its
+  samples disagree; where they agree, not 0 but what a Beta prior fitted to the image
+  says), and stops
   once that estimate is below RMSE_AIM * target_error. RMSE_AIM leaves room for the
   estimate's own error and for the last round's overshoot, so that the achieved RMSE lies
   in [0.7, 1.0] x target_error in at least 95% of renders (tests/kernels/render/
@@ -19,7 +20,7 @@ Adaptive sampling, two stopping rules, which may be combined:
   a pixel's rays in one launch share the cache: two launches of half the minimum cost
   1.5x one on blade), then each round doubles the pixels below their Neyman count, those
   with the largest sigma_i^2 / n_i^2 (the variance each new ray removes; in 1/16-octave
-  steps, sorted by radix) first, until the
+  steps, Warp's radix sort) first, until the
   doubled set is predicted to remove DROP_SHORT of what is left above the aim (all of
   it when at most SHORT_NEED aim^2 a pixel is left; TAIL_MARGIN aim^2 a pixel past it,
   with at least MIN_ROUND of the rays so far, when that round would trace less than
@@ -30,7 +31,7 @@ Adaptive sampling, two stopping rules, which may be combined:
   more.
 - `max_pixel_error` bounds every pixel (a per-pixel rule; target_error bounds the image):
   pixels whose 95% half-width z * sqrt(spread * s^2 / n) is still >= it double their
-  samples (`half_width`; spread as below).
+  samples (statistics.allocation_sums; spread as below).
 A pixel's samples are always a power-of-two prefix of its Sobol sequence (when the
 minimum is one), up to `max_spp`. In the half-width and the allocation s^2 is the
 sample variance, and where all n samples agreed p(1-p) at the Jeffreys posterior mean
@@ -38,10 +39,10 @@ p = (k + 1/2) / (n + 1) instead of 0, so a pixel is not declared exact on the st
 of a few samples that missed a small occluder. Owen-scrambled Sobol samples have less
 variance than independent ones. `spread` is measured at every sample count n a round
 reaches, on the pixels whose samples disagree, from each pixel's estimate after n/2
-against after n samples (`sampler_efficiency`; independent samples: ~1). For Sobol the
+against after n samples (statistics.spread_terms; independent samples: ~1). For Sobol the
 halves are anti-correlated, so the spread overstates the variance where it falls faster
 than 1/n: `efficiency` corrects it by the rate measured on the same pixels (see
-`SampleCounts.efficiency_at`). A count without a measurement takes the nearest smaller one's
+`SampleCounts.sampler`). A count without a measurement takes the nearest smaller one's
 (efficiency falls as n grows, so this is never optimistic).
 """
 
@@ -55,7 +56,15 @@ import numpy as np
 
 from scenesort.ao_options import AoOptions
 
-Z95 = 1.959963984540054  # two-sided 95% normal quantile
+from .statistics import (
+    QUARTERS_KEPT,
+    QUARTERS_NONE,
+    QUARTERS_TRACED,
+    RoundStatistics,
+    Sampler,
+    sampler_tables,
+)
+
 RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's margin)
 # Owen-scrambled Sobol on an integrand with discontinuities (an occluder's edge) in 2D:
 # variance O(n^(-1 - 1/d)) = n^-1.5 (He and Wang 2015), so doubling keeps >= 2^-1.5 of it
@@ -95,7 +104,8 @@ def sample_rounds(trace_round: RoundTracer, pixels: int, opts: AoOptions,
                                         counts.mse(), next_round(counts, aim,
                                                                  opts.max_pixel_error,
                                                                  opts.max_spp))
-    counts = SampleCounts(*(np.zeros(pixels, dtype=np.int64) for _ in range(3)))
+    counts = SampleCounts(*(np.zeros(pixels, dtype=np.int64) for _ in range(3)),
+                          threads=opts.threads)
     if not opts.adaptive:
         count = max(1, min(min_spp, ROUND_RAYS // max(pixels, 1)))
         everyone = np.arange(pixels)
@@ -122,11 +132,17 @@ def _adaptive_rounds(trace_round: RoundTracer, counts: SampleCounts, opts: AoOpt
         else:
             report(samples_progress(counts.done, len(select), int(counts.done[select[0]])),
                    "occlusion")
-        for n in np.unique(counts.done[select]):  # one launch set per sample count
+        levels = counts.done[select]
+        for n in np.flatnonzero(np.bincount(levels)):  # one launch set per sample count
             # doubling: Sobol prefixes of 2^k; the minimum's nested estimates (after a
             # quarter and a half of it) measure how fast the variance falls before the
             # first decision
-            counts.trace(trace_round, select[counts.done[select] == n], int(n) or opts.min_spp)
+            group = levels == n
+            count = int(n) or opts.min_spp
+            counts.trace(trace_round, select[group], count)
+            # a group doubled to a later group's count goes on with that group (a round
+            # may double a pixel twice): as the rounds were calibrated
+            levels[group] += count
         rounds += 1
         mse0 = counts.mse() if mse0 is None else mse0
         select = next_round(counts, aim, opts.max_pixel_error, opts.max_spp)
@@ -144,7 +160,7 @@ def nested_marks(first: int, count: int) -> tuple[int, int]:
 @dataclass
 class SampleCounts:
     """Per hit pixel: samples traced and open; per sample count n reached by doubling, the
-    `sampler_efficiency` of the halves (n/2 against n, `spread`) where enough pixels
+    sampler's efficiency from the halves (n/2 against n, `spread`) where enough pixels
     disagreed, and how fast the variance fell on those pixels (`rho`)."""
 
     done: np.ndarray
@@ -156,7 +172,10 @@ class SampleCounts:
     # pooled, so a small late group does not overwrite what thousands of pixels measured)
     sums: dict[int, np.ndarray] = field(default_factory=dict)
     sums_before: dict[int, np.ndarray] = field(default_factory=dict)
-    cached: np.ndarray | None = None  # `contribution` since the last `changed()`
+    threads: int | None = None  # host threads of the statistics (every core by default)
+    cached: float | None = None  # `error_sum` since the last `changed()`
+    tables: Sampler | None = None  # `sampler` since the last `changed()`
+    stats: RoundStatistics | None = None
 
     def trace(self, trace_round: RoundTracer, select: np.ndarray, count: int) -> None:
         """Samples n..n+count-1 of the `select`ed pixels, which all have n samples."""
@@ -165,83 +184,82 @@ class SampleCounts:
         # the nested estimates, after about end / 2 and end / 4 samples: counted in the
         # launch where they reach into it, else those kept from the rounds before
         mid, quarter = nested_marks(first, count)
-        opened, opened_mid, opened_quarter = trace_round(select, first, count, mid, quarter)
-        open_now = self.open[select]
-        open_mid = open_now + opened_mid
-        open_quarter = (open_now + opened_quarter if quarter >= first
-                        else self.before[select] if 2 * quarter == first == count else None)
-        self.measure(end, mid, open_mid, open_now + opened, open_quarter)
-        self.before[select] = open_mid
-        self.open[select] = open_now + opened
-        self.done[select] += count
+        traced = trace_round(select, first, count, mid, quarter)
+        quarters = (QUARTERS_TRACED if quarter >= first
+                    else QUARTERS_KEPT if 2 * quarter == first == count else QUARTERS_NONE)
+        halves, quarters_sums = self.statistics().record(select, traced, end, mid, quarters)
+        self.measure(end, halves, quarters_sums if quarters != QUARTERS_NONE else None)
         self.changed()
 
-    def measure(self, n: int, mid: int, open_mid: np.ndarray, open_end: np.ndarray,
-                open_before: np.ndarray | None) -> None:
-        """Pool one round's nested estimates (mid against n samples; before: mid/2
-        against mid) at count n."""
-        def pooled(store: dict, key: int, *args: np.ndarray) -> np.ndarray:
-            store[key] = store.get(key, 0.0) + _spread_sums(*args)
+    def measure(self, n: int, halves: np.ndarray, quarters: np.ndarray | None) -> None:
+        """Pool one round's spread sums (statistics.spread_terms: squared differences,
+        Bernoulli variances, pixels) at count n: of the halves (mid against n samples)
+        and of the quarters (mid/2 against mid)."""
+        def pooled(store: dict, key: int, sums: np.ndarray) -> np.ndarray:
+            store[key] = store.get(key, 0.0) + sums
             return store[key]
 
-        total = pooled(self.sums, n, open_mid, mid, open_end, n)
+        total = pooled(self.sums, n, halves)
         if total[2] < EFFICIENCY_PIXELS:
             return
         self.spread[n] = float(np.clip(total[0] / total[1], EFFICIENCY_MIN, 1.0))
-        if open_before is not None:  # the same pixels' previous halves: the rate
-            before = pooled(self.sums_before, n, open_before, mid // 2, open_mid, mid)
+        if quarters is not None:  # the same pixels' previous halves: the rate
+            before = pooled(self.sums_before, n, quarters)
             if before[2] >= EFFICIENCY_PIXELS:
                 ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])
                 self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
 
-    def efficiency_at(self, n: np.ndarray) -> np.ndarray:
-        """The sampler's efficiency (variance over the independent samples' p(1-p)/n) at
-        each count n. The halves' spread overstates it where the variance falls faster than
-        1/n (Owen-scrambled Sobol: the halves are anti-correlated): with
-        rho = Var(n)/Var(n/2) it is spread * rho / (1 - rho) (spread itself when rho = 1/2,
-        independent samples). rho is spread(n) / (2 spread(n/2)) on the pixels that
-        doubled to n, in [RHO_MIN, 1/2]; at the first count, that of the next; 1/2 (the
-        pessimistic end) when unmeasured. A count without a measurement takes the nearest
-        smaller one's (efficiency falls as n grows, so this never flatters); 1.0 below
-        every one."""
-        return self._at(n, lambda m: self.spread[m] * self._rho(m) / (1.0 - self._rho(m)))
+    def sampler(self) -> Sampler:
+        """The sampler's measurements (kept until the next `changed()`)."""
+        if self.tables is None:
+            self.tables = self._tables()
+        return self.tables
 
-    def spread_at(self, n: np.ndarray) -> np.ndarray:
-        """The halves' spread itself at each count (what max_pixel_error has always used:
-        not corrected for rho, so a pixel bound never rests on a rate estimate)."""
-        return self._at(n, lambda m: self.spread[m])
+    def _tables(self) -> Sampler:
+        """The sampler's measurements as step functions of a pixel's count n (Warp's).
 
-    def _at(self, n: np.ndarray, value: Callable[[int], float]) -> np.ndarray:
-        known = sorted(self.spread)
-        values = np.array([1.0] + [value(m) for m in known])
-        return values[np.searchsorted(np.array(known, dtype=np.int64), n, side="right")]
+        Efficiency (variance over the independent samples' p(1-p)/n): the halves' spread
+        overstates it where the variance falls faster than 1/n (Owen-scrambled Sobol: the
+        halves are anti-correlated): with rho = Var(n)/Var(n/2) it is
+        spread * rho / (1 - rho) (spread itself when rho = 1/2, independent samples). rho
+        is spread(n) / (2 spread(n/2)) on the pixels that doubled to n, in [RHO_MIN, 1/2];
+        at the first count, that of the next; 1/2 (the pessimistic end) when unmeasured. A
+        count without a measurement takes the nearest smaller one's (efficiency falls as n
+        grows, so this never flatters); 1.0 below every one. The spread itself serves
+        max_pixel_error (not corrected for rho, so a pixel bound never rests on a rate
+        estimate). The rate table is read at 2n: Var(2n) / Var(n), the latest measured rho
+        at or below 2n (1/2 when none)."""
+        known, rates = sorted(self.spread), sorted(self.rho)
+        return sampler_tables(
+            known, [1.0] + [self.spread[m] * self._rho(m) / (1.0 - self._rho(m))
+                            for m in known],
+            [1.0] + [self.spread[m] for m in known], rates,
+            [0.5] + [self.rho[m] for m in rates])
 
     def _rho(self, m: int) -> float:
         return self.rho.get(m, self.rho.get(2 * m, 0.5))
 
-    def rho_at(self, n: np.ndarray) -> np.ndarray:
-        """Var(2n) / Var(n) expected for each count n: the latest measured rho at or
-        below 2n (1/2 when none)."""
-        known = sorted(self.rho)
-        values = np.array([0.5] + [self.rho[m] for m in known])
-        return values[np.searchsorted(np.array(known, dtype=np.int64), 2 * n, side="right")]
+    def statistics(self) -> RoundStatistics:
+        """The round statistics' passes over these counts (made once, kept)."""
+        if self.stats is None:
+            self.stats = RoundStatistics(self.done, self.open, self.before, self.threads)
+        return self.stats
 
-    def contribution(self) -> np.ndarray:
-        """Each hit pixel's estimated squared error, efficiency * s^2 / n (kept until the
-        next `changed()`: the progress report, the allocation and the result ask for it
-        between two rounds, each a pass over every hit pixel)."""
+    def error_sum(self) -> float:
+        """The hit pixels' estimated squared errors, efficiency * s^2 / n each (the
+        posterior variance for s^2), summed; computed once per round (the progress report,
+        the allocation and the result ask for it between two rounds)."""
         if self.cached is None:
-            eff = self.efficiency_at(self.done)
-            self.cached = eff * posterior_variance(self.open, self.done, eff) / self.done
+            self.cached = self.statistics().errors(self.sampler())
         return self.cached
 
-    def changed(self) -> None:
-        """The counts changed (a round was traced): forget `contribution`."""
-        self.cached = None
-
     def mse(self) -> float:
-        """Estimated mean squared error over hit pixels, mean of `contribution`."""
-        return float(np.mean(self.contribution()))
+        """Estimated mean squared error over hit pixels."""
+        return self.error_sum() / len(self.done)
+
+    def changed(self) -> None:
+        """The counts changed (a round was traced): forget `error_sum` and `sampler`."""
+        self.cached = self.tables = None
 
 
 def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float | None,
@@ -252,27 +270,18 @@ def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float |
     reach): while the estimate is above it, the pixels below their Neyman count
     n*_i = sigma_i sum_j sigma_j / (H aim^2) by more than a factor sqrt(2), those with the
     most variance removed per ray first, as many as the estimate predicts it needs (then,
-    if those are not enough, the others in the same order)."""
-    n, k = counts.done, counts.open
-    eff = counts.efficiency_at(n)
-    room = n < max_spp
-    want = np.zeros(len(n), dtype=bool)
-    if max_pixel_error is not None:
-        want |= room & (half_width(k, n, counts.spread_at(n)) >= max_pixel_error)
+    if those are not enough, the others in the same order). The passes over the pixels are
+    Warp kernels (statistics.py); this is the policy between them."""
+    stats, sampler, pixels = counts.statistics(), counts.sampler(), len(counts.done)
+    mse = counts.mse()  # the pixels' squared errors, in stats.contribution
+    # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
+    drop_wanted, room_error, sigmas, candidates = stats.allocation_sums(
+        sampler, max_spp, max_pixel_error)
     if aim is not None:
-        contribution = counts.contribution()
-        # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
-        drop = contribution * (1.0 - counts.rho_at(n))
-        need = (contribution.mean() - aim**2) * len(n) - drop[want].sum()
-        if need > 0.0 and np.any(room & ~want):
-            sigma = np.sqrt(eff * smoothed_variance(k, n))
-            neyman = sigma * sigma.sum() / (len(n) * aim**2)
-            order = np.flatnonzero(room & ~want)
-            gain = (sigma[order] / n[order]).astype(np.float32) ** 2  # removed per ray
-            order = order[np.argsort(allocation_key(gain, neyman[order] > math.sqrt(2.0)
-                                                     * n[order]), kind="stable")]
-            dropped = np.cumsum(drop[order])
-            rays = np.cumsum(n[order])  # doubling a pixel traces as many rays as it has
+        need = (mse - aim**2) * pixels - drop_wanted
+        if need > 0.0 and candidates:
+            prefix = stats.sort_candidates(sampler, max_spp, sigmas / (pixels * aim**2),
+                                           candidates)
             # a round with much to go stops short of the aim (DROP_SHORT of the need):
             # Sobol's variance often falls faster than the last measured rho says, and an
             # overshoot cannot be undone, while a shortfall costs one more round. With at
@@ -286,117 +295,22 @@ def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float |
             # past the need (an exact prediction falls short half the time, and each
             # shortfall is one more tail: sponza at 0.05 had two) and traces at least
             # MIN_ROUND of the rays so far
-            short = DROP_SHORT if need > SHORT_NEED * aim**2 * len(n) else 1.0
-            end = _first(dropped >= short * need)
-            so_far = float(n.sum())
-            if rays[end] < TAIL_ROUND * so_far:
-                end = max(_first(dropped >= need + TAIL_MARGIN * aim**2 * len(n)),
-                          _first(rays >= MIN_ROUND * so_far))
-            want[order[: end + 1]] = True
+            short = DROP_SHORT if need > SHORT_NEED * aim**2 * pixels else 1.0
+            end = prefix.first(0, short * need)
+            so_far = float(counts.done.sum())
+            if prefix.at(1, end) < TAIL_ROUND * so_far:
+                end = max(prefix.first(0, need + TAIL_MARGIN * aim**2 * pixels),
+                          prefix.first(1, MIN_ROUND * so_far))
             # a round that would double most of the image doubles all of it (the pixels
             # left out would be the next round's, with its own fixed cost), unless that
             # could land below FULL_ROUND_AIM of the aim (the calibration band) if the
             # variance fell as fast as Sobol's can (RHO_MIN), not as fast as measured
-            fastest = contribution.sum() - (1.0 - RHO_MIN) * contribution[room].sum()
-            if (rays[end] >= FULL_ROUND * rays[-1]
-                    and fastest >= (FULL_ROUND_AIM * aim) ** 2 * len(n)):
-                want[order] = True
-    return np.flatnonzero(want)
-
-
-def allocation_key(gain: np.ndarray, under: np.ndarray) -> np.ndarray:
-    """Sort keys (int16, which numpy's stable sort orders by radix) for doublings: those
-    `under` the Neyman count first, then by the variance removed per ray, `gain` (positive
-    float32), in steps of 1/16 octave (ties in the given order)."""
-    # a positive float32's bits grow with it: sign 0, then 8 exponent bits, then mantissa
-    octave16 = gain.view(np.int32) >> 19  # 12 bits: exponent and the mantissa's first 4
-    return (np.int16(4095) - octave16.astype(np.int16)
-            + np.where(under, 0, 4096).astype(np.int16))
-
-
-def _first(condition: np.ndarray) -> int:
-    """Index of the first True (the last index when there is none)."""
-    return int(np.argmax(condition)) if condition.any() else len(condition) - 1
-
-
-def sampler_efficiency(open_mid: np.ndarray, n_mid: np.ndarray, open_end: np.ndarray,
-                       n_end: np.ndarray, default: float = 1.0) -> float:
-    """The sampler's variance relative to independent samples, pooled over pixels.
-
-    For nested estimates m_mid (first n_mid samples) and m_end (all n_end), independent
-    samples give E[(m_mid - m_end)^2] = Var(m_end) (n_end - n_mid) / n_mid; a stratified
-    (Sobol) sequence gives less. The ratio of the summed squared differences to the summed
-    Bernoulli variances p(1-p)(n_end - n_mid)/(n_mid n_end) estimates Var(sampler) /
-    Var(independent) at this sample count. Only pixels whose samples disagree take part
-    (fully open or occluded ones would pull it toward 0). Clipped to [EFFICIENCY_MIN, 1];
-    `default` when too few pixels disagree to tell."""
-    diff2, bernoulli, mixed = _spread_sums(open_mid, n_mid, open_end, n_end)
-    if mixed < EFFICIENCY_PIXELS:
-        return float(default)
-    return float(np.clip(diff2 / bernoulli, EFFICIENCY_MIN, 1.0))
-
-
-def _spread_sums(open_mid: np.ndarray, n_mid: np.ndarray | int, open_end: np.ndarray,
-                 n_end: np.ndarray | int) -> np.ndarray:
-    """`sampler_efficiency`'s sums over the disagreeing pixels: (squared differences,
-    Bernoulli variances, pixels), so that measurements of one count can be pooled. The
-    counts are per pixel or one for all (a round's: no array of copies)."""
-    mixed = np.flatnonzero((open_end > 0) & (open_end < n_end) & (n_mid > 0)
-                           & (n_end > n_mid))
-    if not len(mixed):
-        return np.zeros(3)
-
-    def take(x: np.ndarray | int) -> np.ndarray | float:
-        return x[mixed].astype(np.float64) if np.ndim(x) else float(x)
-
-    n_mid, n_end = take(n_mid), take(n_end)
-    p = open_end[mixed] / n_end
-    diff2 = (open_mid[mixed] / n_mid - p) ** 2
-    bernoulli = p * (1.0 - p) * ((n_end - n_mid) / (n_mid * n_end))
-    return np.array([diff2.sum(), np.sum(bernoulli), float(len(mixed))])
-
-
-def sample_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """The unbiased sample variance of each pixel's n 0/1 samples (0 where they agree)."""
-    n = n.astype(np.float64)
-    p = open_count / n
-    return p * (1.0 - p) * n / np.maximum(n - 1.0, 1.0)
-
-
-def posterior_variance(open_count: np.ndarray, n: np.ndarray, efficiency: np.ndarray
-                       ) -> np.ndarray:
-    """E[p(1-p) | k of n open] per pixel under a Beta(a, b) prior on the pixels' p fitted
-    to the image by moments (empirical Bayes): about the sample variance where samples
-    disagree, and not 0 where they agree, by as much as the image says pixels like it
-    vary. The prior's spread is the spread of the estimates less their sampling
-    variance (efficiency * s^2 / n)."""
-    k = open_count.astype(np.float64)
-    n = n.astype(np.float64)
-    p = k / n
-    mean = float(p.mean())
-    spread = float(p.var() - np.mean(efficiency * sample_variance(open_count, n) / n))
-    if not (0.0 < mean < 1.0) or spread <= 0.0:
-        return sample_variance(open_count, n)
-    total = max(mean * (1.0 - mean) / spread - 1.0, 1e-6)
-    a, b = mean * total, (1.0 - mean) * total
-    return (a + k) * (b + n - k) / ((a + b + n) * (a + b + n + 1.0))
-
-
-def smoothed_variance(open_count: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """`sample_variance`, but where all n samples agreed p(1-p) at the Jeffreys posterior
-    mean p = (k + 1/2) / (n + 1) (Brown, Cai and DasGupta 2001), about 1/(2n): an occluder
-    smaller than ~1/n of the hemisphere is still possible."""
-    q = (open_count + 0.5) / (n + 1.0)
-    agree = (open_count == 0) | (open_count == n)
-    return np.where(agree, q * (1.0 - q), sample_variance(open_count, n))
-
-
-def half_width(open_count: np.ndarray, n: np.ndarray, efficiency: float | np.ndarray
-               ) -> np.ndarray:
-    """95% half-width of each pixel's estimate, z * sqrt(efficiency * s^2 / n), with the
-    `smoothed_variance` (never 0). `efficiency` (<= 1, one or per pixel) is the sampler's
-    variance relative to independent samples (`sampler_efficiency`)."""
-    return Z95 * np.sqrt(efficiency * smoothed_variance(open_count, n) / n)
+            fastest = counts.error_sum() - (1.0 - RHO_MIN) * room_error
+            if (prefix.at(1, end) >= FULL_ROUND * prefix.total(1)
+                    and fastest >= (FULL_ROUND_AIM * aim) ** 2 * pixels):
+                end = candidates - 1
+            stats.mark(end + 1)
+    return stats.wanted()
 
 
 def error_progress(mse0: float, mse: float, aim: float) -> float:

@@ -313,7 +313,8 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
         hits[pixels] += hit
         return opened, opened_mid, opened_quarter
 
-    counts = SampleCounts(*(np.zeros(len(covered), np.int64) for _ in range(3)))
+    counts = SampleCounts(*(np.zeros(len(covered), np.int64) for _ in range(3)),
+                          threads=opts.threads)
     if len(covered):
         counts.trace(trace_round, np.arange(len(covered)), m)
 

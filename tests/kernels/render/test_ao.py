@@ -9,15 +9,15 @@ import trimesh
 from embreex import rtcore_scene
 from embreex.mesh_construction import TriangleMesh
 from scenesort.kernels import Camera
-from scenesort.kernels.render.adaptive import (
-    EFFICIENCY_MIN,
+from scenesort.kernels.render.adaptive import EFFICIENCY_MIN
+
+from scenesort import kernels
+from tests.kernels.render.adaptive_reference import (
     Z95,
     allocation_key,
     half_width,
     sampler_efficiency,
 )
-
-from scenesort import kernels
 
 SAMPLERS = ("random", "sobol")
 

@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 from scenesort.backend.render.scenes import shared_scene
 from scenesort.kernels.render import adaptive
-from scenesort.kernels.render.adaptive import half_width
 
 from scenesort import kernels
+from tests.kernels.render.adaptive_reference import half_width
 
 SEEDS = range(20)
 _CACHE: dict = {}  # made once per test session
