@@ -132,17 +132,15 @@ def _adaptive_rounds(trace_round: RoundTracer, counts: SampleCounts, opts: AoOpt
         else:
             report(samples_progress(counts.done, len(select), int(counts.done[select[0]])),
                    "occlusion")
+        # one launch set per sample count, each pixel doubled once (as next_round
+        # predicted: a group's counts read after an earlier group had doubled into them
+        # doubled that one again, up to 8x in one round)
         levels = counts.done[select]
-        for n in np.flatnonzero(np.bincount(levels)):  # one launch set per sample count
+        for n in np.flatnonzero(np.bincount(levels)):
             # doubling: Sobol prefixes of 2^k; the minimum's nested estimates (after a
             # quarter and a half of it) measure how fast the variance falls before the
             # first decision
-            group = levels == n
-            count = int(n) or opts.min_spp
-            counts.trace(trace_round, select[group], count)
-            # a group doubled to a later group's count goes on with that group (a round
-            # may double a pixel twice): as the rounds were calibrated
-            levels[group] += count
+            counts.trace(trace_round, select[levels == n], int(n) or opts.min_spp)
         rounds += 1
         mse0 = counts.mse() if mse0 is None else mse0
         select = next_round(counts, aim, opts.max_pixel_error, opts.max_spp)

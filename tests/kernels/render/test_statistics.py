@@ -1,7 +1,8 @@
 """The adaptive controller's round statistics as Warp kernels (kernels/render/statistics.py)
 against the numpy code they replaced (adaptive_reference.py): the same squared errors, the
 same allocation and the same bookkeeping on random states, the same bits on any number of
-host threads, and the allocation keys' arithmetic against float32 bits."""
+host threads, the allocation keys' arithmetic against float32 bits, and a round that
+doubles each selected pixel once."""
 
 from __future__ import annotations
 
@@ -137,3 +138,36 @@ def test_allocation_keys_are_the_float32_bits():
                                                statistics.powers_of_two()],
               outputs=[out], device="cpu")
     np.testing.assert_array_equal(out.numpy(), reference.allocation_key(gains, under))
+
+
+def test_a_round_doubles_each_selected_pixel_once(monkeypatch):
+    """Pixels selected at different counts in one round each double once, as next_round
+    predicted (a group once read the counts after an earlier group had doubled into it,
+    and doubled those pixels again)."""
+    from scenesort.ao_options import AoOptions  # noqa: PLC0415
+
+    rng = np.random.default_rng(4)
+    p = np.where(rng.random(6000) < 0.8, 1.0, rng.beta(0.6, 0.6, 6000))  # dark spots
+
+    def trace_round(select, first, count, mid, quarter):
+        opened = rng.binomial(count, p[select])
+        return opened, rng.binomial(opened, 0.5), rng.binomial(opened, 0.25)
+
+    rounds = []
+    real = adaptive.next_round
+
+    def spy(counts, *args):
+        if rounds:
+            before, chosen = rounds[-1]
+            grown = counts.done - before
+            np.testing.assert_array_equal(grown[chosen], before[chosen])
+            assert grown.sum() == before[chosen].sum()  # the others unchanged
+        select = real(counts, *args)
+        rounds.append((counts.done.copy(), select))
+        return select
+
+    monkeypatch.setattr(adaptive, "next_round", spy)
+    adaptive.sample_rounds(trace_round, len(p), AoOptions(target_error=0.02, max_spp=1024),
+                           lambda *_: None)
+    assert len(rounds) >= 3
+    assert any(len(np.unique(done[chosen])) > 1 for done, chosen in rounds)  # mixed rounds
