@@ -38,10 +38,10 @@ def state(n: int, seed: int) -> tuple[np.ndarray, ...]:
     return done, rng.binomial(done, p).astype(np.int64), rng.binomial(done // 2, p)
 
 
-def one_round(module, counts, traced: dict[int, tuple[np.ndarray, ...]], grouped: bool
+def one_round(module, counts, traced: dict[int, tuple[np.ndarray, ...]]
               ) -> tuple[dict[str, float], np.ndarray]:
     """mse, next_round and the bookkeeping of one round (its groups by sample count as
-    sample_rounds finds them, or as it did before the kernels); ms each; the selection."""
+    sample_rounds makes them); ms each; the selection."""
     times = {}
     start = time.perf_counter()
     counts.mse()
@@ -49,13 +49,8 @@ def one_round(module, counts, traced: dict[int, tuple[np.ndarray, ...]], grouped
     select = module.next_round(counts, AIM, None, 4096)
     times["next_round"] = time.perf_counter()
     levels = counts.done[select]
-    for n in np.flatnonzero(np.bincount(levels)) if grouped else np.unique(levels):
-        if grouped:
-            mask = levels == n
-            group = select[mask]
-            levels[mask] += n
-        else:
-            group = select[counts.done[select] == n]
+    for n in np.flatnonzero(np.bincount(levels)):
+        group = select[levels == n]
         made = tuple(a[: len(group)] for a in traced[int(n)])
         counts.trace(lambda *_, made=made: made, group, int(n))
     times["bookkeeping"] = time.perf_counter()
@@ -75,19 +70,19 @@ def measure(width: int, height: int, repeat: int) -> list[dict]:
     rng = np.random.default_rng(2)
     traced = {m: tuple(rng.binomial(m, 0.7, n).astype(np.int64) // d for d in (1, 2, 4))
               for m in (16, 32, 64, 128, 256)}
-    kinds = {"numpy": (adaptive_reference, {}, False),
-             "kernels, 1 thread": (adaptive, {"threads": 1}, True),
-             f"kernels, {os.cpu_count()} threads": (adaptive, {}, True)}
+    kinds = {"numpy": (adaptive_reference, {}),
+             "kernels, 1 thread": (adaptive, {"threads": 1}),
+             f"kernels, {os.cpu_count()} threads": (adaptive, {})}
     runs: dict[str, list[dict]] = {k: [] for k in kinds}
     for r in range(repeat):
         selections = []
-        for kind, (module, extra, grouped) in kinds.items():
+        for kind, (module, extra) in kinds.items():
             done, opened, before = state(n, r)
             counts = module.SampleCounts(done, opened, before,
                                          spread={16: 0.45, 32: 0.33, 64: 0.27},
                                          rho={32: 0.36, 64: 0.41}, **extra)
-            one_round(module, counts, traced, grouped)  # untimed: the kernels' arrays made
-            times, select = one_round(module, counts, traced, grouped)
+            one_round(module, counts, traced)  # untimed: the kernels' arrays made
+            times, select = one_round(module, counts, traced)
             runs[kind].append(times)
             selections.append(select)
         assert all(np.array_equal(s, selections[0]) for s in selections)

@@ -62,7 +62,6 @@ from .statistics import (
     QUARTERS_TRACED,
     RoundStatistics,
     Sampler,
-    sampler_tables,
 )
 
 RMSE_AIM = 0.82  # target_error: stop at this fraction of it (the estimate's margin)
@@ -228,7 +227,7 @@ class SampleCounts:
         estimate). The rate table is read at 2n: Var(2n) / Var(n), the latest measured rho
         at or below 2n (1/2 when none)."""
         known, rates = sorted(self.spread), sorted(self.rho)
-        return sampler_tables(
+        return self.statistics().measured(
             known, [1.0] + [self.spread[m] * self._rho(m) / (1.0 - self._rho(m))
                             for m in known],
             [1.0] + [self.spread[m] for m in known], rates,

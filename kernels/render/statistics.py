@@ -27,20 +27,26 @@ Z95 = wp.constant(wp.float64(Z95_VALUE))
 @wp.struct
 class Sampler:
     """The sampler's measured step functions of a pixel's sample count n: value[j] for the
-    j counts at or below n (value[0] below every count)."""
+    j counts at or below n (value[0] below every count). Arrays of SAMPLER_CAPACITY,
+    kept; `known` and `rates` of them in use."""
 
     counts: wp.array(dtype=wp.int64)  # sorted counts with a measured spread
-    efficiency: wp.array(dtype=wp.float64)  # SampleCounts.efficiency_table
+    efficiency: wp.array(dtype=wp.float64)  # the sampler's efficiency (adaptive.py)
     spread: wp.array(dtype=wp.float64)  # the halves' spread itself (max_pixel_error's)
+    known: int
     rho_counts: wp.array(dtype=wp.int64)  # sorted counts with a measured rate
     rho: wp.array(dtype=wp.float64)  # Var(2n) / Var(n), looked up at 2n
+    rates: int
+
+
+SAMPLER_CAPACITY = 64  # measured counts: doublings from the minimum, at most ~30
 
 
 @wp.func
 def step_at(counts: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.float64),
-            n: wp.int64) -> wp.float64:
+            used: int, n: wp.int64) -> wp.float64:
     j = int(0)
-    while j < counts.shape[0]:
+    while j < used:
         if counts[j] > n:
             break
         j += 1
@@ -114,7 +120,7 @@ def image_sums(done: wp.array(dtype=wp.int64), opened: wp.array(dtype=wp.int64),
     sv = wp.float64(0.0)
     for i in range(span[0], span[1]):
         n, k = done[i], opened[i]
-        eff = step_at(sampler.counts, sampler.efficiency, n)
+        eff = step_at(sampler.counts, sampler.efficiency, sampler.known, n)
         sp += wp.float64(k) / wp.float64(n)
         sv += eff * sample_variance(k, n) / wp.float64(n)
     sums[block, 0] = sp
@@ -147,7 +153,7 @@ def contributions(done: wp.array(dtype=wp.int64), opened: wp.array(dtype=wp.int6
     s = wp.float64(0.0)
     for i in range(span[0], span[1]):
         n, k = done[i], opened[i]
-        eff = step_at(sampler.counts, sampler.efficiency, n)
+        eff = step_at(sampler.counts, sampler.efficiency, sampler.known, n)
         c = eff * posterior_variance(k, n, a, b, prior) / wp.float64(n)
         contribution[i] = c
         s += c
@@ -158,13 +164,14 @@ def contributions(done: wp.array(dtype=wp.int64), opened: wp.array(dtype=wp.int6
 def dropped(contribution: wp.float64, sampler: Sampler, n: wp.int64) -> wp.float64:
     """What doubling removes: all but rho(n) of the pixel's squared error."""
     return contribution * (wp.float64(1.0) - step_at(sampler.rho_counts, sampler.rho,
-                                                     wp.int64(2) * n))
+                                                     sampler.rates, wp.int64(2) * n))
 
 
 @wp.func
 def sigma(k: wp.int64, n: wp.int64, sampler: Sampler) -> wp.float64:
     """The Neyman allocation's sigma_i: sqrt(efficiency * smoothed variance)."""
-    return wp.sqrt(step_at(sampler.counts, sampler.efficiency, n) * smoothed_variance(k, n))
+    eff = step_at(sampler.counts, sampler.efficiency, sampler.known, n)
+    return wp.sqrt(eff * smoothed_variance(k, n))
 
 
 @wp.kernel
@@ -187,7 +194,7 @@ def allocation_sums(done: wp.array(dtype=wp.int64), opened: wp.array(dtype=wp.in
         if n < max_spp:
             room_error += contribution[i]
             if max_error >= wp.float64(0.0):
-                half = Z95 * wp.sqrt(step_at(sampler.counts, sampler.spread, n)
+                half = Z95 * wp.sqrt(step_at(sampler.counts, sampler.spread, sampler.known, n)
                                      * smoothed_variance(k, n) / wp.float64(n))
                 if half >= max_error:
                     w = wp.uint8(1)
@@ -311,26 +318,9 @@ def record_round(select: wp.array(dtype=wp.int64), opened: wp.array(dtype=wp.int
         sums[block, 3 + c] = quarter[c]
 
 
-def _f64(values) -> wp.array:
-    return wp.array(np.asarray(values, np.float64), dtype=wp.float64, device="cpu")
-
-
-def _i64(values) -> wp.array:
-    return wp.array(np.asarray(values, np.int64), dtype=wp.int64, device="cpu")
-
-
 def powers_of_two() -> wp.array:
     """octave16's table: 2^e at e + 149, e in [-149, 128]."""
-    return _f64(np.ldexp(1.0, np.arange(-149, 129)))
-
-
-def sampler_tables(counts: list[int], efficiency: list[float], spread: list[float],
-                   rho_counts: list[int], rho: list[float]) -> Sampler:
-    """The step functions (each value list one longer than its counts)."""
-    s = Sampler()
-    s.counts, s.efficiency, s.spread = _i64(counts), _f64(efficiency), _f64(spread)
-    s.rho_counts, s.rho = _i64(rho_counts), _f64(rho)
-    return s
+    return wp.array(np.ldexp(1.0, np.arange(-149, 129)), dtype=wp.float64, device="cpu")
 
 
 class RoundStatistics:
@@ -349,8 +339,27 @@ class RoundStatistics:
         self.contribution = wp.empty(self.n, dtype=wp.float64, device=self.device)
         self.want = wp.empty(self.n, dtype=wp.uint8, device=self.device)
         self.sums = wp.empty((max(self.blocks, 1), 6), dtype=wp.float64, device=self.device)
+        self.block_sums = self.sums.numpy()  # the same memory
+        wp.load_module(image_sums.module, device=self.device)  # not in each thread at once
         self.keys = self.order = None  # the sort's, 2n each: made by the first that needs them
+        self.sampler = Sampler()
+        tables = {"counts": wp.int64, "efficiency": wp.float64, "spread": wp.float64,
+                  "rho_counts": wp.int64, "rho": wp.float64}
+        for name, dtype in tables.items():
+            setattr(self.sampler, name, wp.zeros(SAMPLER_CAPACITY + 1, dtype=dtype,
+                                                 device=self.device))
+        self.tables = {name: getattr(self.sampler, name).numpy() for name in tables}
         self.powers = powers_of_two()
+
+    def measured(self, counts: list[int], efficiency: list[float], spread: list[float],
+                 rho_counts: list[int], rho: list[float]) -> Sampler:
+        """The kept Sampler holding these step functions (each value list one longer than
+        its counts)."""
+        for name, values in (("counts", counts), ("efficiency", efficiency),
+                             ("spread", spread), ("rho_counts", rho_counts), ("rho", rho)):
+            self.tables[name][: len(values)] = values
+        self.sampler.known, self.sampler.rates = len(counts), len(rho_counts)
+        return self.sampler
 
     def _blocks(self, kernel, inputs: list, outputs: list, count: int | None = None
                 ) -> np.ndarray:
@@ -360,16 +369,15 @@ class RoundStatistics:
         count = self.n if count is None else count
         blocks = -(-count // BLOCK)
         args = [*inputs, 0, count, *outputs]
-        wp.load_module(kernel.module, device=self.device)  # once, not in each thread at once
         launch = part_launcher(kernel, args, self.device)
         parts = max(1, min(PARTS_PER_THREAD * self.threads, blocks // MIN_PART_BLOCKS))
-        bounds = np.linspace(0, blocks, parts + 1).astype(int)
-
-        def run(j: int) -> None:
-            launch(int(bounds[j + 1] - bounds[j]), {len(inputs): int(bounds[j])})
-
-        run_parts(run, len(bounds) - 1, self.threads)
-        return self.sums.numpy()[:blocks]
+        if parts == 1:
+            launch(blocks, {})
+        else:
+            bounds = np.linspace(0, blocks, parts + 1).astype(int)
+            run_parts(lambda j: launch(int(bounds[j + 1] - bounds[j]),
+                                       {len(inputs): int(bounds[j])}), parts, self.threads)
+        return self.block_sums[:blocks]
 
     def record(self, select: np.ndarray, traced: tuple[np.ndarray, ...], end: int, mid: int,
                quarters: int) -> tuple[np.ndarray, np.ndarray]:
