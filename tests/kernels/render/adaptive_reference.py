@@ -118,13 +118,7 @@ class SampleCounts:
 
 def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float | None,
                 max_spp: int) -> np.ndarray:
-    """The hit pixels whose samples the next round doubles (empty: done).
-
-    max_pixel_error: every pixel whose half-width is not yet below it. aim (the RMSE to
-    reach): while the estimate is above it, the pixels below their Neyman count
-    n*_i = sigma_i sum_j sigma_j / (H aim^2) by more than a factor sqrt(2), those with the
-    most variance removed per ray first, as many as the estimate predicts it needs (then,
-    if those are not enough, the others in the same order)."""
+    """adaptive.next_round in numpy (its docstring and comments say why)."""
     n, k = counts.done, counts.open
     eff = counts.efficiency_at(n)
     room = n < max_spp
@@ -145,19 +139,6 @@ def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float |
                                                      * n[order]), kind="stable")]
             dropped = np.cumsum(drop[order])
             rays = np.cumsum(n[order])  # doubling a pixel traces as many rays as it has
-            # a round with much to go stops short of the aim (DROP_SHORT of the need):
-            # Sobol's variance often falls faster than the last measured rho says, and an
-            # overshoot cannot be undone, while a shortfall costs one more round. With at
-            # most SHORT_NEED aim^2 to go it aims at all of it: selected pixels' drops came
-            # out up to 1.25x the prediction (measured on the shared scenes),
-            # which lands at >= 0.75 aim^2, inside the calibration band ((0.7 / 0.82)^2 =
-            # 0.73), and the shortfall round it saves has a fixed cost (launches, this
-            # allocation over every hit pixel; sponza at 0.05 went from 5 rounds to 3,
-            # 1.25x to 1.17x the time of the fixed render of its RMSE). A round that
-            # would be small (under TAIL_ROUND of the rays so far) aims TAIL_MARGIN aim^2
-            # past the need (an exact prediction falls short half the time, and each
-            # shortfall is one more tail: sponza at 0.05 had two) and traces at least
-            # MIN_ROUND of the rays so far
             short = DROP_SHORT if need > SHORT_NEED * aim**2 * len(n) else 1.0
             end = _first(dropped >= short * need)
             so_far = float(n.sum())
@@ -165,10 +146,6 @@ def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float |
                 end = max(_first(dropped >= need + TAIL_MARGIN * aim**2 * len(n)),
                           _first(rays >= MIN_ROUND * so_far))
             want[order[: end + 1]] = True
-            # a round that would double most of the image doubles all of it (the pixels
-            # left out would be the next round's, with its own fixed cost), unless that
-            # could land below FULL_ROUND_AIM of the aim (the calibration band) if the
-            # variance fell as fast as Sobol's can (RHO_MIN), not as fast as measured
             fastest = contribution.sum() - (1.0 - RHO_MIN) * contribution[room].sum()
             if (rays[end] >= FULL_ROUND * rays[-1]
                     and fastest >= (FULL_ROUND_AIM * aim) ** 2 * len(n)):
