@@ -247,7 +247,8 @@ class SampleCounts:
         posterior variance for s^2), summed; computed once per round (the progress report,
         the allocation and the result ask for it between two rounds)."""
         if self.cached is None:
-            self.cached = self.statistics().errors(self.sampler())
+            self.sampler()  # the statistics' step functions, filled for this round
+            self.cached = self.statistics().errors()
         return self.cached
 
     def mse(self) -> float:
@@ -269,16 +270,15 @@ def next_round(counts: SampleCounts, aim: float | None, max_pixel_error: float |
     most variance removed per ray first, as many as the estimate predicts it needs (then,
     if those are not enough, the others in the same order). The passes over the pixels are
     Warp kernels (statistics.py); this is the policy between them."""
-    stats, sampler, pixels = counts.statistics(), counts.sampler(), len(counts.done)
+    stats, pixels = counts.statistics(), len(counts.done)
     mse = counts.mse()  # the pixels' squared errors, in stats.contribution
     # doubling keeps rho(n) of a pixel's variance (1/2 for independent samples)
     drop_wanted, room_error, sigmas, candidates = stats.allocation_sums(
-        sampler, max_spp, max_pixel_error)
+        max_spp, max_pixel_error)
     if aim is not None:
         need = (mse - aim**2) * pixels - drop_wanted
         if need > 0.0 and candidates:
-            prefix = stats.sort_candidates(sampler, max_spp, sigmas / (pixels * aim**2),
-                                           candidates)
+            prefix = stats.sort_candidates(max_spp, sigmas / (pixels * aim**2), candidates)
             # a round with much to go stops short of the aim (DROP_SHORT of the need):
             # Sobol's variance often falls faster than the last measured rho says, and an
             # overshoot cannot be undone, while a shortfall costs one more round. With at

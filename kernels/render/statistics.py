@@ -342,6 +342,7 @@ class RoundStatistics:
         self.block_sums = self.sums.numpy()  # the same memory
         wp.load_module(image_sums.module, device=self.device)  # not in each thread at once
         self.keys = self.order = None  # the sort's, 2n each: made by the first that needs them
+        self.terms = wp.empty((BLOCK, 2), dtype=wp.float64, device=self.device)  # one block's
         self.sampler = Sampler()
         tables = {"counts": wp.int64, "efficiency": wp.float64, "spread": wp.float64,
                   "rho_counts": wp.int64, "rho": wp.float64}
@@ -353,8 +354,8 @@ class RoundStatistics:
 
     def measured(self, counts: list[int], efficiency: list[float], spread: list[float],
                  rho_counts: list[int], rho: list[float]) -> Sampler:
-        """The kept Sampler holding these step functions (each value list one longer than
-        its counts)."""
+        """The kept Sampler, which every pass reads, holding these step functions (each
+        value list one longer than its counts)."""
         for name, values in (("counts", counts), ("efficiency", efficiency),
                              ("spread", spread), ("rho_counts", rho_counts), ("rho", rho)):
             self.tables[name][: len(values)] = values
@@ -393,11 +394,11 @@ class RoundStatistics:
         totals = sums.sum(axis=0)
         return totals[:3], totals[3:]
 
-    def errors(self, sampler: Sampler) -> float:
+    def errors(self) -> float:
         """Each pixel's estimated squared error into `contribution`; their sum. The Beta
         prior of `posterior_variance` is fitted to the image by moments: its spread is the
         spread of the estimates less their sampling variance."""
-        sums = self._blocks(image_sums, [self.done, self.opened, sampler], [self.sums])
+        sums = self._blocks(image_sums, [self.done, self.opened, self.sampler], [self.sums])
         mean = float(sums[:, 0].sum()) / self.n
         sampling = float(sums[:, 1].sum()) / self.n
         deviations = self._blocks(deviation_sums, [self.done, self.opened, mean],
@@ -408,31 +409,32 @@ class RoundStatistics:
         if prior:
             total = max(mean * (1.0 - mean) / spread - 1.0, 1e-6)
             a, b = mean * total, (1.0 - mean) * total
-        sums = self._blocks(contributions, [self.done, self.opened, sampler, a, b, int(prior)],
-                            [self.contribution, self.sums])
+        sums = self._blocks(contributions, [self.done, self.opened, self.sampler, a, b,
+                                            int(prior)], [self.contribution, self.sums])
         return float(sums[:, 0].sum())
 
-    def allocation_sums(self, sampler: Sampler, max_spp: int, max_error: float | None
+    def allocation_sums(self, max_spp: int, max_error: float | None
                         ) -> tuple[float, float, float, int]:
         """`want` set to the pixels max_error asks to double; sums of what doubling them
         removes, of the squared errors of pixels with room, of the sigmas; the candidates
         (pixels with room not wanted)."""
         error = -1.0 if max_error is None else float(max_error)
         sums = self._blocks(allocation_sums, [self.done, self.opened, self.contribution,
-                                              sampler, max_spp, error], [self.want, self.sums])
+                                              self.sampler, max_spp, error],
+                            [self.want, self.sums])
         drop, room, sigmas, candidates = sums[:, :4].sum(axis=0)
         return float(drop), float(room), float(sigmas), int(candidates)
 
-    def sort_candidates(self, sampler: Sampler, max_spp: int, neyman_scale: float, count: int
-                        ) -> SortedPrefix:
+    def sort_candidates(self, max_spp: int, neyman_scale: float, count: int) -> SortedPrefix:
         """The `count` candidates in allocation order (a stable radix sort of their keys)."""
         if self.keys is None:
             self.keys = wp.empty(2 * self.n, dtype=wp.int32, device=self.device)
             self.order = wp.empty(2 * self.n, dtype=wp.int32, device=self.device)
-        self._blocks(allocation_keys, [self.done, self.opened, self.want, sampler, max_spp,
-                                       neyman_scale, self.powers], [self.keys, self.order])
+        self._blocks(allocation_keys, [self.done, self.opened, self.want, self.sampler,
+                                       max_spp, neyman_scale, self.powers],
+                     [self.keys, self.order])
         wp.utils.radix_sort_pairs(self.keys, self.order, self.n, end_bit=KEY_BITS)
-        return SortedPrefix(self, sampler, count)
+        return SortedPrefix(self, count)
 
     def mark(self, count: int) -> None:
         """Want the first `count` sorted candidates too."""
@@ -447,12 +449,11 @@ class SortedPrefix:
     rays it traces (column 1): block sums, then one block's terms when a search lands in
     it."""
 
-    def __init__(self, stats: RoundStatistics, sampler: Sampler, count: int) -> None:
-        self.stats, self.sampler, self.count = stats, sampler, count
+    def __init__(self, stats: RoundStatistics, count: int) -> None:
+        self.stats, self.count = stats, count
         sums = stats._blocks(sorted_sums, [stats.order, stats.done, stats.contribution,
-                                           sampler], [stats.sums], count)
+                                           stats.sampler], [stats.sums], count)
         self.ends = np.cumsum(sums[:, :2], axis=0)  # inclusive, per block
-        self.values = wp.empty((BLOCK, 2), dtype=wp.float64, device=stats.device)
         self.block = -1
 
     def _inside(self, block: int) -> np.ndarray:
@@ -460,10 +461,11 @@ class SortedPrefix:
         if block != self.block:
             start = block * BLOCK
             size = min(BLOCK, self.count - start)
+            stats = self.stats
             wp.launch(sorted_values, dim=size, inputs=[
-                self.stats.order, self.stats.done, self.stats.contribution, self.sampler,
-                start], outputs=[self.values], device=self.stats.device)
-            self.prefix = np.cumsum(self.values.numpy()[:size], axis=0)
+                stats.order, stats.done, stats.contribution, stats.sampler, start],
+                outputs=[stats.terms], device=stats.device)
+            self.prefix = np.cumsum(stats.terms.numpy()[:size], axis=0)
             if block:
                 self.prefix += self.ends[block - 1]
             self.block = block
