@@ -131,9 +131,10 @@ def _adaptive_rounds(trace_round: RoundTracer, counts: SampleCounts, opts: AoOpt
         else:
             report(samples_progress(counts.done, len(select), int(counts.done[select[0]])),
                    "occlusion")
-        # one launch set per sample count, each pixel doubled once (as next_round
-        # predicted: a group's counts read after an earlier group had doubled into them
-        # doubled that one again, up to 8x in one round)
+        # one launch set per sample count, each pixel doubled once as next_round
+        # predicted: the groups come from the counts at selection (read after an earlier
+        # group of the round had doubled into a later one's count, they would double it
+        # again)
         levels = counts.done[select]
         for n in np.flatnonzero(np.bincount(levels)):
             # doubling: Sobol prefixes of 2^k; the minimum's nested estimates (after a
