@@ -1,9 +1,11 @@
 """A round's statistics for the adaptive controller (`adaptive.py`), as Warp kernels over
-every hit pixel: the pixels' estimated squared errors and the next round's allocation.
+every hit pixel: the pixels' estimated squared errors, the next round's allocation and the
+bookkeeping of a round's samples.
 
-Image-level sums are sums of blocks of BLOCK pixels, each block summed in pixel order and
-the blocks' sums added in block order: the same bits on any number of host threads and on
-any device. The allocation's order is Warp's radix sort (stable). Arrays are kept between
+Image-level sums are sums of blocks of BLOCK pixels, each block summed in pixel order by
+one thread and the blocks' sums added in block order: the same bits on any number of host
+threads (tested), and by construction on any device (run on the CPU only: the counts are
+host arrays). The allocation's order is Warp's radix sort (stable). Arrays are kept between
 rounds: at 3840x2160 numpy's fresh temporaries of the same passes cost 1.3-2.2 s a round
 (notes/benchmarks-lab.md). The host keeps the scalars between passes and the cut.
 """
@@ -27,8 +29,8 @@ Z95 = wp.constant(wp.float64(Z95_VALUE))
 @wp.struct
 class Sampler:
     """The sampler's measured step functions of a pixel's sample count n: value[j] for the
-    j counts at or below n (value[0] below every count). Arrays of SAMPLER_CAPACITY,
-    kept; `known` and `rates` of them in use."""
+    j counts at or below n (value[0] below every count). Arrays for SAMPLER_CAPACITY
+    counts, kept; `known` and `rates` of them in use."""
 
     counts: wp.array(dtype=wp.int64)  # sorted counts with a measured spread
     efficiency: wp.array(dtype=wp.float64)  # the sampler's efficiency (adaptive.py)
