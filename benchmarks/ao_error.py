@@ -56,8 +56,9 @@ from docs_section import write_section  # noqa: E402  (benchmarks/ is on sys.pat
 from scenesort.backend.render.scenes import shared_scene, shared_scene_infos  # noqa: E402
 from scenesort.backend.tools import peers  # noqa: E402
 from scenesort.kernels.core import host_threads  # noqa: E402
-from scenesort.kernels.render import ao, options, primary, surface, tracers  # noqa: E402
+from scenesort.kernels.render import ao, primary, surface, tracers  # noqa: E402
 
+from scenesort import ao_options as options  # noqa: E402
 from scenesort import kernels  # noqa: E402
 
 RMSE_GOAL = 0.02
