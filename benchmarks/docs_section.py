@@ -3,19 +3,27 @@ between its markers; the text around the markers is written by hand."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "benchmarks.md"
+MARKER = re.compile(r"<!-- [\w.-]+:(?:begin|end) -->")
 
 
 def write_section(name: str, body: str, doc: Path = DOC) -> None:
     """Replace the text between `<!-- name:begin -->` and `<!-- name:end -->` in `doc`, or
-    append it."""
+    append it. Refuses to replace a span holding another section's marker: a hand edit that
+    put one section inside another would otherwise lose the inner one."""
     begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
     section = f"{begin}\n{body.rstrip()}\n{end}"
     text = doc.read_text() if doc.is_file() else ("# Benchmarks\n" if doc == DOC else "")
     if begin in text and end in text:
-        text = text[: text.index(begin)] + section + text[text.index(end) + len(end):]
+        start, stop = text.index(begin), text.index(end) + len(end)
+        inner = MARKER.findall(text, start + len(begin), stop - len(end))
+        if inner:
+            raise ValueError(f"{doc}: the section {name!r} holds {', '.join(inner)}; move the "
+                             "markers so that each section holds only its own text")
+        text = text[:start] + section + text[stop:]
     elif text.strip():
         text = text.rstrip("\n") + "\n\n" + section + "\n"
     else:
