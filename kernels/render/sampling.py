@@ -81,16 +81,18 @@ def owen_scramble(x: wp.uint32, seed: wp.uint32) -> wp.uint32:
 
 
 @wp.func
-def sobol_dim1(index: wp.uint32) -> wp.uint32:
-    """The second Sobol dimension (the first is reverse_bits(index))."""
+def sobol_dim1_reversed(index: wp.uint32) -> wp.uint32:
+    """The second Sobol dimension with its bits reversed (the first, reversed, is the
+    index itself): what owen_scramble reverses first, so its direction numbers are built
+    reversed (start at bit 0, v ^ (v << 1) for v ^ (v >> 1)) and no reversal is needed."""
     r = wp.uint32(0)
-    v = TOP_BIT
+    v = wp.uint32(1)
     i = index
     while i != wp.uint32(0):
         if (i & wp.uint32(1)) != wp.uint32(0):
             r = r ^ v
         i = i >> wp.uint32(1)
-        v = v ^ (v >> wp.uint32(1))
+        v = v ^ (v << wp.uint32(1))
     return r
 
 
@@ -107,8 +109,11 @@ def sample_2d_at(sampler: int, key: wp.uint32, k: wp.uint32) -> wp.vec2:
     position themselves: a wrapper taking an int cost 1-2% of a one-thread AO render
     (benchmarks/paired.py, ao1)."""
     if sampler == SAMPLER_SOBOL:
-        x = owen_scramble(reverse_bits(k), key)
-        y = owen_scramble(sobol_dim1(k), pcg_hash(key))
+        # owen_scramble(d, s) = reverse(laine_karras(reverse(d), s)) for the Sobol points'
+        # dimensions d = reverse(k) and sobol_dim1(k), written without the reversals that
+        # cancel (3 of the 4, ~6 ns a sample on CPU; the same bits)
+        x = reverse_bits(laine_karras(k, key))
+        y = reverse_bits(laine_karras(sobol_dim1_reversed(k), pcg_hash(key)))
         return wp.vec2(to_unit(x), to_unit(y))
     h = pcg_hash(key ^ pcg_hash(k))
     return wp.vec2(to_unit(h), to_unit(pcg_hash(h)))

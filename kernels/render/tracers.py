@@ -120,6 +120,7 @@ def occlusion_kernel(
     slot0: int,  # the first slot of this launch
     first: int,  # the first sample index of this round (the same for every slot)
     count: int,  # samples per slot this round
+    span: int,  # samples per kernel thread: count on CPU, 1 on CUDA (a divisor of count)
     sampler: int,
     seed: int,
     distance: float,
@@ -130,24 +131,35 @@ def occlusion_kernel(
     out_open_mid: wp.array(dtype=int),
     out_open_quarter: wp.array(dtype=int),
 ):
-    # One occlusion ray per thread, slot-major, so the rays (not the pixels) are split
-    # between host threads. A slot's rays never straddle two launches: the plain
-    # read-modify-write adds below need no atomics (Warp's are not atomic on CPU).
+    # `span` samples of one slot per thread, slot-major. On CPU a thread takes a slot's
+    # samples (the slot's reads, key and frame once, not per ray); on CUDA one ray each.
+    # A slot never straddles two launches: the plain read-modify-write adds below need no
+    # atomics (Warp's are not atomic on CPU; on CUDA `+=` is an atomic add).
     # Cosine-weighted estimator (PBR 4th ed. 13.6.3 / A.5.3): each sample is V(p, w).
     t = wp.tid()
-    s = t % count
-    j = slot0 + t // count
+    threads_per_slot = count / span
+    j = slot0 + t / threads_per_slot
+    s0 = first + (t % threads_per_slot) * span
     k = active[j]
     hit = surfaces[k]
-    w = cosine_direction(hit.n, sampler, pixel_key(pixels[k], seed), first + s)
-    # traverse() with a run-time any-hit flag, as trace_kernel calls it: measured 25-30%
-    # faster on CPU than bvh_trace.any_hit, whose flag is the literal True.
-    if not occluded(bvh, occlusion_origin(hit, w), w, distance, find_any != 0):
-        out_open[j] += 1
-        if first + s < mid:
-            out_open_mid[j] += 1
-            if first + s < quarter:
-                out_open_quarter[j] += 1
+    key = pixel_key(pixels[k], seed)
+    opened = int(0)
+    opened_mid = int(0)
+    opened_quarter = int(0)
+    for s in range(s0, s0 + span):
+        w = cosine_direction(hit.n, sampler, key, s)
+        # traverse() with a run-time any-hit flag, as trace_kernel calls it: measured 25-30%
+        # faster on CPU than bvh_trace.any_hit, whose flag is the literal True.
+        if not occluded(bvh, occlusion_origin(hit, w), w, distance, find_any != 0):
+            opened += 1
+            if s < mid:
+                opened_mid += 1
+                if s < quarter:
+                    opened_quarter += 1
+    if opened > 0:
+        out_open[j] += opened
+        out_open_mid[j] += opened_mid
+        out_open_quarter[j] += opened_quarter
 
 
 @wp.kernel
@@ -246,12 +258,13 @@ def occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist
     parts = max(1, min(spread, m * count // PART_RAYS, m), -(-m * count // LAUNCH_RAYS))
     bounds = np.linspace(0, m, parts + 1).astype(int)
 
+    span = int(count) if device.is_cpu else 1
     launch = part_launcher(occlusion_kernel, [
-        bvh.arrays, hits.surfaces, pix, act, 0, int(first), int(count), sampler_id, seed, dist,
-        1, int(mid), int(quarter), *outs], device)
+        bvh.arrays, hits.surfaces, pix, act, 0, int(first), int(count), span, sampler_id,
+        seed, dist, 1, int(mid), int(quarter), *outs], device)
 
     def run(p: int) -> None:
-        launch(int(bounds[p + 1] - bounds[p]) * count, {4: int(bounds[p])})
+        launch(int(bounds[p + 1] - bounds[p]) * (count // span), {4: int(bounds[p])})
 
     run_parts(run, parts, nthreads)
     return tuple(out.numpy().astype(np.int64) for out in outs)
