@@ -29,8 +29,9 @@ Z95 = wp.constant(wp.float64(Z95_VALUE))
 @wp.struct
 class Sampler:
     """The sampler's measured step functions of a pixel's sample count n: value[j] for the
-    j counts at or below n (value[0] below every count). Arrays for SAMPLER_CAPACITY
-    counts, kept; `known` and `rates` of them in use."""
+    j counts at or below n (value[0] below every count). Arrays for at least
+    SAMPLER_CAPACITY counts, kept (grown when more are measured); `known` and `rates` of
+    them in use."""
 
     counts: wp.array(dtype=wp.int64)  # sorted counts with a measured spread
     efficiency: wp.array(dtype=wp.float64)  # the sampler's efficiency (adaptive.py)
@@ -41,18 +42,26 @@ class Sampler:
     rates: int
 
 
-SAMPLER_CAPACITY = 64  # measured counts: doublings from the minimum, at most ~30
+# Measured counts: an adaptive render's doublings from the minimum (at most ~30), but a
+# fixed render measures at the end of each of its rounds (one sample a round where the
+# image has ROUND_RAYS pixels): the tables grow past this where needed.
+SAMPLER_CAPACITY = 64
 
 
 @wp.func
 def step_at(counts: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.float64),
             used: int, n: wp.int64) -> wp.float64:
-    j = int(0)
-    while j < used:
-        if counts[j] > n:
-            break
-        j += 1
-    return values[j]
+    """values[j] for the first j with counts[j] > n (j = used if none): a binary search,
+    since a fixed render's tables hold a count per round."""
+    lo = int(0)
+    hi = used
+    while lo < hi:
+        mid = (lo + hi) / 2
+        if counts[mid] > n:
+            hi = mid
+        else:
+            lo = mid + 1
+    return values[lo]
 
 
 @wp.func
@@ -346,18 +355,25 @@ class RoundStatistics:
         self.keys = self.order = None  # the sort's, 2n each: made by the first that needs them
         self.terms = wp.empty((BLOCK, 2), dtype=wp.float64, device=self.device)  # one block's
         self.sampler = Sampler()
+        self._make_tables(SAMPLER_CAPACITY)
+        self.powers = powers_of_two()
+
+    def _make_tables(self, capacity: int) -> None:
+        """The kept Sampler's arrays, for `capacity` counts, and their numpy views."""
         tables = {"counts": wp.int64, "efficiency": wp.float64, "spread": wp.float64,
                   "rho_counts": wp.int64, "rho": wp.float64}
         for name, dtype in tables.items():
-            setattr(self.sampler, name, wp.zeros(SAMPLER_CAPACITY + 1, dtype=dtype,
+            setattr(self.sampler, name, wp.zeros(capacity + 1, dtype=dtype,
                                                  device=self.device))
         self.tables = {name: getattr(self.sampler, name).numpy() for name in tables}
-        self.powers = powers_of_two()
 
     def measured(self, counts: list[int], efficiency: list[float], spread: list[float],
                  rho_counts: list[int], rho: list[float]) -> Sampler:
         """The kept Sampler, which every pass reads, holding these step functions (each
         value list one longer than its counts)."""
+        need = max(len(counts), len(rho_counts))
+        if need >= len(self.tables["counts"]):  # a fixed render's rounds
+            self._make_tables(2 * need)
         for name, values in (("counts", counts), ("efficiency", efficiency),
                              ("spread", spread), ("rho_counts", rho_counts), ("rho", rho)):
             self.tables[name][: len(values)] = values
