@@ -106,17 +106,26 @@ def sample_rounds(trace_round: RoundTracer, pixels: int, opts: AoOptions,
     counts = SampleCounts(*(np.zeros(pixels, dtype=np.int64) for _ in range(3)),
                           threads=opts.threads)
     if not opts.adaptive:
-        count = max(1, min(min_spp, ROUND_RAYS // max(pixels, 1)))
-        everyone = np.arange(pixels)
-        while pixels and count > 0:
-            report(float(counts.done.sum()) / (min_spp * pixels), "occlusion")
-            counts.trace(trace_round, everyone, count)
+        # runs of pixels with all their samples each: every pixel's nested estimates (at a
+        # half and a quarter of its samples) come from one launch, as in a single round, so
+        # the estimate does not depend on how many rounds the image takes (rounds of a few
+        # samples of every pixel measured the rate at no count: a pessimistic estimate)
+        bounds = round_bounds(pixels, min_spp)
+        for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+            report(float(a) / pixels, "occlusion")
+            counts.trace(trace_round, np.arange(a, b), min_spp)
             rounds += 1
-            count = min(count, min_spp - int(counts.done[0]))
         return counts, rounds
     aim = None if opts.target_error is None else RMSE_AIM * opts.target_error
     return counts, _adaptive_rounds(trace_round, counts, opts, report, aim, None,
                                     np.arange(pixels))
+
+
+def round_bounds(pixels: int, samples: int) -> np.ndarray:
+    """Cuts of `pixels` into runs of about ROUND_RAYS rays at `samples` each (at least one
+    pixel a run): the rounds of a fixed render, between which progress is reported."""
+    runs = max(1, min(pixels, pixels * samples // ROUND_RAYS)) if pixels else 0
+    return np.linspace(0, pixels, runs + 1).astype(int)
 
 
 def _adaptive_rounds(trace_round: RoundTracer, counts: SampleCounts, opts: AoOptions,
@@ -198,14 +207,15 @@ class SampleCounts:
             return store[key]
 
         total = pooled(self.sums, n, halves)
+        # the quarters pooled with the halves, also while too few pixels disagree to measure
+        # (a fixed render's first runs of pixels): else the rate would rest on fewer pixels
+        before = None if quarters is None else pooled(self.sums_before, n, quarters)
         if total[2] < EFFICIENCY_PIXELS:
             return
         self.spread[n] = float(np.clip(total[0] / total[1], EFFICIENCY_MIN, 1.0))
-        if quarters is not None:  # the same pixels' previous halves: the rate
-            before = pooled(self.sums_before, n, quarters)
-            if before[2] >= EFFICIENCY_PIXELS:
-                ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])
-                self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
+        if before is not None and before[2] >= EFFICIENCY_PIXELS:  # the same pixels'
+            ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])  # previous halves
+            self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
 
     def sampler(self) -> Sampler:
         """The sampler's measurements (kept until the next `changed()`)."""

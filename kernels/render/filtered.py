@@ -37,7 +37,7 @@ from ..core.launch import PARTS_PER_THREAD, host_threads, part_launcher, run_par
 from ..core.mesh import Shading
 from ..scene.api import Scene
 from ..scene.top import SceneArrays, SceneShading
-from .adaptive import ROUND_RAYS, Progress, SampleCounts, nested_marks, sample_rounds
+from .adaptive import Progress, SampleCounts, nested_marks, round_bounds, sample_rounds
 from .ao import AoResult, _monotone, default_distance, render_ao
 from .camera import Camera
 from .film import decorrelated_2d, filter_position, filter_table
@@ -296,7 +296,7 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
     first_open, first_mid, first_quarter, hits = (np.zeros(n, np.int64) for _ in range(4))
     mid, quarter = nested_marks(0, m)
     share = 0.5 if opts.adaptive else 1.0  # of the progress bar
-    bounds = np.linspace(0, n, max(1, min(n, n * m // ROUND_RAYS)) + 1).astype(int)
+    bounds = round_bounds(n, m)
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         report(share * float(a) / n, "film")
         pixels = np.arange(a, b)

@@ -64,14 +64,14 @@ class SampleCounts:
             return store[key]
 
         total = pooled(self.sums, n, open_mid, mid, open_end, n)
+        before = (None if open_before is None else
+                  pooled(self.sums_before, n, open_before, mid // 2, open_mid, mid))
         if total[2] < EFFICIENCY_PIXELS:
             return
         self.spread[n] = float(np.clip(total[0] / total[1], EFFICIENCY_MIN, 1.0))
-        if open_before is not None:  # the same pixels' previous halves: the rate
-            before = pooled(self.sums_before, n, open_before, mid // 2, open_mid, mid)
-            if before[2] >= EFFICIENCY_PIXELS:
-                ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])
-                self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
+        if before is not None and before[2] >= EFFICIENCY_PIXELS:  # the previous halves
+            ratio = (total[0] / total[1]) / (2.0 * before[0] / before[1])
+            self.rho[n] = min(max(ratio, RHO_MIN), 0.5)
 
     def efficiency_at(self, n: np.ndarray) -> np.ndarray:
         """The sampler's efficiency (variance over the independent samples' p(1-p)/n) at
