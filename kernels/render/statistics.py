@@ -42,17 +42,15 @@ class Sampler:
     rates: int
 
 
-# Measured counts: an adaptive render's doublings from the minimum (at most ~30), but a
-# fixed render measures at the end of each of its rounds (one sample a round where the
-# image has ROUND_RAYS pixels): the tables grow past this where needed.
+# Measured counts: a render's doublings from its minimum, at most ~30 (a fixed render's
+# rounds all measure at its one count); the tables grow past this where more are given.
 SAMPLER_CAPACITY = 64
 
 
 @wp.func
 def step_at(counts: wp.array(dtype=wp.int64), values: wp.array(dtype=wp.float64),
             used: int, n: wp.int64) -> wp.float64:
-    """values[j] for the first j with counts[j] > n (j = used if none): a binary search,
-    since a fixed render's tables hold a count per round."""
+    """values[j] for the first j with counts[j] > n (j = used if none), by binary search."""
     lo = int(0)
     hi = used
     while lo < hi:
