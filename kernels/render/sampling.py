@@ -28,7 +28,6 @@ PCG_MUL = wp.constant(wp.uint32(747796405))
 PCG_INC = wp.constant(wp.uint32(2891336453))
 PCG_OUT = wp.constant(wp.uint32(277803737))
 GOLDEN = wp.constant(wp.uint32(0x9E3779B9))  # 2^32 / golden ratio: decorrelates seeds
-TOP_BIT = wp.constant(wp.uint32(0x80000000))
 TO_UNIT = wp.constant(5.9604645e-08)  # 2^-24: 24 random bits to a float in [0, 1)
 MIN_COS = wp.constant(2.4414062e-04)  # 2^-12: keeps every direction strictly above the surface
 QUARTER_PI = wp.constant(0.7853981633974483)

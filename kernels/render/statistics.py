@@ -370,7 +370,7 @@ class RoundStatistics:
         """The kept Sampler, which every pass reads, holding these step functions (each
         value list one longer than its counts)."""
         need = max(len(counts), len(rho_counts))
-        if need >= len(self.tables["counts"]):  # a fixed render's rounds
+        if need >= len(self.tables["counts"]):
             self._make_tables(2 * need)
         for name, values in (("counts", counts), ("efficiency", efficiency),
                              ("spread", spread), ("rho_counts", rho_counts), ("rho", rho)):
