@@ -38,6 +38,7 @@ from .build_data import (
     BuildTask,
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
+from .packet import packet_trace_kernel, packets_apply
 from .stats import BvhStats
 from .traversal import trace_kernel
 from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
@@ -383,8 +384,12 @@ def trace(
                                                        (v, float))]
     inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
               to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
-    launch_split(trace_kernel, r, [bvh.arrays], inputs, [int(any_hit)], outputs, device,
-                 host_threads(device, threads))
+    if any_hit or not packets_apply(bvh):
+        launch_split(trace_kernel, r, [bvh.arrays], inputs, [int(any_hit)], outputs, device,
+                     host_threads(device, threads))
+    else:
+        launch_split(packet_trace_kernel, r, [bvh.arrays], inputs, [], outputs, device,
+                     host_threads(device, threads))
     if not device.is_cpu:
         t, tri, u, v = (a.numpy() for a in outputs)
     return Hits(t=t, triangle=tri, u=u, v=v)

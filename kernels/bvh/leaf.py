@@ -23,7 +23,7 @@ def intersect_leaf(bvh: BvhArrays, r: Ray, first: int, count: int, tmin: float,
             r, bvh.tri_verts[3 * i], bvh.tri_verts[3 * i + 1], bvh.tri_verts[3 * i + 2],
             tmin, wp.min(hit.t, tmax),
         )
-        if h[0] < hit.t:
+        if h[0] < hit.t or (h[0] == hit.t and i < hit.triangle):  # ties: the first position
             hit.t = h[0]
             hit.u = h[1]
             hit.v = h[2]

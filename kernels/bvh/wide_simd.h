@@ -96,25 +96,12 @@
     int* stack = stack_vec.c;
     float* dists = dists_vec.c;
 #else
-    // Leaf test, per ray: intersect_triangle (Woop, Benthin, Wald 2013) on the BLOCK
-    // triangles of a block with the same float32 operations in the same order (no FMA
-    // contraction), edge functions that round to zero recomputed in float64 lane by lane as
-    // edge_function does.
-    auto row4 = [](const float* p, int k) {
-        f4 v;
-        __builtin_memcpy(&v, p + BLOCK * k, sizeof(f4));
-        return v;
-    };
-    auto coord4 = [&](const float* p, int m, int a) { return row4(p, 3 * m + a); };
-    auto edge64 = [](float ax, float ay, float bx, float by) {  // edge_function in float64
-        const double p = (double)bx * (double)ay;
-        const double q = (double)by * (double)ax;
-        return (float)(p - q);
-    };
+    // Leaf test, per ray: block_test and keep_hit (wide_block.h).
+WIDE_BLOCK_TEST
     const int kx = r.kx, ky = r.ky, kz = r.kz;
     const f4 ox = splat4(r.origin.c[kx]), oy = splat4(r.origin.c[ky]), oz = splat4(r.origin.c[kz]);
     const f4 sx = splat4(r.shear.c[0]), sy = splat4(r.shear.c[1]), sz = splat4(r.shear.c[2]);
-    const f4 zero = splat4(0.0f), one = splat4(1.0f), tmin4 = splat4(tmin);
+    const f4 tmin4 = splat4(tmin);
 
     // The stack: uninitialised (a Warp vector would be zero-filled, 1 KB per ray), with
     // MAX_WIDTH entries to spare for a whole-vector store.
@@ -231,62 +218,12 @@
         const int blocks_used = (lane_words[ROW_COUNT * width] + BLOCK - 1) >> BLOCK_BITS;
         for (int q = 0; q < blocks_used; ++q) {
             const float* p = blocks.data + (long long)(block + q) * BLOCK_WORDS;
-            const f4 az = coord4(p, 0, kz) - oz, bz = coord4(p, 1, kz) - oz;
-            const f4 cz = coord4(p, 2, kz) - oz;
-            const f4 sax = sx * az, say = sy * az, sbx = sx * bz, sby = sy * bz;
-            const f4 scx = sx * cz, scy = sy * cz;
-            const f4 ax = (coord4(p, 0, kx) - ox) - sax, ay = (coord4(p, 0, ky) - oy) - say;
-            const f4 bx = (coord4(p, 1, kx) - ox) - sbx, by = (coord4(p, 1, ky) - oy) - sby;
-            const f4 cx = (coord4(p, 2, kx) - ox) - scx, cy = (coord4(p, 2, ky) - oy) - scy;
-            const f4 u1 = cx * by, u2 = cy * bx, v1 = ax * cy, v2 = ay * cx;
-            const f4 w1 = bx * ay, w2 = by * ax;
-            f4 u = u1 - u2, v = v1 - v2, w = w1 - w2;
-            const i4 flat = (u == zero) | (v == zero) | (w == zero);
-            if (__builtin_ia32_movmskps((f4)flat)) {
-                for (int l = 0; l < BLOCK; ++l) {
-                    if (u[l] == 0.0f)
-                        u[l] = edge64(bx[l], by[l], cx[l], cy[l]);
-                    if (v[l] == 0.0f)
-                        v[l] = edge64(cx[l], cy[l], ax[l], ay[l]);
-                    if (w[l] == 0.0f)
-                        w[l] = edge64(ax[l], ay[l], bx[l], by[l]);
-                }
-            }
-            const i4 neg = (u < zero) | (v < zero) | (w < zero);
-            const i4 pos = (u > zero) | (v > zero) | (w > zero);
-            const f4 det = (u + v) + w;
-            // Most blocks end here: no triangle's edges enclose the ray (Embree's early
-            // out before the division).
-            const i4 inside = ~(neg & pos) & (det != zero);
-            if (__builtin_ia32_movmskps((f4)inside) == 0)
-                continue;
-            const f4 tu = u * (sz * az), tv = v * (sz * bz), tw = w * (sz * cz);
-            const f4 t_scaled = (tu + tv) + tw;
-            const f4 inv_det = one / det;
-            const f4 t = t_scaled * inv_det;
-            const float bound = hit.t < tmax ? hit.t : tmax;
-            const i4 ok = inside & (t >= tmin4) & (t <= splat4(bound));
-            const int mask = __builtin_ia32_movmskps((f4)ok);
-            if (mask == 0)
-                continue;
-            int best = __builtin_ctz(mask);
-            if (ordered) {
-                for (int m = mask & (mask - 1); m; m &= m - 1) {
-                    const int l = __builtin_ctz(m);
-                    if (t[l] < t[best])
-                        best = l;
-                }
-            }
-            if (t[best] < hit.t) {
-                hit.t = t[best];
-                hit.u = v[best] * inv_det[best];
-                hit.v = w[best] * inv_det[best];
-                int position;
-                __builtin_memcpy(&position, p + ROW_POSITION * BLOCK + best, sizeof(int));
-                hit.triangle = position;
-                if (!ordered)
-                    return true;
-            }
+            f4 t, v, w, inv_det;
+            const int mask = block_test(p, kx, ky, kz, ox, oy, oz, sx, sy, sz, tmin4,
+                                        hit.t < tmax ? hit.t : tmax, t, v, w, inv_det);
+            if (mask && keep_hit(p, mask, t, v, w, inv_det, ordered, hit.t, hit.u, hit.v,
+                                 hit.triangle) && !ordered)
+                return true;
         }
         return false;
     };

@@ -93,7 +93,14 @@ def simd_lanes() -> int:
     ...
 
 
-SIMD_SOURCE = Path(__file__).with_name("wide_simd.h").read_text()
+def native_source(name: str) -> str:
+    """A native text of this folder, wide_block.h pasted where its line WIDE_BLOCK_TEST is."""
+    here = Path(__file__).parent
+    block = (here / "wide_block.h").read_text()
+    return (here / name).read_text().replace("WIDE_BLOCK_TEST\n", block)
+
+
+SIMD_SOURCE = native_source("wide_simd.h")
 
 
 def simd_function(node_test: bool) -> str:
@@ -179,11 +186,13 @@ def leaf_portable(bvh: BvhArrays, block: int, count: int, r: Ray, tmin: float, t
         v2 = wp.vec3(bvh.blocks[base + 6 * BLOCK], bvh.blocks[base + 7 * BLOCK],
                      bvh.blocks[base + 8 * BLOCK])
         h = intersect_triangle(r, v0, v1, v2, tmin, wp.min(hit.t, tmax))
-        if h[0] < hit.t:
+        position = float_bits(bvh.blocks[base + ROW_POSITION * BLOCK])
+        if h[0] < hit.t or (h[0] == hit.t and position < hit.triangle):
+            hit.t = h[0]
             hit.t = h[0]
             hit.u = h[1]
             hit.v = h[2]
-            hit.triangle = float_bits(bvh.blocks[base + ROW_POSITION * BLOCK])
+            hit.triangle = position
             if any_hit:
                 return True
     return False

@@ -32,6 +32,8 @@ from scenesort.ao_options import AoOptions
 
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
+from ..bvh.packet import PACKET
+from ..bvh.wide_traversal import simd_lanes
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import PARTS_PER_THREAD, host_threads, part_launcher, run_parts
 from ..core.mesh import Shading
@@ -44,7 +46,17 @@ from .film import decorrelated_2d, filter_position, filter_table
 from .primary import scene_shading
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import occlusion_origin
-from .tracers import PART_RAYS, MeshTracer, check_tracer, closest_surface, occluded, scene_mesh
+from .tracers import (
+    PART_RAYS,
+    MeshTracer,
+    PacketRays,
+    check_tracer,
+    closest_surface,
+    occluded,
+    packet_rays,
+    packet_surface,
+    scene_mesh,
+)
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -146,6 +158,47 @@ def camera_ray(cam: FilmCamera, px: float, py: float, lens: wp.vec2):
     return origin, wp.normalize(d), cam.clip_start, cam.clip_end
 
 
+@wp.func
+def sample_ray(cam: FilmCamera, table: wp.array(dtype=float), sampler: int, key: wp.uint32,
+               i: int, row: int, col: int):
+    """(origin, direction, tmin, tmax) of sample i's camera ray in pixel (row, col)."""
+    offset = filter_position(table, sampler, key, i)
+    lens = wp.vec2(0.5, 0.5)  # the lens's centre: a pinhole
+    if cam.aperture > 0.0:
+        lens = decorrelated_2d(sampler, key, LENS_KEY, i)
+    return camera_ray(cam, float(col) + offset[0], float(row) + offset[1], lens)
+
+
+@wp.func
+def sample_surface(tracer: MeshTracer, shading: Shading, cam: FilmCamera,
+                   table: wp.array(dtype=float), sampler: int, key: wp.uint32, first: int,
+                   s: int, count: int, row: int, col: int, rays: PacketRays, packet0: int):
+    """`closest_surface` of sample first + s's camera ray of pixel (row, col). On an AVX2
+    CPU the camera rays of PACKET samples at a time are traced together, at the first of
+    them (a pixel's rays leave one point through a pixel or two: as coherent as rays get)."""
+    if simd_lanes() > 0:
+        q = s % PACKET
+        c = wp.min(PACKET, count - (s - q))
+        if q == 0:
+            for m in range(c):
+                o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s + m, row, col)
+                rays.origins[packet0 + m] = o
+                rays.directions[packet0 + m] = d
+                rays.tmin[packet0 + m] = t0
+                rays.tmax[packet0 + m] = t1
+        return packet_surface(tracer, shading, rays, packet0, packet0 + q, packet0 + c)
+    o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s, row, col)
+    return closest_surface(tracer, shading, o, d, t0, t1)
+
+
+@wp.func  # a Warp overload of the one above: a two-level scene's camera rays one by one
+def sample_surface(tracer: SceneArrays, shading: SceneShading, cam: FilmCamera,  # noqa: F811
+                   table: wp.array(dtype=float), sampler: int, key: wp.uint32, first: int,
+                   s: int, count: int, row: int, col: int, rays: PacketRays, packet0: int):
+    o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s, row, col)
+    return closest_surface(tracer, shading, o, d, t0, t1)
+
+
 @wp.kernel
 def film_kernel(
     tracer: Any,  # MeshTracer or SceneArrays
@@ -163,6 +216,8 @@ def film_kernel(
     count: int,  # samples per slot this round
     mid: int,  # out_open_mid counts the open samples with index below this (absolute)
     quarter: int,  # out_open_quarter: those below this
+    rays: PacketRays,  # one packet per part of the round
+    packet0: int,  # this launch's packet in `rays`
     out_open: wp.array(dtype=int),  # per slot: samples whose value is 1
     out_open_mid: wp.array(dtype=int),
     out_open_quarter: wp.array(dtype=int),
@@ -180,12 +235,8 @@ def film_kernel(
     n_hit = int(0)
     for s in range(count):
         i = first + s
-        offset = filter_position(table, sampler, key, i)
-        lens = wp.vec2(0.5, 0.5)  # the lens's centre: a pinhole
-        if cam.aperture > 0.0:
-            lens = decorrelated_2d(sampler, key, LENS_KEY, i)
-        o, d, t0, t1 = camera_ray(cam, float(col) + offset[0], float(row) + offset[1], lens)
-        surface, hit = closest_surface(tracer, shading, o, d, t0, t1)
+        surface, hit = sample_surface(tracer, shading, cam, table, sampler, key, first, s,
+                                      count, row, col, rays, packet0)
         is_open = True  # a miss counts 1, as render_ao's pixels do
         if hit:
             n_hit += 1
@@ -357,22 +408,30 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
     nthreads = host_threads(device, opts.threads)
     head = [tracer, shading, arrays, device_camera(camera), camera.width, table,
             SAMPLERS[opts.sampler], opts.seed, dist]
+    kept: list[PacketRays] = []
+
+    def packets(parts: int) -> PacketRays:
+        """One packet per part, kept for the render's later rounds."""
+        if not kept or kept[0].t.shape[0] < parts * PACKET:
+            kept[:] = [packet_rays(parts, device)]
+        return kept[0]
 
     def trace(pixels: np.ndarray, first: int, count: int, mid: int,
               quarter: int) -> tuple[np.ndarray, ...]:
         k = len(pixels)
         active = wp.array(pixels.astype(np.int32), dtype=int, device=device)
         outs = [wp.empty(k, dtype=int, device=device) for _ in range(4)]
-        launch = part_launcher(film_kernel, [*head, active, 0, int(first), int(count),
-                                             int(mid), int(quarter), *outs], device)
         # Contiguous runs of pixels in host threads (a CPU launch is serial): more parts
         # than threads, taken in turn, since sky and geometry cost very different amounts.
         parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
                            k * count // PART_RAYS, k))
         bounds = np.linspace(0, k, parts + 1).astype(int)
+        launch = part_launcher(film_kernel, [*head, active, 0, int(first), int(count),
+                                             int(mid), int(quarter), packets(parts), 0, *outs],
+                               device)
 
         def run(p: int) -> None:
-            launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p])})
+            launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p]), 16: p * PACKET})
 
         run_parts(run, parts, nthreads)
         return tuple(out.numpy().astype(np.int64) for out in outs)

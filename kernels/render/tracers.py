@@ -16,6 +16,7 @@ from scenesort.ao_options import AO_OPTIONS, AoOptions
 
 from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
+from ..bvh.packet import PACKET, trace_packet_hits
 from ..bvh.traversal import closest_hit, traverse
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import PARTS_PER_THREAD, part_launcher, run_parts
@@ -60,6 +61,46 @@ def closest_surface(g: SceneArrays, shading: SceneShading, o: wp.vec3, d: wp.vec
     ih = traverse_scene(g, o, d, tmin, tmax, False)
     if ih.instance >= 0:
         return instance_surface(g, shading, d, ih), True
+    return Surface(), False
+
+
+@wp.struct
+class PacketRays:
+    """A host thread's rays of one packet and their closest hits (bvh/packet.py), indexed
+    from each part's first entry: camera rays that the CPU traces together."""
+
+    origins: wp.array(dtype=wp.vec3)
+    directions: wp.array(dtype=wp.vec3)
+    tmin: wp.array(dtype=float)
+    tmax: wp.array(dtype=float)
+    t: wp.array(dtype=float)
+    triangle: wp.array(dtype=int)
+    u: wp.array(dtype=float)
+    v: wp.array(dtype=float)
+
+
+def packet_rays(parts: int, device) -> PacketRays:
+    """Room for one packet per part."""
+    rays = PacketRays()
+    n = parts * PACKET
+    rays.origins, rays.directions = (wp.empty(n, dtype=wp.vec3, device=device) for _ in "od")
+    rays.tmin, rays.tmax, rays.t, rays.u, rays.v = (wp.empty(n, dtype=float, device=device)
+                                                    for _ in range(5))
+    rays.triangle = wp.empty(n, dtype=int, device=device)
+    return rays
+
+
+@wp.func
+def packet_surface(g: MeshTracer, shading: Shading, rays: PacketRays, first: int, k: int,
+                   last: int):
+    """`closest_surface` of ray k of rays [first, last) of `rays`; at k == first the
+    closest hits of them all are traced (trace_packet_hits), into `rays`."""
+    if k == first:
+        trace_packet_hits(g.bvh, rays.origins, rays.directions, rays.tmin, rays.tmax, first,
+                          last, rays.t, rays.triangle, rays.u, rays.v)
+    if rays.triangle[k] >= 0:
+        return surface(g.vertices, g.indices, shading, rays.directions[k], rays.triangle[k],
+                       rays.u[k], rays.v[k]), True
     return Surface(), False
 
 

@@ -258,6 +258,21 @@ def test_two_level_scene_renders_as_its_mesh():
     assert 0.0 < a.alpha[0, 7] < 1.0
 
 
+@pytest.mark.parametrize("name", ["conference", "bunny"])
+def test_camera_packets_render_as_single_rays(name):
+    """A mesh's filtered render traces each pixel's camera rays as packets on an AVX2 CPU
+    (bvh/packet.py); a two-level scene's traces them one by one: on the mesh and on a scene
+    of it as its one instance, the same image, sample for sample."""
+    sc = shared_scene(name)
+    bvh = kernels.build_bvh(sc.vertices, sc.indices)
+    scene = kernels.build_scene([bvh], np.array([0]), np.eye(4, dtype=np.float32)[None, :3])
+    cam = type(sc.camera).from_dict({**sc.camera.to_dict(), "width": 48, "height": 36})
+    a = render_film(bvh, cam, spp=80, filter_width=1.5)
+    b = render_film(scene, cam, spp=80, filter_width=1.5)
+    assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
+    assert a.alpha.mean() > 0.1
+
+
 @wp.kernel
 def _centre_rays(cam: FilmCamera, width: int, out: wp.array2d(dtype=float)):
     k = wp.tid()

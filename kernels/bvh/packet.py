@@ -1,0 +1,96 @@
+"""Closest-hit rays traced in packets of coherent rays (wide_packet.h: ranged packet
+traversal of the wide tree on an AVX2 CPU); a packet the packet traversal declines, or any
+packet on other devices, is traced ray by ray. The hits are the single-ray traversal's.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ..core.compile_options import MODULE_OPTIONS
+from ..core.ray import FAR_WIDEN, Hit, make_ray, per_ray
+from .leaf import finish_hit
+from .node import BvhArrays
+from .traversal import traverse
+from .wide import NATIVE_LAYOUT
+from .wide_traversal import SIMD_GUARD, native_source, simd_support
+
+wp.set_module_options(MODULE_OPTIONS)
+
+PACKET = 64  # rays per packet: a camera's 8 x 8 tile, or a run of 64 pixels of a row
+COHERENT_SPREAD = 0.5  # most spread of a packet's unit directions on an axis (wide_packet.h)
+
+_SOURCE = native_source("wide_packet.h")
+_LAYOUT = "".join(f"    constexpr int {name} = {int(value)};\n"
+                  for name, value in {**NATIVE_LAYOUT, "PACKET": PACKET}.items())
+_LAYOUT += f"    constexpr float COHERENT_SPREAD = {COHERENT_SPREAD}f;\n"
+
+
+@wp.func_native(f"{SIMD_GUARD}\n{_LAYOUT}{_SOURCE}#else\n    return 0;\n#endif\n")
+def traverse_packet_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=float),
+                         width_arg: int, origins: wp.array(dtype=wp.vec3),
+                         directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                         tmax: wp.array(dtype=float), first_ray: int, last_ray: int,
+                         widen: float, out_t: wp.array(dtype=float),
+                         out_triangle: wp.array(dtype=int), out_u: wp.array(dtype=float),
+                         out_v: wp.array(dtype=float)) -> int:
+    """Rays [first_ray, last_ray) as one packet: each closest hit in [tmin, tmax] (t, leaf
+    position, u, v; t inf and -1 on a miss) into the outputs; 0 where the packet traversal
+    does not apply (wide_packet.h's header), the outputs untouched."""
+    ...
+
+
+@wp.func
+def trace_packet_hits(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
+                      directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                      tmax: wp.array(dtype=float), first: int, last: int,
+                      out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
+                      out_u: wp.array(dtype=float), out_v: wp.array(dtype=float)):
+    """The closest hits of rays [first, last) as `traverse` gives them (refined, the
+    caller's triangle index): as one packet where the packet traversal takes them, else ray
+    by ray."""
+    packed = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions, tmin,
+                                  tmax, first, last, FAR_WIDEN, out_t, out_triangle, out_u,
+                                  out_v)
+    for k in range(first, last):
+        r = make_ray(origins[k], directions[k])
+        h = Hit()
+        if packed != 0:
+            h.t = out_t[k]
+            h.triangle = out_triangle[k]
+            h.u = out_u[k]
+            h.v = out_v[k]
+            h = finish_hit(bvh, r, per_ray(tmin, k), per_ray(tmax, k), h)
+        else:
+            h = traverse(bvh, r, per_ray(tmin, k), per_ray(tmax, k), False)
+        out_t[k] = h.t
+        out_triangle[k] = h.triangle
+        out_u[k] = h.u
+        out_v[k] = h.v
+
+
+@wp.kernel
+def packet_trace_kernel(
+    bvh: BvhArrays,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),  # per ray, or one value for all
+    tmax: wp.array(dtype=float),
+    out_t: wp.array(dtype=float),
+    out_triangle: wp.array(dtype=int),
+    out_u: wp.array(dtype=float),
+    out_v: wp.array(dtype=float),
+):
+    # One thread a ray, of which every PACKET-th takes the packet it starts (the launch
+    # splits into parts by rays, as trace_kernel's does).
+    i = wp.tid()
+    if i % PACKET == 0:
+        trace_packet_hits(bvh, origins, directions, tmin, tmax, i,
+                          wp.min(i + PACKET, origins.shape[0]), out_t, out_triangle, out_u,
+                          out_v)
+
+
+def packets_apply(bvh) -> bool:
+    """Whether `trace` sends closest-hit rays through packet_trace_kernel: a CPU with the
+    SIMD traversal and a tree of width 8 (elsewhere every packet would be declined)."""
+    return bvh.device.is_cpu and bvh.stats.width == 8 and simd_support(bvh.device)[0] == 8

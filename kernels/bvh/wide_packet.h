@@ -1,0 +1,298 @@
+// Closest-hit traversal of a packet of coherent rays through the wide tree (W = 8) on a CPU
+// with AVX2: bvh/packet.py's traverse_packet_simd. Ranged packet traversal (Overbeck,
+// Ramamoorthi, Mark 2008, "Large ray packets for real-time Whitted ray tracing"; the
+// packet traversal of tinybvh follows it): a node is entered with the range [first, last]
+// of the packet's rays that may reach it; each child gets the first and the last ray of
+// that range whose own box test passes, found by scanning from each end, and a conservative
+// interval test of the whole packet (the frustum) skips children no ray can enter without
+// a scan. Coherent rays (a camera's rays over a small tile) keep whole ranges: a node then
+// costs a frustum test and two ray tests instead of one test per ray.
+//
+// Compiled as wide_simd.h is (its header): the body of a `wp.func_native`, AVX2 only,
+// NATIVE_LAYOUT's constants declared first; the byte layout it reads is wide_simd.h's.
+//
+// Exactness: a ray's box and triangle tests are wide_simd.h's, operation for operation
+// (FMA contraction off). A ray in a range whose own test of an ancestor was skipped may
+// test a leaf the single-ray traversal never reaches; the triangle test decides a hit
+// alone, and that traversal misses no box holding a hit (the conservative slab test), so
+// the closest hit is the same (at equal t the first leaf position, in every traversal).
+// Children are visited in the order of the first ray of their range, as that ray alone
+// would visit them: the float32 t of a hit can be off by more than the gap to a box
+// behind it (Conference: 1.4e-2 at t = 1266, 90 ulps), which a box pruned by that t then
+// hides, so an order of the packet's own (by the frustum's bound) gave another surface
+// 0.009 farther on 1 ray in 4.9M.
+// Returns 0 (the caller traces the packet ray by ray) where this does not apply: W != 8,
+// more than PACKET rays, a direction with a zero component or a sign differing from the
+// first ray's on some axis (no single near plane per axis), a non-finite origin.
+{
+    // Out of line: called once a packet, and inlined it made the film kernel around it
+    // slower even where it never ran.
+    auto packet = [&]() __attribute__((noinline)) -> int {
+#pragma clang fp contract(off)
+    static_assert(MAX_WIDTH == 8 && BLOCK == 4, "wide_simd.h's layout");
+    typedef float f8 __attribute__((vector_size(8 * sizeof(float))));
+    typedef int i8 __attribute__((vector_size(8 * sizeof(int))));
+    typedef float f4 __attribute__((vector_size(4 * sizeof(float))));
+    typedef int i4 __attribute__((vector_size(4 * sizeof(int))));
+    constexpr int width = 8;
+    auto splat8 = [](float x) { f8 v = {x, x, x, x, x, x, x, x}; return v; };
+    auto splat4 = [](float x) { f4 v = {x, x, x, x}; return v; };
+    auto vmin = [](f8 a, f8 b) { return __builtin_ia32_minps256(a, b); };
+    auto vmax = [](f8 a, f8 b) { return __builtin_ia32_maxps256(a, b); };
+    const float inf = __builtin_inff();
+    const int n = last_ray - first_ray;
+    if (width_arg != 8 || n <= 0 || n > PACKET)
+        return 0;
+    const int* words = (const int*)wide.data;
+
+    // The rays, as make_ray makes them (core/ray.py), in columns.
+    float org[3][PACKET], inv[3][PACKET], shear[3][PACKET], tlo[PACKET], tfar[PACKET];
+    int axis[3][PACKET];
+    float hit_t[PACKET], hit_u[PACKET], hit_v[PACKET];
+    int hit_pos[PACKET];
+    int negative[3];
+    for (int i = 0; i < n; ++i) {
+        const int k = first_ray + i;
+        const float* o = origins.data[k].c;
+        const float* d = directions.data[k].c;
+        for (int a = 0; a < 3; ++a) {
+            if (!(__builtin_fabsf(o[a]) < inf) || d[a] == 0.0f)
+                return 0;
+            if (i == 0)
+                negative[a] = d[a] < 0.0f;
+            else if ((d[a] < 0.0f) != negative[a])
+                return 0;
+            org[a][i] = o[a];
+            inv[a][i] = 1.0f / d[a];
+        }
+        const float ad[3] = {__builtin_fabsf(d[0]), __builtin_fabsf(d[1]), __builtin_fabsf(d[2])};
+        int kz = 0;
+        if (ad[1] > ad[kz])
+            kz = 1;
+        if (ad[2] > ad[kz])
+            kz = 2;
+        int kx = (kz + 1) % 3, ky = (kx + 1) % 3;
+        if (d[kz] < 0.0f) {
+            const int tmp = kx;
+            kx = ky;
+            ky = tmp;
+        }
+        axis[0][i] = kx;
+        axis[1][i] = ky;
+        axis[2][i] = kz;
+        shear[0][i] = d[kx] / d[kz];
+        shear[1][i] = d[ky] / d[kz];
+        shear[2][i] = 1.0f / d[kz];
+        tlo[i] = tmin.data[k < tmin.shape[0] ? k : tmin.shape[0] - 1];
+        tfar[i] = tmax.data[k < tmax.shape[0] ? k : tmax.shape[0] - 1];
+        hit_t[i] = inf;
+        hit_u[i] = hit_v[i] = 0.0f;
+        hit_pos[i] = -1;
+    }
+    // The packet's bounds, for the frustum test: origins, inverse directions (one sign per
+    // axis), the lowest tmin and the highest far bound (kept up to date as hits come).
+    float omin[3], omax[3], imin[3], imax[3];
+    int near_row[3], far_row[3];
+    float tlo_min = inf, tfar_max = -inf;
+    for (int a = 0; a < 3; ++a) {
+        omin[a] = omax[a] = org[a][0];
+        imin[a] = imax[a] = inv[a][0];
+        for (int i = 1; i < n; ++i) {
+            omin[a] = org[a][i] < omin[a] ? org[a][i] : omin[a];
+            omax[a] = org[a][i] > omax[a] ? org[a][i] : omax[a];
+            imin[a] = inv[a][i] < imin[a] ? inv[a][i] : imin[a];
+            imax[a] = inv[a][i] > imax[a] ? inv[a][i] : imax[a];
+        }
+        near_row[a] = (2 * a + negative[a]) * width;
+        far_row[a] = (2 * a + 1 - negative[a]) * width;
+    }
+    for (int i = 0; i < n; ++i) {
+        tlo_min = tlo[i] < tlo_min ? tlo[i] : tlo_min;
+        tfar_max = tfar[i] > tfar_max ? tfar[i] : tfar_max;
+    }
+    // Coherence: rays from points farther apart than a 64th of the scene, or whose unit
+    // directions spread over more than COHERENT_SPREAD on an axis, went 1.4-1.9x slower
+    // as a packet than one by one (scattered origins, directions over an octant).
+    {
+        const float* root = wide.data;
+        float dmin[3], dmax[3];
+        for (int a = 0; a < 3; ++a) {
+            float lo = inf, hi = -inf;
+            for (int j = 0; j < width; ++j) {
+                const float l = root[2 * a * width + j], h = root[(2 * a + 1) * width + j];
+                if (l <= h) {
+                    lo = l < lo ? l : lo;
+                    hi = h > hi ? h : hi;
+                }
+            }
+            if (omax[a] - omin[a] > (hi - lo) * (1.0f / 64.0f))
+                return 0;
+            dmin[a] = inf;
+            dmax[a] = -inf;
+        }
+        for (int i = 0; i < n; ++i) {
+            const float* d = directions.data[first_ray + i].c;
+            const float s = 1.0f / __builtin_sqrtf(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
+            for (int a = 0; a < 3; ++a) {
+                dmin[a] = d[a] * s < dmin[a] ? d[a] * s : dmin[a];
+                dmax[a] = d[a] * s > dmax[a] ? d[a] * s : dmax[a];
+            }
+        }
+        for (int a = 0; a < 3; ++a)
+            if (dmax[a] - dmin[a] > COHERENT_SPREAD)
+                return 0;
+    }
+    const f8 widen8 = splat8(widen);
+    auto row8 = [&](const float* nd, int k) {
+        f8 v;
+        __builtin_memcpy(&v, nd + k, sizeof(f8));
+        return v;
+    };
+
+    // Ray i's test of the node's 8 boxes: wide_simd.h's (no zero direction component).
+    auto ray_mask = [&](const float* nd, int i, f8& t0) -> int {
+        f8 enter[3], leave[3];
+        for (int a = 0; a < 3; ++a) {
+            const f8 o = splat8(org[a][i]), v = splat8(inv[a][i]);
+            enter[a] = (row8(nd, near_row[a]) - o) * v;
+            leave[a] = (row8(nd, far_row[a]) - o) * v;
+        }
+        const f8 t_far8 = splat8(tfar[i] < __FLT_MAX__ ? tfar[i] : __FLT_MAX__);
+        t0 = vmax(vmax(enter[0], enter[1]), vmax(enter[2], splat8(tlo[i])));
+        const i8 in_box = (t0 <= vmin(leave[0] * widen8, leave[1] * widen8))
+                          & (t0 <= vmin(leave[2] * widen8, t_far8));
+        return __builtin_ia32_movmskps256((f8)in_box);
+    };
+    // The frustum: per box, a lower bound of every ray's entry and an upper bound of every
+    // ray's exit, from the same operations at the corners of the packet's bounds (rounding
+    // is monotone and (p - o) * v is bilinear, so the corners bound every ray's value).
+    auto frustum_mask = [&](const float* nd, f8& lower) -> int {
+        f8 lo = splat8(tlo_min), hi = splat8(tfar_max < __FLT_MAX__ ? tfar_max : __FLT_MAX__);
+        for (int a = 0; a < 3; ++a) {
+            const f8 v0 = splat8(imin[a]), v1 = splat8(imax[a]);
+            const f8 np = row8(nd, near_row[a]), fp = row8(nd, far_row[a]);
+            const f8 n0 = np - splat8(omax[a]), n1 = np - splat8(omin[a]);
+            const f8 f0 = fp - splat8(omax[a]), f1 = fp - splat8(omin[a]);
+            lo = vmax(lo, vmin(vmin(n0 * v0, n0 * v1), vmin(n1 * v0, n1 * v1)));
+            hi = vmin(hi, vmax(vmax(f0 * v0, f0 * v1), vmax(f1 * v0, f1 * v1)) * widen8);
+        }
+        lower = lo;
+        return __builtin_ia32_movmskps256((f8)(lo <= hi));
+    };
+
+    // Ray i's test of a leaf's blocks (wide_block.h), closest hit.
+WIDE_BLOCK_TEST
+    auto leaf_ray = [&](int block, int blocks_used, int i) -> bool {
+        const int kx = axis[0][i], ky = axis[1][i], kz = axis[2][i];
+        const f4 ox = splat4(org[kx][i]), oy = splat4(org[ky][i]), oz = splat4(org[kz][i]);
+        const f4 sx = splat4(shear[0][i]), sy = splat4(shear[1][i]), sz = splat4(shear[2][i]);
+        const f4 tmin4 = splat4(tlo[i]);
+        bool found = false;
+        for (int q = 0; q < blocks_used; ++q) {
+            const float* p = blocks.data + (long long)(block + q) * BLOCK_WORDS;
+            f4 t, v, w, inv_det;
+            const int mask = block_test(p, kx, ky, kz, ox, oy, oz, sx, sy, sz, tmin4,
+                                        hit_t[i] < tfar[i] ? hit_t[i] : tfar[i], t, v, w,
+                                        inv_det);
+            if (mask && keep_hit(p, mask, t, v, w, inv_det, true, hit_t[i], hit_u[i],
+                                 hit_v[i], hit_pos[i]))
+                found = true;
+        }
+        return found;
+    };
+
+    // The stack: a reference (wide_simd.h's), its rays' range and the frustum's entry bound.
+    struct Entry { int ref, first, last; float lower; };
+    Entry stack[WIDE_STACK + MAX_WIDTH];
+    float stack_order[WIDE_STACK + MAX_WIDTH];
+    int sp = 0;
+    stack[sp++] = Entry{1, 0, n - 1, -inf};
+    while (sp > 0) {
+        const Entry e = stack[--sp];
+        if (e.lower > tfar_max)
+            continue;
+        int first = e.first, last = e.last;
+        while (first <= last && tfar[first] < e.lower)
+            ++first;
+        while (last >= first && tfar[last] < e.lower)
+            --last;
+        if (first > last)
+            continue;
+        if (e.ref < 0) {  // a leaf: each ray of the range that enters its box tests it
+            const int slot = -e.ref - 1, lane = slot & (MAX_WIDTH - 1);
+            const float* nd = wide.data + (long long)(slot >> 3) * (WORDS_PER_LANE * width);
+            const int* lw = words + (long long)(slot >> 3) * (WORDS_PER_LANE * width) + lane;
+            const int block = lw[ROW_CHILD * width];
+            const int used = (lw[ROW_COUNT * width] + BLOCK - 1) / BLOCK;
+            bool shrunk = false;
+            f8 t0;
+            for (int i = first; i <= last; ++i) {
+                if (((ray_mask(nd, i, t0) >> lane) & 1) && leaf_ray(block, used, i)) {
+                    tfar[i] = hit_t[i];
+                    shrunk = true;
+                }
+            }
+            if (shrunk) {
+                tfar_max = -inf;
+                for (int i = 0; i < n; ++i)
+                    tfar_max = tfar[i] > tfar_max ? tfar[i] : tfar_max;
+            }
+            continue;
+        }
+        const float* nd = wide.data + (long long)(e.ref - 1) * (WORDS_PER_LANE * width);
+        f8 lower;
+        const int maybe = frustum_mask(nd, lower);
+        if (maybe == 0)
+            continue;
+        // SplitRange: each child's first and last ray whose own test passes, and the first
+        // ray's entry distance, which orders the children as that ray's traversal would.
+        int firsts[MAX_WIDTH], lasts[MAX_WIDTH];
+        float order[MAX_WIDTH];
+        int open = maybe;
+        f8 t0;
+        for (int i = first; open && i <= last; ++i) {
+            const int m = ray_mask(nd, i, t0) & open;
+            for (int b = m; b; b &= b - 1) {
+                firsts[__builtin_ctz(b)] = i;
+                order[__builtin_ctz(b)] = t0[__builtin_ctz(b)];
+            }
+            open &= ~m;
+        }
+        const int entered = maybe & ~open;
+        open = entered;
+        for (int i = last; open && i >= first; --i) {
+            const int m = ray_mask(nd, i, t0) & open;
+            for (int b = m; b; b &= b - 1)
+                lasts[__builtin_ctz(b)] = i;
+            open &= ~m;
+        }
+        // Children pushed farthest first, the nearest on top, at equal distances the later
+        // lane nearer (wide_simd.h's order); each keeps the frustum's entry bound.
+        const int* w = words + (long long)(e.ref - 1) * (WORDS_PER_LANE * width);
+        const int top = sp;
+        for (int m = entered; m; m &= m - 1) {
+            const int j = __builtin_ctz(m);
+            const int ref = w[ROW_COUNT * width + j] > 0 ? -((e.ref - 1) * MAX_WIDTH + j + 1)
+                                                         : w[ROW_CHILD * width + j] + 1;
+            int p = sp;
+            while (p > top && stack_order[p - 1] < order[j]) {
+                stack[p] = stack[p - 1];
+                stack_order[p] = stack_order[p - 1];
+                --p;
+            }
+            stack[p] = Entry{ref, firsts[j], lasts[j], lower[j]};
+            stack_order[p] = order[j];
+            ++sp;
+        }
+    }
+    for (int i = 0; i < n; ++i) {
+        const int k = first_ray + i;
+        out_t.data[k] = hit_t[i];
+        out_u.data[k] = hit_u[i];
+        out_v.data[k] = hit_v[i];
+        out_triangle.data[k] = hit_pos[i];
+    }
+    return 1;
+    };
+    return packet();
+}

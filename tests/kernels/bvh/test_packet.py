@@ -1,0 +1,145 @@
+"""Closest-hit rays in packets (kernels/bvh/packet.py, wide_packet.h): the same hits, bit for
+bit, as the single-ray traversal and as the float64 brute force; which packets the packet
+traversal takes and which it declines; equal-t ties resolved alike by every traversal."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from scenesort.kernels.bvh import BvhArrays
+from scenesort.kernels.bvh import api as bvh_api
+from scenesort.kernels.bvh.packet import PACKET, packets_apply, traverse_packet_simd
+from scenesort.kernels.bvh.wide_traversal import simd_support
+from scenesort.kernels.core.ray import FAR_WIDEN
+
+from scenesort import kernels
+
+from ..reference import assert_same_hits, brute_force, random_soup
+
+pytestmark = pytest.mark.skipif(simd_support("cpu")[0] != 8,
+                                reason="the packet traversal is compiled for AVX2 CPUs only")
+
+
+@wp.kernel
+def packets_taken(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
+                  directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                  tmax: wp.array(dtype=float), out_t: wp.array(dtype=float),
+                  out_triangle: wp.array(dtype=int), out_u: wp.array(dtype=float),
+                  out_v: wp.array(dtype=float), taken: wp.array(dtype=int)):
+    p = wp.tid()
+    first = p * PACKET
+    taken[p] = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions, tmin,
+                                    tmax, first, wp.min(first + PACKET, origins.shape[0]),
+                                    FAR_WIDEN, out_t, out_triangle, out_u, out_v)
+
+
+def taken(bvh, o, d, tmin=0.0, tmax=np.inf) -> np.ndarray:
+    """Per packet of PACKET consecutive rays: 1 where the packet traversal took it."""
+    n = len(o)
+    arr = [wp.array(np.broadcast_to(np.float32(x), (n,)).copy(), dtype=float)
+           for x in (tmin, tmax)]
+    outs = [wp.empty(n, dtype=dt) for dt in (float, int, float, float)]
+    flags = wp.zeros((n + PACKET - 1) // PACKET, dtype=int)
+    wp.launch(packets_taken, dim=flags.shape[0],
+              inputs=[bvh.arrays, wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3), *arr,
+                      *outs, flags])
+    return flags.numpy()
+
+
+def single(bvh, o, d, monkeypatch, **kw):
+    """kernels.trace ray by ray (the packet kernel switched off)."""
+    with monkeypatch.context() as m:
+        m.setattr(bvh_api, "packets_apply", lambda bvh: False)
+        return kernels.trace(bvh, o, d, **kw)
+
+
+def identical(a, b) -> None:
+    for name in ("t", "triangle", "u", "v"):
+        assert np.array_equal(getattr(a, name), getattr(b, name)), name
+
+
+def tiles(o, d, width, height, k=8):
+    """Camera rays (row-major) reordered into k x k tiles."""
+    idx = np.arange(width * height).reshape(height, width)
+    idx = idx.reshape(height // k, k, width // k, k).transpose(0, 2, 1, 3).ravel()
+    return o[idx], d[idx]
+
+
+@pytest.mark.parametrize("name", ["sponza", "conference", "bunny"])
+def test_camera_packets_equal_single_rays_on_shared_scenes(name, shared_scene, monkeypatch):
+    """Camera rays in rows and in 8x8 tiles, with a tmax that cuts some hits: t, u, v and the
+    triangle bit for bit as ray by ray; most tiles taken (not those where a direction
+    component changes sign)."""
+    scene = shared_scene(name)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": 160, "height": 120})
+    o, d, _, _ = cam.rays()
+    diag = float(np.linalg.norm(np.ptp(scene.vertices, axis=0)))
+    for oo, dd in ((o, d), tiles(o, d, 160, 120)):
+        for tmax in (np.inf, 0.4 * diag):
+            identical(kernels.trace(bvh, oo, dd, tmax=tmax),
+                      single(bvh, oo, dd, monkeypatch, tmax=tmax))
+    assert taken(bvh, *tiles(o, d, 160, 120)).mean() > 0.75
+
+
+def test_packets_equal_brute_force_with_per_ray_ranges(monkeypatch):
+    """A pinhole's rays over a random soup, tmin and tmax per ray, 1000 rays (the last packet
+    partial): the float64 brute force's hits, and bit for bit the single rays'."""
+    rng = np.random.default_rng(5)
+    v, f = random_soup(rng, 3000)
+    bvh = kernels.build_bvh(v, f)
+    n = 1000
+    a = np.linspace(0.02, 0.3, n, dtype=np.float32)
+    o = np.tile(np.float32([0.4, 0.4, -1.0]), (n, 1))
+    d = np.column_stack([a, np.sin(7 * a) * 0.3, np.ones(n)]).astype(np.float32)
+    tmin = (rng.random(n) * 1.2).astype(np.float32)
+    tmax = tmin + rng.random(n).astype(np.float32)
+    hits = kernels.trace(bvh, o, d, tmin=tmin, tmax=tmax)
+    assert taken(bvh, o, d).all()
+    ref_t, ref_tri = brute_force(v, f, o, d, tmin, tmax)
+    assert (ref_tri >= 0).sum() > n / 4
+    assert_same_hits(hits, ref_t, ref_tri)
+    identical(hits, single(bvh, o, d, monkeypatch, tmin=tmin, tmax=tmax))
+
+
+def test_incoherent_packets_are_declined_and_traced_ray_by_ray(monkeypatch):
+    """Packets with a zero direction component, directions of two signs on an axis,
+    directions over an octant or origins across the scene are declined; their rays get the
+    single-ray hits all the same."""
+    rng = np.random.default_rng(6)
+    v, f = random_soup(rng, 2000)
+    bvh = kernels.build_bvh(v, f)
+    n = PACKET
+    pin = np.tile(np.float32([0.5, 0.5, -1.0]), (n, 1))
+    cone = np.column_stack([np.linspace(0.01, 0.2, n), np.full(n, 0.05), np.ones(n)])
+    cases = {
+        "zero component": (pin, np.where(np.arange(n)[:, None] == 7, [0.0, 0.05, 1.0], cone)),
+        "two signs": (pin, np.column_stack([np.linspace(-0.1, 0.1, n), np.linspace(-0.1, 0.1, n),
+                                            np.ones(n)])),
+        "an octant": (pin, np.abs(rng.normal(size=(n, 3))) + 0.01),
+        "scattered origins": (rng.random((n, 3)) * [1, 1, 0.1] - [0, 0, 1], cone),
+        "coherent": (pin, cone),
+    }
+    for label, (o, d) in cases.items():
+        o, d = o.astype(np.float32), d.astype(np.float32)
+        assert taken(bvh, o, d)[0] == (label == "coherent"), label
+        identical(kernels.trace(bvh, o, d), single(bvh, o, d, monkeypatch))
+
+
+def test_equal_t_ties_give_the_first_leaf_position_in_every_traversal(shared_scene,
+                                                                      monkeypatch):
+    """Conference's 512x512 camera rays meet overlapping coplanar triangles, where hits tie
+    at equal t and the traversals visit them in different orders (each found a different
+    triangle, and so a different refined t, before ties went to the first leaf position):
+    the binary tree, the wide trees ray by ray and the packets report the same hits."""
+    scene = shared_scene("conference")
+    v, f = scene.vertices, scene.indices
+    cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": 512, "height": 512})
+    o, d, _, _ = cam.rays()
+    bvh = kernels.build_bvh(v, f)
+    assert packets_apply(bvh)
+    packets = kernels.trace(bvh, o, d)
+    identical(packets, single(bvh, o, d, monkeypatch))
+    for width in (2, 4):
+        identical(packets, kernels.trace(kernels.build_bvh(v, f, width=width), o, d))
