@@ -3,13 +3,14 @@ Warp's `wp.Mesh` and Embree in the same run; and the wide BVH against the binary
 one and Embree side by side (`--part wide` runs only that); and ours against embreex on the
 same number of threads, a column per thread count, at several batch sizes
 (`--part threads` runs only that); and the per-ray speed of small calls against one call of
-1M rays (`--part calls`).
+1M rays (`--part calls`); and camera rays as packets against ray by ray (`--part packets`).
 
     python benchmarks/bvh.py [--scenes bunny,sponza] [--repeat 5] [--width 1024 --height 768]
     python benchmarks/bvh.py --part wide --width 1024 --height 1024
     python benchmarks/bvh.py --part wide --target-cpu x86-64 --no-docs   # a CPU without AVX2
     python benchmarks/bvh.py --part threads [--batches 256,512,1024]
     python benchmarks/bvh.py --part calls --scenes bunny,conference [--calls 10000,100000]
+    python benchmarks/bvh.py --part packets [--repeat 5]
 
 Times are medians of `--repeat` runs after one warm-up. Warp's kernel compile time is
 measured once, in a fresh kernel cache, and reported on its own. Writes the tables into
@@ -353,6 +354,58 @@ def call_rows(name: str, scene, repeat: int, calls: tuple[int, ...]) -> list[dic
     return rows
 
 
+def packet_rows(name: str, scene, repeat: int) -> list[dict]:
+    """Closest-hit camera rays as packets against ray by ray (`trace(..., packets=False)`),
+    on the same rays, 1 thread and every core, interleaved: a 512² image's rays in rows and
+    in 8x8 tiles, and a 160x120 image's pixels as 8x8 rays each (as the film's samples of a
+    pixel go); the rays whose t differs, and whose triangle does (at equal t)."""
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    cores = cpu_cores()
+    layouts = {}
+    for label, (w, h, k) in {"512² rows": (512, 512, 0), "512² 8x8 tiles": (512, 512, 8),
+                             "160x120, 64 a pixel": (1280, 960, 8)}.items():
+        cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": w,
+                                            "height": h})
+        o, d, _, _ = cam.rays()
+        if k:
+            idx = np.arange(w * h).reshape(h // k, k, w // k, k).transpose(0, 2, 1, 3).ravel()
+            o, d = o[idx], d[idx]
+        layouts[label] = (o, d)
+    rows = []
+    for label, (o, d) in layouts.items():
+        a, b = (kernels.trace(bvh, o, d, packets=p) for p in (False, True))
+        row = {"scene": name, "rays": label, "count": len(o),
+               "t_diff": int((a.t != b.t).sum()), "tri_diff": int((a.triangle != b.triangle).sum())}
+        for t in sorted({1, cores}):
+            single_s, packet_s = peers.timeit_each([
+                lambda t=t, o=o, d=d, p=p: kernels.trace(bvh, o, d, threads=t, packets=p)
+                for p in (False, True)], repeat)
+            row[t] = {"single": len(o) / single_s / 1e6, "packets": len(o) / packet_s / 1e6}
+        rows.append(row)
+    return rows
+
+
+def packets_markdown(rows: list[dict], command: str, load: str) -> str:
+    counts = [k for k in rows[0] if isinstance(k, int)]
+    out = [
+        f"Command: `{command}` on {platform.machine()} with {cpu_cores()} cores, CPU only (Warp "
+        f"{wp.config.version}), load before the run: {load}. Closest-hit camera rays through "
+        "the default tree (SAH, leaf 8, width 8), traced ray by ray (`packets=False`) and as "
+        "packets of 64 consecutive rays (kernels/bvh/packet.py), interleaved, MRays/s "
+        "(medians); the rays whose t differs between the two, and whose triangle differs "
+        "(at equal t, as between the tree widths: overlapping coplanar triangles).", "",
+        "| scene | rays | count | " + " | ".join(
+            f"ray by ray {t}t | packets {t}t | ratio {t}t" for t in counts) + " | t diff | "
+        "triangle diff |",
+        "|---|---|---:|" + "---:|---:|---:|" * len(counts) + "---:|---:|"]
+    for r in rows:
+        cells = " | ".join(f"{r[t]['single']:.2f} | {r[t]['packets']:.2f} | "
+                           f"{r[t]['packets'] / r[t]['single']:.2f}" for t in counts)
+        out.append(f"| {r['scene']} | {r['rays']} | {r['count']:,} | {cells} | "
+                   f"{r['t_diff']} | {r['tri_diff']} |")
+    return "\n".join(out) + "\n"
+
+
 def _in_calls(fn, n: int, k: int, threads: int) -> None:
     """fn(a, b, threads) over [0, n) in calls of k."""
     for a in range(0, n, k):
@@ -501,6 +554,8 @@ TABLE_PARTS = {
     "threads": (lambda name, scene, args: thread_rows(
         name, scene, args.repeat, tuple(int(x) for x in args.batches.split(","))),
         threads_markdown, "bvh_threads", "Ours against Embree on the same threads"),
+    "packets": (lambda name, scene, args: packet_rows(name, scene, args.repeat),
+                packets_markdown, "bvh_packets", "Camera rays as packets against ray by ray"),
     "calls": (lambda name, scene, args: call_rows(
         name, scene, args.repeat, tuple(int(x) for x in args.calls.split(","))),
         calls_markdown, "bvh_calls", "Small calls against one large call"),
@@ -513,9 +568,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--width", type=int, default=1024)
     parser.add_argument("--height", type=int, default=768)
-    parser.add_argument("--part", choices=("all", "wide", "threads", "calls"), default="all",
+    parser.add_argument("--part", choices=("all", "wide", "threads", "calls", "packets"),
+                        default="all",
                         help="wide: only the wide-BVH tables; threads: only ours against "
-                        "Embree on the same threads; calls: only small calls' speed")
+                        "Embree on the same threads; calls: only small calls' speed; "
+                        "packets: closest-hit camera rays as packets against ray by ray")
     parser.add_argument("--calls", default=",".join(map(str, CALLS)),
                         help="--part calls: rays per call")
     parser.add_argument("--batches", default=",".join(map(str, BATCHES)),

@@ -370,11 +370,13 @@ def trace(
     any_hit: bool = False,
     *,
     threads: int | None = None,
+    packets: bool = True,
 ) -> Hits:
     """Closest hit (or, with any_hit, some hit) per ray in [tmin, tmax].
 
     On CPU the rays are split between `threads` host threads (default: every core), each
-    launching its share: a Warp CPU launch runs on one thread."""
+    launching its share: a Warp CPU launch runs on one thread. Closest hits of coherent
+    runs of 64 rays go as packets where `packets_apply` (the same hits; False: ray by ray)."""
     origins, directions = as_rays(origins, directions)
     r = len(origins)
     tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)
@@ -384,7 +386,7 @@ def trace(
                                                        (v, float))]
     inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
               to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
-    if any_hit or not packets_apply(bvh):
+    if any_hit or not (packets and packets_apply(bvh)):
         launch_split(trace_kernel, r, [bvh.arrays], inputs, [int(any_hit)], outputs, device,
                      host_threads(device, threads))
     else:

@@ -1,6 +1,7 @@
 """Closest-hit rays traced in packets of coherent rays (wide_packet.h: ranged packet
 traversal of the wide tree on an AVX2 CPU); a packet the packet traversal declines, or any
-packet on other devices, is traced ray by ray. The hits are the single-ray traversal's.
+packet on other devices, is traced ray by ray. The hits are the single-ray traversal's
+(wide_packet.h's header says where a triangle may differ at the same distance).
 """
 
 from __future__ import annotations

@@ -279,13 +279,16 @@ def trace(
     any_hit: bool = False,
     *,
     threads: int | None = None,
+    packets: bool = True,
 ) -> Hits:
     """Closest hit (or, with any_hit, some hit) per ray in [tmin, tmax] through a `Bvh`
-    (kernels.bvh.trace) or a two-level `Scene`: then `triangle` is the index in the hit
+    (kernels.bvh.trace, whose `packets` says whether coherent closest-hit rays may go as
+    packets) or a two-level `Scene` (ray by ray): then `triangle` is the index in the hit
     instance's mesh, `instance` the instance (-1 on a miss), t the world ray's parameter
     and (u, v) the barycentrics (the same in object and world space)."""
     if isinstance(scene, Bvh):
-        return trace_bvh(scene, origins, directions, tmin, tmax, any_hit, threads=threads)
+        return trace_bvh(scene, origins, directions, tmin, tmax, any_hit, threads=threads,
+                         packets=packets)
     if not isinstance(scene, Scene):
         raise ValueError(f"trace takes a Bvh (build_bvh) or a Scene (build_scene), got "
                          f"{type(scene).__name__}")

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 import warp as wp
 from scenesort.kernels.bvh import BvhArrays
-from scenesort.kernels.bvh import api as bvh_api
 from scenesort.kernels.bvh.packet import PACKET, packets_apply, traverse_packet_simd
 from scenesort.kernels.bvh.wide_traversal import simd_support
 from scenesort.kernels.core.ray import FAR_WIDEN
@@ -47,11 +46,9 @@ def taken(bvh, o, d, tmin=0.0, tmax=np.inf) -> np.ndarray:
     return flags.numpy()
 
 
-def single(bvh, o, d, monkeypatch, **kw):
-    """kernels.trace ray by ray (the packet kernel switched off)."""
-    with monkeypatch.context() as m:
-        m.setattr(bvh_api, "packets_apply", lambda bvh: False)
-        return kernels.trace(bvh, o, d, **kw)
+def single(bvh, o, d, **kw):
+    """kernels.trace ray by ray."""
+    return kernels.trace(bvh, o, d, packets=False, **kw)
 
 
 def identical(a, b) -> None:
@@ -67,7 +64,7 @@ def tiles(o, d, width, height, k=8):
 
 
 @pytest.mark.parametrize("name", ["sponza", "conference", "bunny"])
-def test_camera_packets_equal_single_rays_on_shared_scenes(name, shared_scene, monkeypatch):
+def test_camera_packets_equal_single_rays_on_shared_scenes(name, shared_scene):
     """Camera rays in rows and in 8x8 tiles, with a tmax that cuts some hits: t, u, v and the
     triangle bit for bit as ray by ray; most tiles taken (not those where a direction
     component changes sign)."""
@@ -79,11 +76,11 @@ def test_camera_packets_equal_single_rays_on_shared_scenes(name, shared_scene, m
     for oo, dd in ((o, d), tiles(o, d, 160, 120)):
         for tmax in (np.inf, 0.4 * diag):
             identical(kernels.trace(bvh, oo, dd, tmax=tmax),
-                      single(bvh, oo, dd, monkeypatch, tmax=tmax))
+                      single(bvh, oo, dd, tmax=tmax))
     assert taken(bvh, *tiles(o, d, 160, 120)).mean() > 0.75
 
 
-def test_packets_equal_brute_force_with_per_ray_ranges(monkeypatch):
+def test_packets_equal_brute_force_with_per_ray_ranges():
     """A pinhole's rays over a random soup, tmin and tmax per ray, 1000 rays (the last packet
     partial): the float64 brute force's hits, and bit for bit the single rays'."""
     rng = np.random.default_rng(5)
@@ -100,10 +97,10 @@ def test_packets_equal_brute_force_with_per_ray_ranges(monkeypatch):
     ref_t, ref_tri = brute_force(v, f, o, d, tmin, tmax)
     assert (ref_tri >= 0).sum() > n / 4
     assert_same_hits(hits, ref_t, ref_tri)
-    identical(hits, single(bvh, o, d, monkeypatch, tmin=tmin, tmax=tmax))
+    identical(hits, single(bvh, o, d, tmin=tmin, tmax=tmax))
 
 
-def test_incoherent_packets_are_declined_and_traced_ray_by_ray(monkeypatch):
+def test_incoherent_packets_are_declined_and_traced_ray_by_ray():
     """Packets with a zero direction component, directions of two signs on an axis,
     directions over an octant or origins across the scene are declined; their rays get the
     single-ray hits all the same."""
@@ -124,11 +121,10 @@ def test_incoherent_packets_are_declined_and_traced_ray_by_ray(monkeypatch):
     for label, (o, d) in cases.items():
         o, d = o.astype(np.float32), d.astype(np.float32)
         assert taken(bvh, o, d)[0] == (label == "coherent"), label
-        identical(kernels.trace(bvh, o, d), single(bvh, o, d, monkeypatch))
+        identical(kernels.trace(bvh, o, d), single(bvh, o, d))
 
 
-def test_equal_t_ties_give_the_first_leaf_position_in_every_traversal(shared_scene,
-                                                                      monkeypatch):
+def test_equal_t_ties_give_the_first_leaf_position_in_every_traversal(shared_scene):
     """Conference's 512x512 camera rays meet overlapping coplanar triangles, where hits tie
     at equal t and the traversals visit them in different orders (each found a different
     triangle, and so a different refined t, before ties went to the first leaf position):
@@ -140,6 +136,6 @@ def test_equal_t_ties_give_the_first_leaf_position_in_every_traversal(shared_sce
     bvh = kernels.build_bvh(v, f)
     assert packets_apply(bvh)
     packets = kernels.trace(bvh, o, d)
-    identical(packets, single(bvh, o, d, monkeypatch))
+    identical(packets, single(bvh, o, d))
     for width in (2, 4):
         identical(packets, kernels.trace(kernels.build_bvh(v, f, width=width), o, d))
