@@ -388,8 +388,7 @@ def packet_rows(name: str, scene, repeat: int) -> list[dict]:
 def packets_markdown(rows: list[dict], command: str, load: str) -> str:
     counts = [k for k in rows[0] if isinstance(k, int)]
     out = [
-        f"Command: `{command}` on {platform.machine()} with {cpu_cores()} cores, CPU only (Warp "
-        f"{wp.config.version}), load before the run: {load}. Closest-hit camera rays through "
+        f"{machine_line(command, load)} Closest-hit camera rays through "
         "the default tree (SAH, leaf 8, width 8), traced ray by ray (`packets=False`) and as "
         "packets of 64 consecutive rays (kernels/bvh/packet.py), interleaved, MRays/s "
         "(medians); the rays whose t differs between the two, and whose triangle differs "
@@ -423,10 +422,15 @@ def _embree_slice(embree, o, d, tmax, any_hit, a: int, b: int, threads: int) -> 
         embree.closest(o[a:b], d[a:b], threads)
 
 
+def machine_line(command: str, load: str) -> str:
+    """The start of a table's header: the command, the machine, Warp, the load."""
+    return (f"Command: `{command}` on {platform.machine()} with {cpu_cores()} cores, CPU only "
+            f"(Warp {wp.config.version}), load before the run: {load}.")
+
+
 def calls_markdown(rows: list[dict], command: str, load: str) -> str:
     out = [
-        f"Command: `{command}` on {platform.machine()} with {cpu_cores()} cores, CPU only (Warp "
-        f"{wp.config.version}), load before the run: {load}. The same rays traced as calls of "
+        f"{machine_line(command, load)} The same rays traced as calls of "
         f"k rays and as one call of all of them ({CALL_RAYS:,} camera rays of a 1024² image; "
         f"as many AO any-hit rays, {AO_PER_HIT} per hit, tmax 0.1 x diagonal); MRays/s, "
         "medians of interleaved runs; embreex on as many Python threads beside it. Issue 35's "
@@ -445,8 +449,7 @@ def calls_markdown(rows: list[dict], command: str, load: str) -> str:
 def threads_markdown(rows: list[dict], command: str, load: str) -> str:
     counts = [k for k in rows[0] if isinstance(k, int)]
     out = [
-        f"Command: `{command}` on {platform.machine()} with {cpu_cores()} cores, CPU only (Warp "
-        f"{wp.config.version}), load before the run: {load}. Ours (SAH, leaf 8, the default "
+        f"{machine_line(command, load)} Ours (SAH, leaf 8, the default "
         "width) on t host threads against embreex (Embree 4) on t Python threads, each "
         "tracing one share of the rays (embreex releases the Python lock); medians of "
         "interleaved runs. Camera rays at batch x batch and AO any-hit rays "
