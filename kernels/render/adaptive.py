@@ -1,6 +1,7 @@
 """The adaptive controller: which samples each round of occlusion rays traces, and when
 the render stops. Fixed mode (no error target): every hit pixel's `spp` samples, in rounds
-of at most ROUND_RAYS rays (a progress call between rounds).
+of at most ROUND_RAYS rays (a progress call between rounds); adaptive rounds, too, in runs
+of at most ROUND_RAYS rays, a progress call before each.
 
 Adaptive sampling, two stopping rules, which may be combined:
 - `target_error` is the image's RMSE over hit pixels against the converged AO (the
@@ -77,7 +78,7 @@ TAIL_MARGIN = 0.05  # target_error: a tail round aims this many aim^2 below the 
 MIN_ROUND = 1.0 / 32.0  # target_error: fewest rays in a round, as a fraction of those so far
 EFFICIENCY_MIN = 0.05  # never trust a sampler to beat independent samples by more than 20x
 EFFICIENCY_PIXELS = 64  # disagreeing pixels needed to measure the efficiency in a round
-ROUND_RAYS = 1 << 21  # occlusion rays per round (between progress calls) in fixed mode
+ROUND_RAYS = 1 << 21  # occlusion rays per run between progress calls (a fixed round)
 
 # (selected hit pixels, first sample, samples per pixel, mid, quarter) -> per selected pixel:
 # its open samples, and those among them with index below mid and below quarter
@@ -90,9 +91,10 @@ def sample_rounds(trace_round: RoundTracer, pixels: int, opts: AoOptions,
                   ) -> tuple[SampleCounts, int]:
     """Trace the occlusion samples of `pixels` hit pixels round by round until `opts` is
     met; the counts and the number of rounds. `report(fraction, "occlusion")` is called
-    before each round. `counts`: every pixel's first `opts.min_spp` samples, traced
-    already (`SampleCounts.trace` in one call: the filtered film's, whose first samples
-    find the covered pixels); the rounds go on from there."""
+    before each run of at most about ROUND_RAYS rays (where a caller's Esc stops it).
+    `counts`: every pixel's first `opts.min_spp` samples, traced already
+    (`SampleCounts.trace` in one call: the filtered film's, whose first samples find the
+    covered pixels); the rounds go on from there."""
     rounds = 0
     min_spp = opts.min_spp
     if counts is not None:
@@ -136,10 +138,9 @@ def _adaptive_rounds(trace_round: RoundTracer, counts: SampleCounts, opts: AoOpt
     rounds = 0
     while len(counts.done) and len(select):
         if aim is not None and mse0 is not None:
-            report(error_progress(mse0, counts.mse(), aim), "occlusion")
+            fraction = error_progress(mse0, counts.mse(), aim)
         else:
-            report(samples_progress(counts.done, len(select), int(counts.done[select[0]])),
-                   "occlusion")
+            fraction = samples_progress(counts.done, len(select), int(counts.done[select[0]]))
         # one launch set per sample count, each pixel doubled once as next_round
         # predicted: the groups come from the counts at selection (read after an earlier
         # group of the round had doubled into a later one's count, they would double it
@@ -149,7 +150,14 @@ def _adaptive_rounds(trace_round: RoundTracer, counts: SampleCounts, opts: AoOpt
             # doubling: Sobol prefixes of 2^k; the minimum's nested estimates (after a
             # quarter and a half of it) measure how fast the variance falls before the
             # first decision
-            counts.trace(trace_round, select[levels == n], int(n) or opts.min_spp)
+            group, count = select[levels == n], int(n) or opts.min_spp
+            # in runs of about ROUND_RAYS rays, each after a progress call (where Esc is
+            # seen): a first round of 2M pixels at 16 samples is 32M rays, seconds long;
+            # a count's sums are pooled over its runs as over its rounds
+            bounds = round_bounds(len(group), count)
+            for a, b in zip(bounds[:-1], bounds[1:], strict=True):
+                report(fraction, "occlusion")
+                counts.trace(trace_round, group[a:b], count)
         rounds += 1
         mse0 = counts.mse() if mse0 is None else mse0
         select = next_round(counts, aim, opts.max_pixel_error, opts.max_spp)

@@ -340,6 +340,40 @@ def test_progress_reports_and_cancels():
         kernels.render_ao(bvh, o, d, spp=4, progress=cancel)
 
 
+def test_adaptive_rounds_report_between_runs(monkeypatch):
+    """An adaptive round larger than ROUND_RAYS is traced in runs with a progress call
+    before each (Esc is seen there): a first round of 2M pixels at 16 samples is 32M rays.
+    A cancel at the second call stops the render before the first round's second run."""
+    from scenesort.kernels.render import adaptive
+
+    monkeypatch.setattr(adaptive, "ROUND_RAYS", 4096)
+    traced: list[int] = []
+    real = adaptive.SampleCounts.trace
+
+    def counting(self, trace_round, select, count):
+        traced.append(len(select) * count)
+        real(self, trace_round, select, count)
+
+    monkeypatch.setattr(adaptive.SampleCounts, "trace", counting)
+    v, f = grid_plane(4)
+    bvh = kernels.build_bvh(v.astype(np.float32), f)
+    rng = np.random.default_rng(2)
+    n = 3000
+    o = np.column_stack([rng.random((n, 2)) * 2 - 1, np.ones(n)]).astype(np.float32)
+    d = np.tile(np.float32([0, 0, -1]), (n, 1))
+    calls: list[int] = []
+
+    def cancel_second(fraction: float, phase: str) -> None:
+        if phase == "occlusion":
+            calls.append(len(traced))
+            if len(calls) == 2:
+                raise KeyboardInterrupt("cancelled")
+
+    with pytest.raises(KeyboardInterrupt):
+        kernels.render_ao(bvh, o, d, spp=16, target_error=0.01, progress=cancel_second)
+    assert calls == [0, 1] and traced[0] <= 2 * 4096 and traced[0] < n * 16
+
+
 @pytest.mark.parametrize(
     "kwargs,field",
     [({"spp": 0}, "spp"), ({"distance": 0.0}, "distance"), ({"target_error": 1.5}, "target_error"),
