@@ -50,11 +50,20 @@ def finish_hit(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, hit: Hit) -> Hi
 
 
 @wp.func
+def leaf_order_hit(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, hit: Hit,
+                   stopped: bool) -> Hit:
+    """The binary traversal's result as found: hit.triangle a leaf position, t unrefined
+    (`finish_traversal` makes it the caller's)."""
+    return hit
+
+
+@wp.func
 def finish_traversal(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, hit: Hit,
-                     stopped: bool) -> Hit:
-    """What a traversal returns: an any hit (`stopped`) as found, with the caller's triangle
-    index; else `finish_hit`."""
-    if stopped:
-        hit.triangle = bvh.tri_ids[hit.triangle]
+                     any_hit: bool) -> Hit:
+    """What `traverse` returns of a traversal's hit in leaf order: an any hit as found, with
+    the caller's triangle index; a closest hit through `finish_hit`."""
+    if any_hit:
+        if hit.triangle >= 0:
+            hit.triangle = bvh.tri_ids[hit.triangle]
         return hit
     return finish_hit(bvh, r, tmin, tmax, hit)

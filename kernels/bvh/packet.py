@@ -12,7 +12,7 @@ from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import FAR_WIDEN, Hit, make_ray, per_ray
 from .leaf import finish_hit
 from .node import BvhArrays
-from .traversal import traverse
+from .traversal import traverse_leaf_order
 from .wide import NATIVE_LAYOUT
 from .wide_traversal import SIMD_GUARD, native_source, simd_support
 
@@ -42,28 +42,45 @@ def traverse_packet_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=flo
 
 
 @wp.func
+def trace_packet_leaf_order(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
+                            directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                            tmax: wp.array(dtype=float), first: int, last: int,
+                            out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
+                            out_u: wp.array(dtype=float), out_v: wp.array(dtype=float)):
+    """The closest hits of rays [first, last) as `traverse_leaf_order` gives them (leaf
+    positions, unrefined): as one packet where the packet traversal takes them, else ray by
+    ray."""
+    packed = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions, tmin,
+                                  tmax, first, last, FAR_WIDEN, out_t, out_triangle, out_u,
+                                  out_v)
+    if packed == 0:
+        for k in range(first, last):
+            h = traverse_leaf_order(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
+                                    per_ray(tmax, k), False)
+            out_t[k] = h.t
+            out_triangle[k] = h.triangle
+            out_u[k] = h.u
+            out_v[k] = h.v
+
+
+@wp.func
 def trace_packet_hits(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                       directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
                       tmax: wp.array(dtype=float), first: int, last: int,
                       out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
                       out_u: wp.array(dtype=float), out_v: wp.array(dtype=float)):
     """The closest hits of rays [first, last) as `traverse` gives them (refined, the
-    caller's triangle index): as one packet where the packet traversal takes them, else ray
-    by ray."""
-    packed = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions, tmin,
-                                  tmax, first, last, FAR_WIDEN, out_t, out_triangle, out_u,
-                                  out_v)
+    caller's triangle index)."""
+    trace_packet_leaf_order(bvh, origins, directions, tmin, tmax, first, last, out_t,
+                            out_triangle, out_u, out_v)
     for k in range(first, last):
-        r = make_ray(origins[k], directions[k])
         h = Hit()
-        if packed != 0:
-            h.t = out_t[k]
-            h.triangle = out_triangle[k]
-            h.u = out_u[k]
-            h.v = out_v[k]
-            h = finish_hit(bvh, r, per_ray(tmin, k), per_ray(tmax, k), h)
-        else:
-            h = traverse(bvh, r, per_ray(tmin, k), per_ray(tmax, k), False)
+        h.t = out_t[k]
+        h.triangle = out_triangle[k]
+        h.u = out_u[k]
+        h.v = out_v[k]
+        h = finish_hit(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
+                       per_ray(tmax, k), h)
         out_t[k] = h.t
         out_triangle[k] = h.triangle
         out_u[k] = h.u

@@ -13,7 +13,7 @@ import warp as wp
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import Hit, Ray, hit_distance, intersect_box, make_ray, no_hit, per_ray
 from .binary_traversal import BinaryTree, make_binary_traversal
-from .leaf import finish_traversal, intersect_leaf
+from .leaf import finish_traversal, intersect_leaf, leaf_order_hit
 from .node import BvhArrays
 from .wide_traversal import traverse_wide
 
@@ -24,13 +24,13 @@ wp.set_module_options({**MODULE_OPTIONS, "block_dim": 64})
 # the binary tree's traversal, from its box test and its leaf
 traverse_binary_tree = make_binary_traversal(BinaryTree(
     tree=BvhArrays, query=Ray, result=Hit, miss=no_hit, enter=intersect_box,
-    leaf=intersect_leaf, distance=hit_distance, finish=finish_traversal, module=__name__,
+    leaf=intersect_leaf, distance=hit_distance, finish=leaf_order_hit, module=__name__,
     name="traverse_binary_tree"))
 
 
 @wp.func
 def traverse_binary(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
-    """`traverse` on the binary tree (bvh.nodes)."""
+    """`traverse_leaf_order` on the binary tree (bvh.nodes)."""
     return traverse_binary_tree(bvh, bvh.nodes, r, tmin, tmax, any_hit)
 
 
@@ -52,6 +52,17 @@ def wide_tree_traversed() -> int:
 
 
 @wp.func
+def traverse_leaf_order(bvh: BvhArrays, r: Ray, tmin: float, tmax: float,
+                        any_hit: bool) -> Hit:
+    """`traverse`'s hit as the traversal found it: hit.triangle a leaf position, t, u, v
+    unrefined (`leaf.finish_traversal` finishes it). Two-level scenes compare these
+    across instances and finish the closest alone."""
+    if wide_tree_traversed() != 0 and bvh.width > 2:
+        return traverse_wide(bvh, r, tmin, tmax, any_hit)
+    return traverse_binary(bvh, r, tmin, tmax, any_hit)
+
+
+@wp.func
 def traverse(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
     """Closest hit in [tmin, tmax], or with `any_hit` the first hit found (no float64
     refinement, no ordering bookkeeping beyond the stack), through the wide tree where the
@@ -59,9 +70,8 @@ def traverse(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) ->
     (the triangle may differ only between hits at equal t). Pass `any_hit` as a run-time
     value (a kernel argument): with a literal True, the CPU build of a kernel ran 25-30%
     slower in our measurements (clang specialises the loop badly)."""
-    if wide_tree_traversed() != 0 and bvh.width > 2:
-        return traverse_wide(bvh, r, tmin, tmax, any_hit)
-    return traverse_binary(bvh, r, tmin, tmax, any_hit)
+    return finish_traversal(bvh, r, tmin, tmax, traverse_leaf_order(bvh, r, tmin, tmax, any_hit),
+                            any_hit)
 
 
 @wp.func

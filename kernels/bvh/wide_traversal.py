@@ -37,7 +37,6 @@ from ..core.box import INF
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import FAR_WIDEN, Hit, Ray, intersect_box
 from ..core.triangle import intersect_triangle
-from .leaf import finish_hit
 from .node import BvhArrays
 from .wide import (
     BLOCK,
@@ -230,21 +229,17 @@ def traverse_wide_portable(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any
 
 @wp.func
 def traverse_wide(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: bool) -> Hit:
-    """`traversal.traverse` on the wide tree. The root's own box is not tested: its
-    children's are."""
+    """`traversal.traverse_leaf_order` on the wide tree. The root's own box is not tested:
+    its children's are."""
     hit = Hit()
     hit.t = INF
     hit.triangle = -1
-    done = bool(False)
     if simd_lanes() > 0:
-        done = traverse_simd(bvh.wide, bvh.blocks, bvh.width, r, tmin, tmax,
-                             wp.where(any_hit, 0, 1), FAR_WIDEN, hit) != 0
+        traverse_simd(bvh.wide, bvh.blocks, bvh.width, r, tmin, tmax,
+                      wp.where(any_hit, 0, 1), FAR_WIDEN, hit)
     else:
-        done = traverse_wide_portable(bvh, r, tmin, tmax, any_hit, hit)
-    if done:
-        hit.triangle = bvh.tri_ids[hit.triangle]
-        return hit
-    return finish_hit(bvh, r, tmin, tmax, hit)
+        traverse_wide_portable(bvh, r, tmin, tmax, any_hit, hit)
+    return hit
 
 
 @wp.kernel(enable_backward=False)

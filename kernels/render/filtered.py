@@ -170,12 +170,13 @@ def sample_ray(cam: FilmCamera, table: wp.array(dtype=float), sampler: int, key:
 
 
 @wp.func
-def sample_surface(tracer: MeshTracer, shading: Shading, cam: FilmCamera,
-                   table: wp.array(dtype=float), sampler: int, key: wp.uint32, first: int,
-                   s: int, count: int, row: int, col: int, rays: PacketRays, packet0: int):
-    """`closest_surface` of sample first + s's camera ray of pixel (row, col). On an AVX2
-    CPU the camera rays of PACKET samples at a time are traced together, at the first of
-    them (a pixel's rays leave one point through a pixel or two: as coherent as rays get)."""
+def sample_surface(tracer: Any, shading: Any, cam: FilmCamera, table: wp.array(dtype=float),
+                   sampler: int, key: wp.uint32, first: int, s: int, count: int, row: int,
+                   col: int, rays: PacketRays, packet0: int):
+    """`closest_surface` of sample first + s's camera ray of pixel (row, col) through the
+    tracer (MeshTracer or SceneArrays). On an AVX2 CPU the camera rays of PACKET samples at
+    a time are traced together, at the first of them (a pixel's rays leave one point
+    through a pixel or two: as coherent as rays get)."""
     if simd_lanes() > 0:
         q = s % PACKET
         c = wp.min(PACKET, count - (s - q))
@@ -187,14 +188,6 @@ def sample_surface(tracer: MeshTracer, shading: Shading, cam: FilmCamera,
                 rays.tmin[packet0 + m] = t0
                 rays.tmax[packet0 + m] = t1
         return packet_surface(tracer, shading, rays, packet0, packet0 + q, packet0 + c)
-    o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s, row, col)
-    return closest_surface(tracer, shading, o, d, t0, t1)
-
-
-@wp.func  # a Warp overload of the one above: a two-level scene's camera rays one by one
-def sample_surface(tracer: SceneArrays, shading: SceneShading, cam: FilmCamera,  # noqa: F811
-                   table: wp.array(dtype=float), sampler: int, key: wp.uint32, first: int,
-                   s: int, count: int, row: int, col: int, rays: PacketRays, packet0: int):
     o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s, row, col)
     return closest_surface(tracer, shading, o, d, t0, t1)
 
@@ -413,7 +406,7 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
     def packets(parts: int) -> PacketRays:
         """One packet per part, kept for the render's later rounds."""
         if not kept or kept[0].t.shape[0] < parts * PACKET:
-            kept[:] = [packet_rays(parts, device)]
+            kept[:] = [packet_rays(parts, isinstance(bvh, Scene), device)]
         return kept[0]
 
     def trace(pixels: np.ndarray, first: int, count: int, mid: int,

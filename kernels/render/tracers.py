@@ -24,7 +24,8 @@ from ..core.mesh import DeviceMesh, Shading
 from ..core.ray import make_ray
 from ..dacrt.api import dacrt_trace_mesh
 from ..scene.api import Scene
-from ..scene.top import SceneArrays, SceneShading, traverse_scene
+from ..scene.packet import InstancePackets, instance_packets, trace_scene_packet
+from ..scene.top import InstanceHit, SceneArrays, SceneShading, traverse_scene
 from .adaptive import RoundTracer
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import PrimaryHits, Surface, instance_surface, occlusion_origin, surface
@@ -66,8 +67,9 @@ def closest_surface(g: SceneArrays, shading: SceneShading, o: wp.vec3, d: wp.vec
 
 @wp.struct
 class PacketRays:
-    """A host thread's rays of one packet and their closest hits (bvh/packet.py), indexed
-    from each part's first entry: camera rays that the CPU traces together."""
+    """A host thread's rays of one packet and their closest hits (bvh/packet.py,
+    scene/packet.py), indexed from each part's first entry: camera rays that the CPU traces
+    together."""
 
     origins: wp.array(dtype=wp.vec3)
     directions: wp.array(dtype=wp.vec3)
@@ -77,16 +79,19 @@ class PacketRays:
     triangle: wp.array(dtype=int)
     u: wp.array(dtype=float)
     v: wp.array(dtype=float)
+    instance: wp.array(dtype=int)  # a two-level scene's: the hit instance
+    scene: InstancePackets  # a two-level scene's scratch
 
 
-def packet_rays(parts: int, device) -> PacketRays:
-    """Room for one packet per part."""
+def packet_rays(parts: int, scene: bool, device) -> PacketRays:
+    """Room for one packet per part (with a two-level scene's scratch if `scene`)."""
     rays = PacketRays()
     n = parts * PACKET
     rays.origins, rays.directions = (wp.empty(n, dtype=wp.vec3, device=device) for _ in "od")
     rays.tmin, rays.tmax, rays.t, rays.u, rays.v = (wp.empty(n, dtype=float, device=device)
                                                     for _ in range(5))
-    rays.triangle = wp.empty(n, dtype=int, device=device)
+    rays.triangle, rays.instance = (wp.empty(n, dtype=int, device=device) for _ in "ti")
+    rays.scene = instance_packets(n if scene else 0, device)
     return rays
 
 
@@ -101,6 +106,23 @@ def packet_surface(g: MeshTracer, shading: Shading, rays: PacketRays, first: int
     if rays.triangle[k] >= 0:
         return surface(g.vertices, g.indices, shading, rays.directions[k], rays.triangle[k],
                        rays.u[k], rays.v[k]), True
+    return Surface(), False
+
+
+@wp.func  # a Warp overload of the one above: through a two-level scene (scene/packet.py)
+def packet_surface(g: SceneArrays, shading: SceneShading, rays: PacketRays,  # noqa: F811
+                   first: int, k: int, last: int):
+    if k == first:
+        trace_scene_packet(g, rays.origins, rays.directions, rays.tmin, rays.tmax, first, last,
+                           rays.scene, rays.t, rays.triangle, rays.u, rays.v, rays.instance)
+    if rays.instance[k] >= 0:
+        ih = InstanceHit()
+        ih.hit.t = rays.t[k]
+        ih.hit.triangle = rays.triangle[k]
+        ih.hit.u = rays.u[k]
+        ih.hit.v = rays.v[k]
+        ih.instance = rays.instance[k]
+        return instance_surface(g, shading, rays.directions[k], ih), True
     return Surface(), False
 
 

@@ -25,6 +25,8 @@ from ..core.launch import (
 )
 from ..core.validate import as_rays, as_shading, as_terminator_offsets, ray_range
 from . import instances as inst
+from .packet import WARP_MODULES as PACKET_MODULES
+from .packet import instance_packets, scene_packet_kernel, scene_packets_apply, scratch_arrays
 from .stats import SceneStats
 from .top import (
     WARP_MODULES,
@@ -282,10 +284,11 @@ def trace(
     packets: bool = True,
 ) -> Hits:
     """Closest hit (or, with any_hit, some hit) per ray in [tmin, tmax] through a `Bvh`
-    (kernels.bvh.trace, whose `packets` says whether coherent closest-hit rays may go as
-    packets) or a two-level `Scene` (ray by ray): then `triangle` is the index in the hit
-    instance's mesh, `instance` the instance (-1 on a miss), t the world ray's parameter
-    and (u, v) the barycentrics (the same in object and world space)."""
+    (kernels.bvh.trace) or a two-level `Scene`; `packets` says whether coherent runs of 64
+    closest-hit rays may go as packets (the same hits; False: ray by ray). Through a
+    scene, `triangle` is the index in the hit instance's mesh, `instance` the instance (-1
+    on a miss; at equal t the lowest), t the world ray's parameter and (u, v) the
+    barycentrics (the same in object and world space)."""
     if isinstance(scene, Bvh):
         return trace_bvh(scene, origins, directions, tmin, tmax, any_hit, threads=threads,
                          packets=packets)
@@ -302,8 +305,14 @@ def trace(
                                                             strict=True)]
     inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
               to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
-    launch_split(scene_trace_kernel, r, [scene.arrays], inputs, [int(any_hit)], outputs, device,
-                 host_threads(device, threads))
+    if any_hit or not (packets and scene_packets_apply(device)):
+        launch_split(scene_trace_kernel, r, [scene.arrays], inputs, [int(any_hit)], outputs,
+                     device, host_threads(device, threads))
+    else:
+        load_modules(device, *PACKET_MODULES)
+        scratch = scratch_arrays(instance_packets(r, device))
+        launch_split(scene_packet_kernel, r, [scene.arrays], [*inputs, *scratch], [], outputs,
+                     device, host_threads(device, threads))
     if not device.is_cpu:
         out = [a.numpy() for a in outputs]
     return Hits(t=out[0], triangle=out[1], u=out[2], v=out[3], instance=out[4])

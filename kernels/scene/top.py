@@ -22,8 +22,9 @@ from __future__ import annotations
 import warp as wp
 
 from ..bvh.binary_traversal import BinaryTree, make_binary_traversal
+from ..bvh.leaf import finish_traversal
 from ..bvh.node import BvhArrays, BvhNode
-from ..bvh.traversal import traverse
+from ..bvh.traversal import traverse_leaf_order
 from ..core.box import INF
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import Hit, Ray, make_ray, per_ray
@@ -134,12 +135,20 @@ def world_normal(inst: InstanceRecord, n: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def object_ray(inst: InstanceRecord, origin: wp.vec3, direction: wp.vec3) -> Ray:
-    """The ray in the instance's object space, each coordinate computed in float64 and
-    rounded once; the direction is not normalised, so t is the world ray's parameter."""
+def object_coords(inst: InstanceRecord, origin: wp.vec3, direction: wp.vec3):
+    """The ray's origin and direction in the instance's object space, each coordinate
+    computed in float64 and rounded once; the direction is not normalised, so t is the
+    world ray's parameter."""
     o = inst.inv * (wp.vec3d(origin) - inst.trans)
     d = inst.inv * wp.vec3d(direction)
-    return make_ray(wp.vec3(o), wp.vec3(d))
+    return wp.vec3(o), wp.vec3(d)
+
+
+@wp.func
+def object_ray(inst: InstanceRecord, origin: wp.vec3, direction: wp.vec3) -> Ray:
+    """The `Ray` of `object_coords`."""
+    o, d = object_coords(inst, origin, direction)
+    return make_ray(o, d)
 
 
 @wp.func
@@ -203,35 +212,52 @@ def instance_hit_distance(h: InstanceHit) -> float:
 
 
 @wp.func
-def trace_instance(s: SceneArrays, inst: int, origin: wp.vec3, direction: wp.vec3,
-                   tmin: float, tmax: float, any_hit: bool) -> Hit:
-    """The bottom-level traversal of one instance, in its object space."""
-    rec = s.instances[inst]
-    r = object_ray(rec, origin, direction)
-    return traverse(mesh_view(s.meshes[rec.mesh]), r, tmin, tmax, any_hit)
+def keep_instance_hit(h: Hit, inst: int, out: wp.ref[InstanceHit]) -> bool:
+    """Keep instance `inst`'s hit in leaf order `h` in `out` if nearer, or as near and of a
+    lower instance; True if kept."""
+    if h.triangle >= 0 and (h.t < out.hit.t or (h.t == out.hit.t and inst < out.instance)):
+        out.hit = h
+        out.instance = inst
+        return True
+    return False
 
 
 @wp.func
 def trace_instances(s: SceneArrays, q: TopRay, first: int, count: int, tmin: float,
                     tmax: float, out: wp.ref[InstanceHit], any_hit: bool) -> bool:
-    """A top-level leaf: each instance's own BVH with the closest hit so far as tmax; True
-    at the first hit of an any-hit query."""
+    """A top-level leaf: each instance's own BVH in its object space, with the closest hit
+    so far as tmax; True at the first hit of an any-hit query. Hits stay in leaf order
+    (`traverse_leaf_order`) until `finish_instance_hit`: the closest unrefined t wins, the
+    lower instance at equal t, so the order in which instances are visited (the top
+    level's, a packet's: scene/packet.py) does not change which hit is kept."""
     for k in range(first, first + count):
         inst = s.top_ids[k]
-        h = trace_instance(s, inst, q.origin, q.direction, tmin, wp.min(out.hit.t, tmax),
-                           any_hit)
-        if h.triangle >= 0 and h.t < out.hit.t:
-            out.hit = h
-            out.instance = inst
-            if any_hit:
-                return True
+        rec = s.instances[inst]
+        h = traverse_leaf_order(mesh_view(s.meshes[rec.mesh]),
+                                object_ray(rec, q.origin, q.direction), tmin,
+                                wp.min(out.hit.t, tmax), any_hit)
+        if keep_instance_hit(h, inst, out) and any_hit:
+            return True
     return False
+
+
+@wp.func
+def finish_instance_hit(s: SceneArrays, origin: wp.vec3, direction: wp.vec3, tmin: float,
+                        tmax: float, out: InstanceHit, any_hit: bool) -> InstanceHit:
+    """The kept hit as `traverse` finishes a mesh's (bvh.leaf.finish_traversal), in its
+    instance's object space: t refined in float64, the mesh's triangle index."""
+    if out.instance >= 0:
+        rec = s.instances[out.instance]
+        out.hit = finish_traversal(mesh_view(s.meshes[rec.mesh]),
+                                   object_ray(rec, origin, direction), tmin, tmax, out.hit,
+                                   any_hit)
+    return out
 
 
 @wp.func
 def top_result(s: SceneArrays, q: TopRay, tmin: float, tmax: float, out: InstanceHit,
                stopped: bool) -> InstanceHit:
-    return out  # the instances' hits are final (their traversals refined them)
+    return finish_instance_hit(s, q.origin, q.direction, tmin, tmax, out, stopped)
 
 
 # the top level's traversal, from its padded box test and its instance leaves
@@ -242,11 +268,8 @@ traverse_top = make_binary_traversal(BinaryTree(
 
 
 @wp.func
-def traverse_scene(s: SceneArrays, origin: wp.vec3, direction: wp.vec3, tmin: float,
-                   tmax: float, any_hit: bool) -> InstanceHit:
-    """Closest hit over all instances in [tmin, tmax] (or with `any_hit` the first found):
-    the top level's binary traversal (bvh.binary_traversal; its depth is at most the
-    build's max_depth = STACK_SIZE), each instance's own BVH at its leaves."""
+def top_ray(s: SceneArrays, origin: wp.vec3, direction: wp.vec3) -> TopRay:
+    """The world ray as the top level tests it."""
     q = TopRay()
     q.origin = origin
     q.direction = direction
@@ -254,7 +277,16 @@ def traverse_scene(s: SceneArrays, origin: wp.vec3, direction: wp.vec3, tmin: fl
     q.d = wp.vec3d(direction)
     ad = wp.max(wp.max(wp.abs(q.d[0]), wp.abs(q.d[1])), wp.abs(q.d[2]))
     q.slope = wp.float64(s.slope) * ad
-    return traverse_top(s, s.top, q, tmin, tmax, any_hit)
+    return q
+
+
+@wp.func
+def traverse_scene(s: SceneArrays, origin: wp.vec3, direction: wp.vec3, tmin: float,
+                   tmax: float, any_hit: bool) -> InstanceHit:
+    """Closest hit over all instances in [tmin, tmax] (or with `any_hit` the first found):
+    the top level's binary traversal (bvh.binary_traversal; its depth is at most the
+    build's max_depth = STACK_SIZE), each instance's own BVH at its leaves."""
+    return traverse_top(s, s.top, top_ray(s, origin, direction), tmin, tmax, any_hit)
 
 
 @wp.kernel

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import warp as wp
 from scenesort.kernels.bvh import BvhArrays
+from scenesort.kernels.bvh.leaf import finish_traversal
 from scenesort.kernels.bvh.wide_traversal import (
     simd_isa,
     simd_lanes,
@@ -44,7 +45,8 @@ TARGETS = {
 
 @functools.cache
 def trace_on(target_cpu: str) -> wp.Kernel:
-    """`traverse_wide` in a kernel of a Warp module of its own, compiled for `target_cpu`."""
+    """`traverse_wide`, finished as `traverse` finishes it, in a kernel of a Warp module of its
+    own, compiled for `target_cpu`."""
 
     def trace_wide(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                    directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
@@ -55,7 +57,8 @@ def trace_on(target_cpu: str) -> wp.Kernel:
             isa[0] = simd_isa()
             isa[1] = simd_lanes()
         r = make_ray(origins[i], directions[i])
-        h = traverse_wide(bvh, r, tmin[i], tmax[i], any_hit != 0)
+        h = finish_traversal(bvh, r, tmin[i], tmax[i],
+                             traverse_wide(bvh, r, tmin[i], tmax[i], any_hit != 0), any_hit != 0)
         out_t[i, 0] = h.t
         out_t[i, 1] = h.u
         out_t[i, 2] = h.v

@@ -260,9 +260,10 @@ def test_two_level_scene_renders_as_its_mesh():
 
 @pytest.mark.parametrize("name", ["conference", "bunny"])
 def test_camera_packets_render_as_single_rays(name):
-    """A mesh's filtered render traces each pixel's camera rays as packets on an AVX2 CPU
-    (bvh/packet.py); a two-level scene's traces them one by one: on the mesh and on a scene
-    of it as its one instance, the same image, sample for sample."""
+    """A filtered render traces each pixel's camera rays as packets on an AVX2 CPU, a mesh's
+    through bvh/packet.py, a two-level scene's through scene/packet.py (tests/kernels/scene/
+    test_scene_packets.py: its rays ray by ray): on the mesh and on a scene of it as its one
+    instance, the same image, sample for sample."""
     sc = shared_scene(name)
     bvh = kernels.build_bvh(sc.vertices, sc.indices)
     scene = kernels.build_scene([bvh], np.array([0]), np.eye(4, dtype=np.float32)[None, :3])

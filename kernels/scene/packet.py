@@ -1,0 +1,260 @@
+"""Closest-hit rays through a two-level scene in packets (camera rays): the instances that
+any ray of a packet may enter, nearest entry first, each traced as one packet in its object
+space (bvh/packet.py), every ray's closest hit kept as the top level keeps it
+(top.keep_instance_hit: which instance wins does not depend on the order of the visits), so
+the hits are `traverse_scene`'s, bit for bit.
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+from ..bvh.binary_traversal import NodeStack
+from ..bvh.packet import PACKET, trace_packet_leaf_order
+from ..bvh.wide_traversal import simd_support
+from ..core.box import INF
+from ..core.compile_options import MODULE_OPTIONS
+from ..core.ray import Hit, per_ray
+from .top import (
+    InstanceHit,
+    SceneArrays,
+    enter_top,
+    finish_instance_hit,
+    keep_instance_hit,
+    mesh_view,
+    object_coords,
+    top_ray,
+    traverse_scene,
+)
+
+wp.set_module_options(MODULE_OPTIONS)
+
+MAX_CANDIDATES = 32  # instances one packet visits (at most one a ray); more: ray by ray
+
+
+@wp.struct
+class InstancePackets:
+    """Scratch of packets through a two-level scene, indexed as their rays (a packet's
+    candidates too: from its first ray's entry, at most one a ray)."""
+
+    origins: wp.array(dtype=wp.vec3)  # the rays in the object space of the instance in hand
+    directions: wp.array(dtype=wp.vec3)
+    tmax: wp.array(dtype=float)  # min(the ray's tmax, its closest hit so far)
+    t: wp.array(dtype=float)  # the instance's hits in leaf order
+    triangle: wp.array(dtype=int)
+    u: wp.array(dtype=float)
+    v: wp.array(dtype=float)
+    candidates: wp.array(dtype=int)  # the instances to visit, nearest entry first
+    entry: wp.array(dtype=float)  # their entries: the least over the packet's rays
+
+
+def instance_packets(rays: int, device) -> InstancePackets:
+    """Room for packets of `rays` rays, numbered from 0."""
+    out = InstancePackets()
+    out.origins, out.directions = (wp.empty(rays, dtype=wp.vec3, device=device) for _ in "od")
+    out.tmax, out.t, out.u, out.v = (wp.empty(rays, dtype=float, device=device)
+                                     for _ in range(4))
+    out.triangle, out.candidates = (wp.empty(rays, dtype=int, device=device) for _ in "tc")
+    out.entry = wp.empty(rays, dtype=float, device=device)
+    return out
+
+
+@wp.func
+def packet_entry(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                 directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                 tmax: wp.array(dtype=float), first: int, last: int, lo: wp.vec3, hi: wp.vec3,
+                 least: bool) -> float:
+    """An entry of rays [first, last) into the padded top-level box [lo, hi] (inf: none
+    enters): the least with `least`, else the first ray's that enters."""
+    best = float(INF)
+    for k in range(first, last):
+        t = enter_top(top_ray(s, origins[k], directions[k]), lo, hi, per_ray(tmin, k),
+                      per_ray(tmax, k))
+        if t < best:
+            best = t
+            if not least:
+                break
+    return best
+
+
+@wp.func
+def packet_candidates(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                      directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                      tmax: wp.array(dtype=float), first: int, last: int,
+                      scratch: InstancePackets) -> int:
+    """How many instances some ray of [first, last) may reach (their top-level leaves' boxes,
+    entered within the ray's [tmin, tmax]), written from scratch.candidates[first] nearest
+    entry first; -1 for more than MAX_CANDIDATES or than the rays."""
+    stack = NodeStack()
+    sp = int(0)
+    node = int(0)
+    count = int(0)
+    room = wp.min(MAX_CANDIDATES, last - first)
+    c0 = first
+    while node >= 0:
+        n = s.top[node]
+        leaf = n.count > 0
+        t = packet_entry(s, origins, directions, tmin, tmax, first, last, n.lo, n.hi, leaf)
+        node = -1
+        if t < INF:
+            if leaf:
+                for j in range(n.first, n.first + n.count):
+                    if count == room:
+                        return -1
+                    p = c0 + count
+                    while p > c0 and scratch.entry[p - 1] > t:
+                        scratch.entry[p] = scratch.entry[p - 1]
+                        scratch.candidates[p] = scratch.candidates[p - 1]
+                        p -= 1
+                    scratch.entry[p] = t
+                    scratch.candidates[p] = s.top_ids[j]
+                    count += 1
+            else:
+                node = n.first
+                stack[sp] = n.first + 1
+                sp += 1
+        if node < 0 and sp > 0:
+            sp -= 1
+            node = stack[sp]
+    return count
+
+
+@wp.func
+def trace_instance_packet(s: SceneArrays, inst: int, origins: wp.array(dtype=wp.vec3),
+                          directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                          tmax: wp.array(dtype=float), first: int, last: int,
+                          scratch: InstancePackets, out_t: wp.array(dtype=float),
+                          out_triangle: wp.array(dtype=int), out_u: wp.array(dtype=float),
+                          out_v: wp.array(dtype=float), out_instance: wp.array(dtype=int)):
+    """Instance `inst`'s closest hits of rays [first, last), each within its closest hit so
+    far, kept where `keep_instance_hit` keeps them."""
+    rec = s.instances[inst]
+    for k in range(first, last):
+        o, d = object_coords(rec, origins[k], directions[k])
+        scratch.origins[k] = o
+        scratch.directions[k] = d
+        scratch.tmax[k] = wp.min(out_t[k], per_ray(tmax, k))
+    trace_packet_leaf_order(mesh_view(s.meshes[rec.mesh]), scratch.origins, scratch.directions,
+                            tmin, scratch.tmax, first, last, scratch.t, scratch.triangle,
+                            scratch.u, scratch.v)
+    for k in range(first, last):
+        h = Hit()
+        h.t = scratch.t[k]
+        h.triangle = scratch.triangle[k]
+        h.u = scratch.u[k]
+        h.v = scratch.v[k]
+        kept = InstanceHit()
+        kept.hit.t = out_t[k]
+        kept.instance = out_instance[k]
+        if keep_instance_hit(h, inst, kept):
+            out_t[k] = h.t
+            out_triangle[k] = h.triangle
+            out_u[k] = h.u
+            out_v[k] = h.v
+            out_instance[k] = inst
+
+
+@wp.func
+def trace_scene_packet(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                       directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                       tmax: wp.array(dtype=float), first: int, last: int,
+                       scratch: InstancePackets, out_t: wp.array(dtype=float),
+                       out_triangle: wp.array(dtype=int), out_u: wp.array(dtype=float),
+                       out_v: wp.array(dtype=float), out_instance: wp.array(dtype=int)):
+    """The closest hits of rays [first, last) (first a multiple of PACKET, last - first at
+    most PACKET) as `traverse_scene` gives them: refined, the mesh's triangle index, the
+    instance (-1 on a miss)."""
+    count = packet_candidates(s, origins, directions, tmin, tmax, first, last, scratch)
+    for k in range(first, last):
+        ih = InstanceHit()
+        ih.hit.t = INF
+        ih.hit.triangle = -1
+        ih.instance = -1
+        if count < 0:  # too many instances for a packet
+            ih = traverse_scene(s, origins[k], directions[k], per_ray(tmin, k), per_ray(tmax, k),
+                                False)
+        out_t[k] = ih.hit.t
+        out_triangle[k] = ih.hit.triangle
+        out_u[k] = ih.hit.u
+        out_v[k] = ih.hit.v
+        out_instance[k] = ih.instance
+    for c in range(count):
+        # an instance that every ray's closest hit so far lies before is skipped
+        reach = float(-INF)
+        for k in range(first, last):
+            reach = wp.max(reach, wp.min(out_t[k], per_ray(tmax, k)))
+        if scratch.entry[first + c] <= reach:
+            trace_instance_packet(s, scratch.candidates[first + c], origins, directions, tmin, tmax,
+                                  first, last, scratch, out_t, out_triangle, out_u, out_v,
+                                  out_instance)
+    if count > 0:
+        for k in range(first, last):
+            ih = InstanceHit()
+            ih.hit.t = out_t[k]
+            ih.hit.triangle = out_triangle[k]
+            ih.hit.u = out_u[k]
+            ih.hit.v = out_v[k]
+            ih.instance = out_instance[k]
+            ih = finish_instance_hit(s, origins[k], directions[k], per_ray(tmin, k),
+                                     per_ray(tmax, k), ih, False)
+            out_t[k] = ih.hit.t
+            out_triangle[k] = ih.hit.triangle
+            out_u[k] = ih.hit.u
+            out_v[k] = ih.hit.v
+
+
+@wp.kernel
+def scene_packet_kernel(
+    s: SceneArrays,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),  # per ray, or one value for all
+    tmax: wp.array(dtype=float),
+    # InstancePackets' arrays, one by one: core.launch.launch_split slices each per part
+    scratch_origins: wp.array(dtype=wp.vec3),
+    scratch_directions: wp.array(dtype=wp.vec3),
+    scratch_tmax: wp.array(dtype=float),
+    scratch_t: wp.array(dtype=float),
+    scratch_triangle: wp.array(dtype=int),
+    scratch_u: wp.array(dtype=float),
+    scratch_v: wp.array(dtype=float),
+    scratch_candidates: wp.array(dtype=int),
+    scratch_entry: wp.array(dtype=float),
+    out_t: wp.array(dtype=float),
+    out_triangle: wp.array(dtype=int),
+    out_u: wp.array(dtype=float),
+    out_v: wp.array(dtype=float),
+    out_instance: wp.array(dtype=int),
+):
+    # One thread a ray, of which every PACKET-th takes the packet it starts (as
+    # bvh.packet.packet_trace_kernel).
+    i = wp.tid()
+    if i % PACKET == 0:
+        scratch = InstancePackets()
+        scratch.origins = scratch_origins
+        scratch.directions = scratch_directions
+        scratch.tmax = scratch_tmax
+        scratch.t = scratch_t
+        scratch.triangle = scratch_triangle
+        scratch.u = scratch_u
+        scratch.v = scratch_v
+        scratch.candidates = scratch_candidates
+        scratch.entry = scratch_entry
+        trace_scene_packet(s, origins, directions, tmin, tmax, i,
+                           wp.min(i + PACKET, origins.shape[0]), scratch, out_t, out_triangle,
+                           out_u, out_v, out_instance)
+
+
+def scratch_arrays(scratch: InstancePackets) -> list:
+    """scene_packet_kernel's scratch arguments, in order."""
+    return [scratch.origins, scratch.directions, scratch.tmax, scratch.t, scratch.triangle,
+            scratch.u, scratch.v, scratch.candidates, scratch.entry]
+
+
+def scene_packets_apply(device) -> bool:
+    """Whether a scene's closest-hit rays go through scene_packet_kernel: on a CPU with the
+    SIMD traversal of width 8 (meshes of other widths are traced ray by ray in it)."""
+    return device.is_cpu and simd_support(device)[0] == 8
+
+
+WARP_MODULES = (scene_packet_kernel.module,)  # this module's kernels (core.launch.load_modules)

@@ -1,0 +1,135 @@
+"""Closest-hit rays through a two-level scene in packets (kernels/scene/packet.py): the hits of
+`traverse_scene` ray by ray, bit for bit, with instances that overlap, mirror, scale and
+coincide (equal t: the lower instance wins whatever the order of the visits), per-ray
+ranges, partial packets, and more instances than a packet holds (ray by ray)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import warp as wp
+from scenesort.backend.render.scenes import framing_camera
+from scenesort.kernels.bvh.packet import PACKET
+from scenesort.kernels.bvh.wide_traversal import simd_support
+from scenesort.kernels.scene.packet import (
+    MAX_CANDIDATES,
+    InstancePackets,
+    instance_packets,
+    packet_candidates,
+)
+from scenesort.kernels.scene.top import SceneArrays
+
+from scenesort import kernels
+
+from .test_scene import instance_set, rotation, transform
+
+pytestmark = pytest.mark.skipif(simd_support("cpu")[0] != 8,
+                                reason="the packet traversal is compiled for AVX2 CPUs only")
+
+
+@wp.kernel
+def candidates_kernel(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                      directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                      tmax: wp.array(dtype=float), scratch: InstancePackets,
+                      count: wp.array(dtype=int)):
+    p = wp.tid()
+    first = p * PACKET
+    count[p] = packet_candidates(s, origins, directions, tmin, tmax, first,
+                                 wp.min(first + PACKET, origins.shape[0]), scratch)
+
+
+def candidates(scene, o, d) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per packet of PACKET consecutive rays: how many instances it visits (-1: ray by
+    ray), and the instances and entries from each packet's first ray."""
+    n = len(o)
+    scratch = instance_packets(n, "cpu")
+    count = wp.empty(-(-n // PACKET), dtype=int)
+    lo, hi = (wp.array(np.float32([x]), dtype=float) for x in (0.0, np.inf))
+    wp.launch(candidates_kernel, dim=count.shape[0],
+              inputs=[scene.arrays, wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3), lo,
+                      hi, scratch, count])
+    return count.numpy(), scratch.candidates.numpy(), scratch.entry.numpy()
+
+
+def pixel_rays(camera, rng, pixels: int, scene=None, per_pixel: int = PACKET):
+    """`per_pixel` rays through each of `pixels` random pixels (of those whose centre sees
+    `scene`, if given), spread over about a pixel (a filtered film's camera rays),
+    consecutive."""
+    o, d, _, _ = camera.rays()
+    seen = (np.arange(len(o)) if scene is None else
+            np.flatnonzero(kernels.trace(scene, o, d, packets=False).instance >= 0))
+    pick = rng.choice(seen, pixels, replace=False)
+    po = np.repeat(o[pick], per_pixel, axis=0)
+    spread = np.linalg.norm(d[1] - d[0])
+    pd = np.repeat(d[pick], per_pixel, axis=0) + rng.uniform(-spread, spread, (len(po), 3))
+    return po, pd.astype(np.float32)
+
+
+def identical(a, b) -> None:
+    for field in ("t", "triangle", "u", "v", "instance"):
+        assert np.array_equal(getattr(a, field), getattr(b, field)), field
+
+
+def scene_of(v, f, transforms):
+    return kernels.build_scene([kernels.build_bvh(v, f)], np.zeros(len(transforms), np.int32),
+                               np.asarray(transforms, np.float32))
+
+
+def test_scene_packets_equal_single_rays(shared_scene):
+    """The bunny under the test suite's instance set (identity, rotated, scaled, mirrored,
+    far) and twice more at the identity's place (equal t everywhere on it: the lowest of
+    the three wins), camera rays 64 a pixel with cutting per-ray ranges and a partial last
+    packet."""
+    sc = shared_scene("bunny")
+    v, f = sc.vertices, sc.indices
+    v = (v - v.mean(axis=0)) / np.abs(v - v.mean(axis=0)).max()
+    rng = np.random.default_rng(3)
+    transforms = np.concatenate([instance_set(rng)[:5], np.eye(3, 4, dtype=np.float32)[None],
+                                 transform(rotation(rng), (0.8, 0.8, 0.8), (1, 1, -1))[None],
+                                 np.eye(3, 4, dtype=np.float32)[None]])
+    scene = scene_of(v, f, transforms)
+    corners = np.array([[-4.5, -4.5, -2.5], [4.5, 4.5, 4.5]], np.float32)
+    o, d = pixel_rays(framing_camera(corners, 160, 120), rng, 300, scene)
+    o, d = o[:-17], d[:-17]  # a partial last packet
+    tmin = rng.uniform(0.0, 0.5, len(o)).astype(np.float32)
+    tmax = np.where(rng.random(len(o)) < 0.3, rng.uniform(5.0, 12.0, len(o)),
+                    np.inf).astype(np.float32)
+    count, _, _ = candidates(scene, o, d)
+    assert (count >= 1).all() and (count >= 3).mean() > 0.1  # 0, 5 and 7 coincide
+    for kw in ({}, {"tmin": tmin, "tmax": tmax}):
+        packets = kernels.trace(scene, o, d, **kw)
+        single = kernels.trace(scene, o, d, packets=False, **kw)
+        identical(packets, single)
+        hit = packets.instance >= 0
+        assert hit.mean() > 0.5
+        # coincident instances 0, 5 and 7: instance 0 is reported, never 5 or 7
+        assert (packets.instance == 0).any() and not np.isin(packets.instance, (5, 7)).any()
+
+
+def test_candidates_nearest_first_and_too_many_go_ray_by_ray(shared_scene):
+    """A row of small instances along the view: each packet's candidates are sorted by
+    entry; with more than MAX_CANDIDATES of them in every packet's way the packet goes ray
+    by ray, with the same hits."""
+    sc = shared_scene("bunny")
+    v, f = sc.vertices, sc.indices
+    v = (v - v.mean(axis=0)) / np.abs(v - v.mean(axis=0)).max()
+    n = MAX_CANDIDATES + 8
+    transforms = [transform(np.eye(3), (0.5, 0.5, 0.5), (0.0, 0.0, -3.0 * k))
+                  for k in range(n)]
+    scene = scene_of(v, f, transforms)
+    rng = np.random.default_rng(4)
+    o = np.tile(np.float32([0.0, 0.0, 5.0]), (8 * PACKET, 1))
+    d = np.tile(np.float32([0.0, 0.0, -1.0]), (8 * PACKET, 1))
+    d[:, :2] += rng.uniform(-2e-3, 2e-3, (len(d), 2)).astype(np.float32)
+    count, _, _ = candidates(scene, o, d)
+    assert (count == -1).all()
+    identical(kernels.trace(scene, o, d), kernels.trace(scene, o, d, packets=False))
+
+    few = scene_of(v, f, transforms[:6])
+    count, cand, entry = candidates(few, o, d)
+    assert (count == 6).all()
+    for p in range(len(count)):
+        e = entry[p * PACKET: p * PACKET + 6]
+        assert (np.diff(e) >= 0).all()
+        assert list(cand[p * PACKET: p * PACKET + 6]) == list(range(6))  # nearest is 0
+    identical(kernels.trace(few, o, d), kernels.trace(few, o, d, packets=False))
