@@ -38,7 +38,7 @@ from .build_data import (
     BuildTask,
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
-from .packet import packet_trace_kernel, packets_apply
+from .packet import PACKET, packet_trace_kernel, packets_apply
 from .stats import BvhStats
 from .traversal import trace_kernel
 from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
@@ -391,7 +391,7 @@ def trace(
                      host_threads(device, threads))
     else:
         launch_split(packet_trace_kernel, r, [bvh.arrays], inputs, [], outputs, device,
-                     host_threads(device, threads))
+                     host_threads(device, threads), align=PACKET)
     if not device.is_cpu:
         t, tri, u, v = (a.numpy() for a in outputs)
     return Hits(t=t, triangle=tri, u=u, v=v)

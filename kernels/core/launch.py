@@ -64,9 +64,10 @@ def to_device(a: np.ndarray, dtype, device) -> wp.array:
 
 
 def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, outputs: list,
-                 device, threads: int) -> None:
+                 device, threads: int, align: int = 1) -> None:
     """Launch `kernel` over n items, split into contiguous parts run by `threads` host
-    threads (only on CPU, where a launch is serial). Arrays in `per_item` and `outputs`
+    threads (only on CPU, where a launch is serial), each starting at a multiple of `align`
+    (a packet kernel's packets stay the caller's runs). Arrays in `per_item` and `outputs`
     of length n are sliced per part; shorter ones (a broadcast scalar) are passed whole."""
     if n == 0:
         return
@@ -78,7 +79,8 @@ def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, ou
                   device=device)
         return
     wp.load_module(kernel.module, device=device)  # compile once, not in every thread
-    bounds = np.linspace(0, n, parts + 1).astype(int)
+    bounds = np.linspace(0, n, parts + 1).astype(int) // align * align
+    bounds[-1] = n
     args = [*shared, *per_item, *scalars, *outputs]
     sliced = [len(shared) + i for i, x in enumerate(per_item) if x.shape[0] == n]
     sliced += [len(args) - len(outputs) + i for i, x in enumerate(outputs) if x.shape[0] == n]
@@ -86,7 +88,8 @@ def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, ou
 
     def run(k: int) -> None:
         a, b = int(bounds[k]), int(bounds[k + 1])
-        launch(b - a, {i: args[i][a:b] for i in sliced})
+        if b > a:
+            launch(b - a, {i: args[i][a:b] for i in sliced})
 
     run_parts(run, parts, threads)
 

@@ -14,6 +14,7 @@ from ..bvh.api import METHODS, Bvh, build_over_boxes, empty_bounds
 from ..bvh.api import trace as trace_bvh
 from ..bvh.binary_traversal import STACK_SIZE
 from ..bvh.node import empty_root
+from ..bvh.packet import PACKET
 from ..core.hits import Hits
 from ..core.launch import (
     get_device,
@@ -312,7 +313,7 @@ def trace(
         load_modules(device, *PACKET_MODULES)
         scratch = scratch_arrays(instance_packets(r, device))
         launch_split(scene_packet_kernel, r, [scene.arrays], [*inputs, *scratch], [], outputs,
-                     device, host_threads(device, threads))
+                     device, host_threads(device, threads), align=PACKET)
     if not device.is_cpu:
         out = [a.numpy() for a in outputs]
     return Hits(t=out[0], triangle=out[1], u=out[2], v=out[3], instance=out[4])
