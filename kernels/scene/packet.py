@@ -18,7 +18,7 @@ from ..core.ray import Hit, per_ray
 from .top import (
     InstanceHit,
     SceneArrays,
-    enter_top,
+    enter_padded_box,
     finish_instance_hit,
     keep_instance_hit,
     mesh_view,
@@ -68,8 +68,8 @@ def packet_entry(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
     enters): the least with `least`, else the first ray's that enters."""
     best = float(INF)
     for k in range(first, last):
-        t = enter_top(top_ray(s, origins[k], directions[k]), lo, hi, per_ray(tmin, k),
-                      per_ray(tmax, k))
+        t = enter_padded_box(top_ray(s, origins[k], directions[k]), lo, hi, per_ray(tmin, k),
+                             per_ray(tmax, k))
         if t < best:
             best = t
             if not least:

@@ -151,37 +151,6 @@ def object_ray(inst: InstanceRecord, origin: wp.vec3, direction: wp.vec3) -> Ray
     return make_ray(o, d)
 
 
-@wp.func
-def clip_side(a: wp.float64, b: wp.float64, t: wp.vec2d) -> wp.vec2d:
-    """[t0, t1] intersected with {t : a t >= b} (empty: t0 > t1)."""
-    out = t
-    if a > wp.float64(0.0):
-        out[0] = wp.max(out[0], b / a)
-    elif a < wp.float64(0.0):
-        out[1] = wp.min(out[1], b / a)
-    elif b > wp.float64(0.0):
-        out[0] = wp.float64(INF)
-    return out
-
-
-@wp.func
-def enter_padded_box(o: wp.vec3d, d: wp.vec3d, s: wp.float64, lo: wp.vec3, hi: wp.vec3,
-                     tmin: float, tmax: float) -> float:
-    """Entry t of the ray into [lo, hi] widened by s t on every side (walls that move out
-    with t: instances.py), clipped to [tmin, tmax], or inf. float64, then widened by
-    2^-40 relative: no rounding here can drop a point the bound keeps."""
-    t = wp.vec2d(wp.float64(tmin), wp.float64(tmax))
-    for k in range(3):
-        # o + t d >= lo - s t  and  -(o + t d) >= -(hi + s t)
-        t = clip_side(d[k] + s, wp.float64(lo[k]) - o[k], t)
-        t = clip_side(s - d[k], o[k] - wp.float64(hi[k]), t)
-    eps = wp.float64(9.094947e-13)
-    t0 = t[0] - eps * wp.abs(t[0])
-    if t0 <= t[1] + eps * wp.abs(t[1]):
-        return wp.max(float(t0), tmin)
-    return INF
-
-
 @wp.struct
 class TopRay:
     """A world ray as the top level takes it: float64 for the padded box test, float32 for
@@ -190,13 +159,41 @@ class TopRay:
     origin: wp.vec3
     direction: wp.vec3
     o: wp.vec3d
-    d: wp.vec3d
-    slope: wp.float64  # the walls' widening per unit t: SceneArrays.slope times max |d|
+    rise: wp.vec3d  # d + s per axis, s the walls' speed: SceneArrays.slope times max |d|
+    fall: wp.vec3d  # s - d
+    inv_rise: wp.vec3d  # their reciprocals: a box test multiplies (no division)
+    inv_fall: wp.vec3d
 
 
 @wp.func
-def enter_top(q: TopRay, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: float) -> float:
-    return enter_padded_box(q.o, q.d, q.slope, lo, hi, tmin, tmax)
+def clip_side(a: wp.float64, inv_a: wp.float64, b: wp.float64, t: wp.vec2d) -> wp.vec2d:
+    """[t0, t1] intersected with {t : a t >= b} (empty: t0 > t1), inv_a = 1 / a: b inv_a is
+    within 2 ulps (float64) of b / a, far inside enter_padded_box's 2^-40."""
+    out = t
+    if a > wp.float64(0.0):
+        out[0] = wp.max(out[0], b * inv_a)
+    elif a < wp.float64(0.0):
+        out[1] = wp.min(out[1], b * inv_a)
+    elif b > wp.float64(0.0):
+        out[0] = wp.float64(INF)
+    return out
+
+
+@wp.func
+def enter_padded_box(q: TopRay, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: float) -> float:
+    """Entry t of the ray into [lo, hi] widened by s t on every side (walls that move out
+    with t: instances.py), clipped to [tmin, tmax], or inf. float64, then widened by
+    2^-40 relative: no rounding here can drop a point the bound keeps."""
+    t = wp.vec2d(wp.float64(tmin), wp.float64(tmax))
+    for k in range(3):
+        # o + t d >= lo - s t  and  -(o + t d) >= -(hi + s t)
+        t = clip_side(q.rise[k], q.inv_rise[k], wp.float64(lo[k]) - q.o[k], t)
+        t = clip_side(q.fall[k], q.inv_fall[k], q.o[k] - wp.float64(hi[k]), t)
+    eps = wp.float64(9.094947e-13)
+    t0 = t[0] - eps * wp.abs(t[0])
+    if t0 <= t[1] + eps * wp.abs(t[1]):
+        return wp.max(float(t0), tmin)
+    return INF
 
 
 @wp.func
@@ -263,7 +260,7 @@ def top_result(s: SceneArrays, q: TopRay, tmin: float, tmax: float, out: Instanc
 # the top level's traversal, from its padded box test and its instance leaves
 traverse_top = make_binary_traversal(BinaryTree(
     tree=SceneArrays, query=TopRay, result=InstanceHit, miss=no_instance_hit,
-    enter=enter_top, leaf=trace_instances, distance=instance_hit_distance, finish=top_result,
+    enter=enter_padded_box, leaf=trace_instances, distance=instance_hit_distance, finish=top_result,
     module=__name__, name="traverse_top"))
 
 
@@ -274,9 +271,14 @@ def top_ray(s: SceneArrays, origin: wp.vec3, direction: wp.vec3) -> TopRay:
     q.origin = origin
     q.direction = direction
     q.o = wp.vec3d(origin)
-    q.d = wp.vec3d(direction)
-    ad = wp.max(wp.max(wp.abs(q.d[0]), wp.abs(q.d[1])), wp.abs(q.d[2]))
-    q.slope = wp.float64(s.slope) * ad
+    d = wp.vec3d(direction)
+    speed = wp.vec3d(wp.float64(s.slope) * wp.max(wp.max(wp.abs(d[0]), wp.abs(d[1])),
+                                                  wp.abs(d[2])))
+    q.rise = d + speed
+    q.fall = speed - d
+    one = wp.vec3d(wp.float64(1.0))
+    q.inv_rise = wp.cw_div(one, q.rise)
+    q.inv_fall = wp.cw_div(one, q.fall)
     return q
 
 
