@@ -18,12 +18,13 @@ from ..core.ray import Hit, per_ray
 from .top import (
     InstanceHit,
     SceneArrays,
+    TopRay,
     enter_padded_box,
     finish_instance_hit,
     keep_instance_hit,
     mesh_view,
     object_coords,
-    top_ray,
+    top_walls,
     traverse_scene,
 )
 
@@ -60,21 +61,28 @@ def instance_packets(rays: int, device) -> InstancePackets:
 
 
 @wp.func
-def packet_entry(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
-                 directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
-                 tmax: wp.array(dtype=float), first: int, last: int, lo: wp.vec3, hi: wp.vec3,
-                 least: bool) -> float:
-    """An entry of rays [first, last) into the padded top-level box [lo, hi] (inf: none
-    enters): the least with `least`, else the first ray's that enters."""
-    best = float(INF)
+def packet_top_ray(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                   directions: wp.array(dtype=wp.vec3), first: int, last: int) -> TopRay:
+    """Rays [first, last) as one TopRay: a box that it enters at t >= 0 (enter_padded_box)
+    within [least tmin, greatest tmax] may be entered by some of them, at no smaller t;
+    one it misses, none enters. (For t >= 0 every ray's point o + t d lies within
+    [o_low + t d_low, o_high + t d_high] and its walls move no faster than the fastest
+    ray's, so each wall's test of the bounds passes where any ray's does.)"""
+    q = TopRay()
+    q.o_low = wp.vec3d(origins[first])
+    q.o_high = q.o_low
+    d_low = wp.vec3d(directions[first])
+    d_high = d_low
+    largest = wp.float64(0.0)
     for k in range(first, last):
-        t = enter_padded_box(top_ray(s, origins[k], directions[k]), lo, hi, per_ray(tmin, k),
-                             per_ray(tmax, k))
-        if t < best:
-            best = t
-            if not least:
-                break
-    return best
+        o = wp.vec3d(origins[k])
+        d = wp.vec3d(directions[k])
+        q.o_low = wp.min(q.o_low, o)
+        q.o_high = wp.max(q.o_high, o)
+        d_low = wp.min(d_low, d)
+        d_high = wp.max(d_high, d)
+        largest = wp.max(largest, wp.max(wp.max(wp.abs(d[0]), wp.abs(d[1])), wp.abs(d[2])))
+    return top_walls(s, q, d_low, d_high, largest)
 
 
 @wp.func
@@ -82,9 +90,19 @@ def packet_candidates(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
                       directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
                       tmax: wp.array(dtype=float), first: int, last: int,
                       scratch: InstancePackets) -> int:
-    """How many instances some ray of [first, last) may reach (their top-level leaves' boxes,
-    entered within the ray's [tmin, tmax]), written from scratch.candidates[first] nearest
-    entry first; -1 for more than MAX_CANDIDATES or than the rays."""
+    """How many instances some ray of [first, last) may reach (their top-level leaves' boxes
+    that the packet's rays as one (packet_top_ray) enter), written from
+    scratch.candidates[first] by their entry (a bound below every ray's), nearest first;
+    -1 for more than MAX_CANDIDATES or than the rays, or for a negative tmin (the bounds
+    hold for t >= 0)."""
+    q = packet_top_ray(s, origins, directions, first, last)
+    t0 = float(INF)
+    t1 = float(-INF)
+    for k in range(first, last):
+        t0 = wp.min(t0, per_ray(tmin, k))
+        t1 = wp.max(t1, per_ray(tmax, k))
+    if t0 < 0.0:
+        return -1
     stack = NodeStack()
     sp = int(0)
     node = int(0)
@@ -93,11 +111,10 @@ def packet_candidates(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
     c0 = first
     while node >= 0:
         n = s.top[node]
-        leaf = n.count > 0
-        t = packet_entry(s, origins, directions, tmin, tmax, first, last, n.lo, n.hi, leaf)
+        t = enter_padded_box(q, n.lo, n.hi, t0, t1)
         node = -1
         if t < INF:
-            if leaf:
+            if n.count > 0:
                 for j in range(n.first, n.first + n.count):
                     if count == room:
                         return -1

@@ -154,11 +154,14 @@ def object_ray(inst: InstanceRecord, origin: wp.vec3, direction: wp.vec3) -> Ray
 @wp.struct
 class TopRay:
     """A world ray as the top level takes it: float64 for the padded box test, float32 for
-    the instances' object-space rays."""
+    the instances' object-space rays. The box test also takes a packet of rays as one
+    (scene/packet.py): then the origins' bounds and the walls' rise and fall of the most
+    extreme directions, a test that no ray of the packet passes unless it does."""
 
     origin: wp.vec3
     direction: wp.vec3
-    o: wp.vec3d
+    o_low: wp.vec3d  # the origin (a packet's: the least coordinates)
+    o_high: wp.vec3d  # the origin (a packet's: the greatest)
     rise: wp.vec3d  # d + s per axis, s the walls' speed: SceneArrays.slope times max |d|
     fall: wp.vec3d  # s - d
     inv_rise: wp.vec3d  # their reciprocals: a box test multiplies (no division)
@@ -187,8 +190,8 @@ def enter_padded_box(q: TopRay, lo: wp.vec3, hi: wp.vec3, tmin: float, tmax: flo
     t = wp.vec2d(wp.float64(tmin), wp.float64(tmax))
     for k in range(3):
         # o + t d >= lo - s t  and  -(o + t d) >= -(hi + s t)
-        t = clip_side(q.rise[k], q.inv_rise[k], wp.float64(lo[k]) - q.o[k], t)
-        t = clip_side(q.fall[k], q.inv_fall[k], q.o[k] - wp.float64(hi[k]), t)
+        t = clip_side(q.rise[k], q.inv_rise[k], wp.float64(lo[k]) - q.o_high[k], t)
+        t = clip_side(q.fall[k], q.inv_fall[k], q.o_low[k] - wp.float64(hi[k]), t)
     eps = wp.float64(9.094947e-13)
     t0 = t[0] - eps * wp.abs(t[0])
     if t0 <= t[1] + eps * wp.abs(t[1]):
@@ -265,21 +268,29 @@ traverse_top = make_binary_traversal(BinaryTree(
 
 
 @wp.func
+def top_walls(s: SceneArrays, q: TopRay, d_low: wp.vec3d, d_high: wp.vec3d,
+              largest: wp.float64) -> TopRay:
+    """q with the walls' rise and fall for directions within [d_low, d_high] whose largest
+    |component| is `largest`."""
+    speed = wp.vec3d(wp.float64(s.slope) * largest)
+    q.rise = d_high + speed
+    q.fall = speed - d_low
+    one = wp.vec3d(wp.float64(1.0))
+    q.inv_rise = wp.cw_div(one, q.rise)
+    q.inv_fall = wp.cw_div(one, q.fall)
+    return q
+
+
+@wp.func
 def top_ray(s: SceneArrays, origin: wp.vec3, direction: wp.vec3) -> TopRay:
     """The world ray as the top level tests it."""
     q = TopRay()
     q.origin = origin
     q.direction = direction
-    q.o = wp.vec3d(origin)
+    q.o_low = wp.vec3d(origin)
+    q.o_high = q.o_low
     d = wp.vec3d(direction)
-    speed = wp.vec3d(wp.float64(s.slope) * wp.max(wp.max(wp.abs(d[0]), wp.abs(d[1])),
-                                                  wp.abs(d[2])))
-    q.rise = d + speed
-    q.fall = speed - d
-    one = wp.vec3d(wp.float64(1.0))
-    q.inv_rise = wp.cw_div(one, q.rise)
-    q.inv_fall = wp.cw_div(one, q.fall)
-    return q
+    return top_walls(s, q, d, d, wp.max(wp.max(wp.abs(d[0]), wp.abs(d[1])), wp.abs(d[2])))
 
 
 @wp.func

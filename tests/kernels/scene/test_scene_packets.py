@@ -16,8 +16,9 @@ from scenesort.kernels.scene.packet import (
     InstancePackets,
     instance_packets,
     packet_candidates,
+    packet_top_ray,
 )
-from scenesort.kernels.scene.top import SceneArrays
+from scenesort.kernels.scene.top import SceneArrays, enter_padded_box, top_ray
 
 from scenesort import kernels
 
@@ -133,3 +134,53 @@ def test_candidates_nearest_first_and_too_many_go_ray_by_ray(shared_scene):
         assert (np.diff(e) >= 0).all()
         assert list(cand[p * PACKET: p * PACKET + 6]) == list(range(6))  # nearest is 0
     identical(kernels.trace(few, o, d), kernels.trace(few, o, d, packets=False))
+
+
+@wp.kernel
+def entries_kernel(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                   directions: wp.array(dtype=wp.vec3), lo: wp.array(dtype=wp.vec3),
+                   hi: wp.array(dtype=wp.vec3), tmax: float, rays: wp.array2d(dtype=float),
+                   packet: wp.array(dtype=float)):
+    b = wp.tid()  # one box, one packet of 8 rays
+    first = b * 8
+    for k in range(8):
+        rays[b, k] = enter_padded_box(top_ray(s, origins[first + k], directions[first + k]),
+                                      lo[b], hi[b], 0.0, tmax)
+    packet[b] = enter_padded_box(packet_top_ray(s, origins, directions, first, first + 8),
+                                 lo[b], hi[b], 0.0, tmax)
+
+
+def test_packet_box_test_passes_wherever_a_ray_does():
+    """The packet as one ray (packet_top_ray) enters every padded box that one of its rays
+    enters, no later than that ray, and misses most boxes none enters: random packets of 8
+    rays (spread origins, directions of any signs), random boxes, the walls of a steep
+    slope."""
+    rng = np.random.default_rng(7)
+    boxes = 20000
+    centre = rng.uniform(-3, 3, (boxes, 1, 3))
+    o = (centre + rng.normal(0, rng.choice([1e-3, 0.1, 1.0], (boxes, 1, 1)), (boxes, 8, 3)))
+    lo = rng.uniform(-4, 4, (boxes, 3))
+    hi = lo + rng.uniform(0, 2, (boxes, 3)) ** 3
+    # half the packets aimed at their box's centre, half anywhere
+    aim = np.where(rng.random((boxes, 1, 1)) < 0.5, (0.5 * (lo + hi))[:, None] - centre,
+                   rng.normal(size=(boxes, 1, 3)))
+    d = aim + rng.normal(0, rng.choice([0.01, 0.3, 2.0], (boxes, 1, 1)), (boxes, 8, 3))
+    scene = kernels.build_scene([kernels.build_bvh(np.eye(3, dtype=np.float32),
+                                                   np.array([[0, 1, 2]], np.int32))],
+                                np.zeros(1, np.int32), np.eye(3, 4, dtype=np.float32)[None])
+    arrays = scene.arrays
+    arrays.slope = 1e-3  # walls far steeper than any transform's bound
+    rays = wp.empty((boxes, 8), dtype=float)
+    packet = wp.empty(boxes, dtype=float)
+    wp.launch(entries_kernel, dim=boxes,
+              inputs=[arrays, wp.array(o.reshape(-1, 3).astype(np.float32), dtype=wp.vec3),
+                      wp.array(d.reshape(-1, 3).astype(np.float32), dtype=wp.vec3),
+                      wp.array(lo.astype(np.float32), dtype=wp.vec3),
+                      wp.array(hi.astype(np.float32), dtype=wp.vec3), 10.0, rays, packet])
+    rays, packet = rays.numpy(), packet.numpy()
+    entered = np.isfinite(rays).any(axis=1)
+    assert 0.1 < entered.mean() < 0.9
+    assert np.isfinite(packet[entered]).all()
+    assert (packet[entered] <= rays[entered].min(axis=1)).all()
+    assert (~np.isfinite(packet[~entered])).mean() > 0.3  # a test that rejects
+
