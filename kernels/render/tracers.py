@@ -24,8 +24,8 @@ from ..core.mesh import DeviceMesh, Shading
 from ..core.ray import make_ray
 from ..dacrt.api import dacrt_trace_mesh
 from ..scene.api import Scene
-from ..scene.packet import InstancePackets, instance_packets, trace_scene_packet
-from ..scene.top import InstanceHit, SceneArrays, SceneShading, traverse_scene
+from ..scene.packet import InstancePackets, hit_at, instance_packets, trace_scene_packet
+from ..scene.top import SceneArrays, SceneShading, traverse_scene
 from .adaptive import RoundTracer
 from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import PrimaryHits, Surface, instance_surface, occlusion_origin, surface
@@ -116,12 +116,7 @@ def packet_surface(g: SceneArrays, shading: SceneShading, rays: PacketRays,  # n
         trace_scene_packet(g, rays.origins, rays.directions, rays.tmin, rays.tmax, first, last,
                            rays.scene, rays.t, rays.triangle, rays.u, rays.v, rays.instance)
     if rays.instance[k] >= 0:
-        ih = InstanceHit()
-        ih.hit.t = rays.t[k]
-        ih.hit.triangle = rays.triangle[k]
-        ih.hit.u = rays.u[k]
-        ih.hit.v = rays.v[k]
-        ih.instance = rays.instance[k]
+        ih = hit_at(rays.t, rays.triangle, rays.u, rays.v, rays.instance, k)
         return instance_surface(g, shading, rays.directions[k], ih), True
     return Surface(), False
 

@@ -23,6 +23,7 @@ from .top import (
     finish_instance_hit,
     keep_instance_hit,
     mesh_view,
+    no_instance_hit,
     object_coords,
     top_walls,
     traverse_scene,
@@ -137,6 +138,30 @@ def packet_candidates(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
 
 
 @wp.func
+def hit_at(t: wp.array(dtype=float), triangle: wp.array(dtype=int), u: wp.array(dtype=float),
+           v: wp.array(dtype=float), instance: wp.array(dtype=int), k: int) -> InstanceHit:
+    """Ray k's hit as the arrays hold it."""
+    ih = InstanceHit()
+    ih.hit.t = t[k]
+    ih.hit.triangle = triangle[k]
+    ih.hit.u = u[k]
+    ih.hit.v = v[k]
+    ih.instance = instance[k]
+    return ih
+
+
+@wp.func
+def put_hit(ih: InstanceHit, k: int, t: wp.array(dtype=float), triangle: wp.array(dtype=int),
+            u: wp.array(dtype=float), v: wp.array(dtype=float), instance: wp.array(dtype=int)):
+    """Ray k's hit into the arrays."""
+    t[k] = ih.hit.t
+    triangle[k] = ih.hit.triangle
+    u[k] = ih.hit.u
+    v[k] = ih.hit.v
+    instance[k] = ih.instance
+
+
+@wp.func
 def trace_instance_packet(s: SceneArrays, inst: int, origins: wp.array(dtype=wp.vec3),
                           directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
                           tmax: wp.array(dtype=float), first: int, last: int,
@@ -160,15 +185,9 @@ def trace_instance_packet(s: SceneArrays, inst: int, origins: wp.array(dtype=wp.
         h.triangle = scratch.triangle[k]
         h.u = scratch.u[k]
         h.v = scratch.v[k]
-        kept = InstanceHit()
-        kept.hit.t = out_t[k]
-        kept.instance = out_instance[k]
+        kept = hit_at(out_t, out_triangle, out_u, out_v, out_instance, k)
         if keep_instance_hit(h, inst, kept):
-            out_t[k] = h.t
-            out_triangle[k] = h.triangle
-            out_u[k] = h.u
-            out_v[k] = h.v
-            out_instance[k] = inst
+            put_hit(kept, k, out_t, out_triangle, out_u, out_v, out_instance)
 
 
 @wp.func
@@ -184,17 +203,11 @@ def trace_scene_packet(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
     count = packet_candidates(s, origins, directions, tmin, tmax, first, last, scratch)
     for k in range(first, last):
         ih = InstanceHit()
-        ih.hit.t = INF
-        ih.hit.triangle = -1
-        ih.instance = -1
+        no_instance_hit(ih)
         if count < 0:  # too many instances for a packet
             ih = traverse_scene(s, origins[k], directions[k], per_ray(tmin, k), per_ray(tmax, k),
                                 False)
-        out_t[k] = ih.hit.t
-        out_triangle[k] = ih.hit.triangle
-        out_u[k] = ih.hit.u
-        out_v[k] = ih.hit.v
-        out_instance[k] = ih.instance
+        put_hit(ih, k, out_t, out_triangle, out_u, out_v, out_instance)
     for c in range(count):
         # an instance that every ray's closest hit so far lies before is skipped
         reach = float(-INF)
@@ -206,18 +219,11 @@ def trace_scene_packet(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
                                   out_instance)
     if count > 0:
         for k in range(first, last):
-            ih = InstanceHit()
-            ih.hit.t = out_t[k]
-            ih.hit.triangle = out_triangle[k]
-            ih.hit.u = out_u[k]
-            ih.hit.v = out_v[k]
-            ih.instance = out_instance[k]
             ih = finish_instance_hit(s, origins[k], directions[k], per_ray(tmin, k),
-                                     per_ray(tmax, k), ih, False)
-            out_t[k] = ih.hit.t
-            out_triangle[k] = ih.hit.triangle
-            out_u[k] = ih.hit.u
-            out_v[k] = ih.hit.v
+                                     per_ray(tmax, k),
+                                     hit_at(out_t, out_triangle, out_u, out_v, out_instance, k),
+                                     False)
+            put_hit(ih, k, out_t, out_triangle, out_u, out_v, out_instance)
 
 
 @wp.kernel
