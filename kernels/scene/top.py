@@ -156,7 +156,7 @@ class TopRay:
     """A world ray as the top level takes it: float64 for the padded box test, float32 for
     the instances' object-space rays. The box test also takes a packet of rays as one
     (scene/packet.py): then the origins' bounds and the walls' rise and fall of the most
-    extreme directions, a test that no ray of the packet passes unless it does."""
+    extreme directions, a test that passes wherever one of the packet's rays passes."""
 
     origin: wp.vec3
     direction: wp.vec3
