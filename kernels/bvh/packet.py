@@ -42,6 +42,28 @@ def traverse_packet_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=flo
 
 
 @wp.func
+def read_hit(t: wp.array(dtype=float), triangle: wp.array(dtype=int), u: wp.array(dtype=float),
+             v: wp.array(dtype=float), k: int) -> Hit:
+    """Ray k's hit as the arrays hold it."""
+    h = Hit()
+    h.t = t[k]
+    h.triangle = triangle[k]
+    h.u = u[k]
+    h.v = v[k]
+    return h
+
+
+@wp.func
+def write_hit(h: Hit, k: int, t: wp.array(dtype=float), triangle: wp.array(dtype=int),
+              u: wp.array(dtype=float), v: wp.array(dtype=float)):
+    """Ray k's hit into the arrays."""
+    t[k] = h.t
+    triangle[k] = h.triangle
+    u[k] = h.u
+    v[k] = h.v
+
+
+@wp.func
 def trace_packet_leaf_order(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                             directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
                             tmax: wp.array(dtype=float), first: int, last: int,
@@ -57,10 +79,7 @@ def trace_packet_leaf_order(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
         for k in range(first, last):
             h = traverse_leaf_order(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
                                     per_ray(tmax, k), False)
-            out_t[k] = h.t
-            out_triangle[k] = h.triangle
-            out_u[k] = h.u
-            out_v[k] = h.v
+            write_hit(h, k, out_t, out_triangle, out_u, out_v)
 
 
 @wp.func
@@ -74,17 +93,9 @@ def trace_packet_hits(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
     trace_packet_leaf_order(bvh, origins, directions, tmin, tmax, first, last, out_t,
                             out_triangle, out_u, out_v)
     for k in range(first, last):
-        h = Hit()
-        h.t = out_t[k]
-        h.triangle = out_triangle[k]
-        h.u = out_u[k]
-        h.v = out_v[k]
         h = finish_hit(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
-                       per_ray(tmax, k), h)
-        out_t[k] = h.t
-        out_triangle[k] = h.triangle
-        out_u[k] = h.u
-        out_v[k] = h.v
+                       per_ray(tmax, k), read_hit(out_t, out_triangle, out_u, out_v, k))
+        write_hit(h, k, out_t, out_triangle, out_u, out_v)
 
 
 @wp.kernel

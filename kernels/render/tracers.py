@@ -24,7 +24,7 @@ from ..core.mesh import DeviceMesh, Shading
 from ..core.ray import make_ray
 from ..dacrt.api import dacrt_trace_mesh
 from ..scene.api import Scene
-from ..scene.packet import InstancePackets, hit_at, instance_packets, trace_scene_packet
+from ..scene.packet import InstancePackets, instance_packets, read_instance_hit, trace_scene_packet
 from ..scene.top import SceneArrays, SceneShading, traverse_scene
 from .adaptive import RoundTracer
 from .sampling import SAMPLERS, cosine_direction, pixel_key
@@ -116,7 +116,7 @@ def packet_surface(g: SceneArrays, shading: SceneShading, rays: PacketRays,  # n
         trace_scene_packet(g, rays.origins, rays.directions, rays.tmin, rays.tmax, first, last,
                            rays.scene, rays.t, rays.triangle, rays.u, rays.v, rays.instance)
     if rays.instance[k] >= 0:
-        ih = hit_at(rays.t, rays.triangle, rays.u, rays.v, rays.instance, k)
+        ih = read_instance_hit(rays.t, rays.triangle, rays.u, rays.v, rays.instance, k)
         return instance_surface(g, shading, rays.directions[k], ih), True
     return Surface(), False
 

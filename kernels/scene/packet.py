@@ -10,11 +10,11 @@ from __future__ import annotations
 import warp as wp
 
 from ..bvh.binary_traversal import NodeStack
-from ..bvh.packet import PACKET, trace_packet_leaf_order
+from ..bvh.packet import PACKET, read_hit, trace_packet_leaf_order, write_hit
 from ..bvh.wide_traversal import simd_support
 from ..core.box import INF
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.ray import Hit, per_ray
+from ..core.ray import per_ray
 from .top import (
     InstanceHit,
     SceneArrays,
@@ -138,26 +138,22 @@ def packet_candidates(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
 
 
 @wp.func
-def hit_at(t: wp.array(dtype=float), triangle: wp.array(dtype=int), u: wp.array(dtype=float),
-           v: wp.array(dtype=float), instance: wp.array(dtype=int), k: int) -> InstanceHit:
+def read_instance_hit(t: wp.array(dtype=float), triangle: wp.array(dtype=int),
+                      u: wp.array(dtype=float), v: wp.array(dtype=float),
+                      instance: wp.array(dtype=int), k: int) -> InstanceHit:
     """Ray k's hit as the arrays hold it."""
     ih = InstanceHit()
-    ih.hit.t = t[k]
-    ih.hit.triangle = triangle[k]
-    ih.hit.u = u[k]
-    ih.hit.v = v[k]
+    ih.hit = read_hit(t, triangle, u, v, k)
     ih.instance = instance[k]
     return ih
 
 
 @wp.func
-def put_hit(ih: InstanceHit, k: int, t: wp.array(dtype=float), triangle: wp.array(dtype=int),
-            u: wp.array(dtype=float), v: wp.array(dtype=float), instance: wp.array(dtype=int)):
+def write_instance_hit(ih: InstanceHit, k: int, t: wp.array(dtype=float),
+                       triangle: wp.array(dtype=int), u: wp.array(dtype=float),
+                       v: wp.array(dtype=float), instance: wp.array(dtype=int)):
     """Ray k's hit into the arrays."""
-    t[k] = ih.hit.t
-    triangle[k] = ih.hit.triangle
-    u[k] = ih.hit.u
-    v[k] = ih.hit.v
+    write_hit(ih.hit, k, t, triangle, u, v)
     instance[k] = ih.instance
 
 
@@ -180,14 +176,10 @@ def trace_instance_packet(s: SceneArrays, inst: int, origins: wp.array(dtype=wp.
                             tmin, scratch.tmax, first, last, scratch.t, scratch.triangle,
                             scratch.u, scratch.v)
     for k in range(first, last):
-        h = Hit()
-        h.t = scratch.t[k]
-        h.triangle = scratch.triangle[k]
-        h.u = scratch.u[k]
-        h.v = scratch.v[k]
-        kept = hit_at(out_t, out_triangle, out_u, out_v, out_instance, k)
+        h = read_hit(scratch.t, scratch.triangle, scratch.u, scratch.v, k)
+        kept = read_instance_hit(out_t, out_triangle, out_u, out_v, out_instance, k)
         if keep_instance_hit(h, inst, kept):
-            put_hit(kept, k, out_t, out_triangle, out_u, out_v, out_instance)
+            write_instance_hit(kept, k, out_t, out_triangle, out_u, out_v, out_instance)
 
 
 @wp.func
@@ -207,7 +199,7 @@ def trace_scene_packet(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
         if count < 0:  # too many instances for a packet
             ih = traverse_scene(s, origins[k], directions[k], per_ray(tmin, k), per_ray(tmax, k),
                                 False)
-        put_hit(ih, k, out_t, out_triangle, out_u, out_v, out_instance)
+        write_instance_hit(ih, k, out_t, out_triangle, out_u, out_v, out_instance)
     for c in range(count):
         # an instance that every ray's closest hit so far lies before is skipped
         reach = float(-INF)
@@ -219,11 +211,10 @@ def trace_scene_packet(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
                                   out_instance)
     if count > 0:
         for k in range(first, last):
+            kept = read_instance_hit(out_t, out_triangle, out_u, out_v, out_instance, k)
             ih = finish_instance_hit(s, origins[k], directions[k], per_ray(tmin, k),
-                                     per_ray(tmax, k),
-                                     hit_at(out_t, out_triangle, out_u, out_v, out_instance, k),
-                                     False)
-            put_hit(ih, k, out_t, out_triangle, out_u, out_v, out_instance)
+                                     per_ray(tmax, k), kept, False)
+            write_instance_hit(ih, k, out_t, out_triangle, out_u, out_v, out_instance)
 
 
 @wp.kernel
