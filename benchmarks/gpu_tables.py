@@ -49,6 +49,7 @@ from scenesort.backend.render.scenes import shared_scene  # noqa: E402
 from scenesort.backend.tools.peers import _mesh_closest, _mesh_occluded, ao_rays, random_rays  # noqa: E402
 from scenesort.kernels.bvh.build_data import PHASE_NAMES  # noqa: E402
 from scenesort.kernels.bvh.traversal import trace_kernel  # noqa: E402
+from scenesort.kernels.core.claim import unclaimed  # noqa: E402
 
 from scenesort import kernels  # noqa: E402
 
@@ -238,8 +239,9 @@ def part_trace(args, device, clock: Clock, rows: list[dict]) -> None:
                 out = [wp.empty(n, dtype=dt, device=device) for dt in (float, int, float, float)]
 
                 ms = device_ms(partial(wp.launch, trace_kernel, dim=n,
-                                       inputs=[bvh.arrays, *arrs, any_hit], outputs=out,
-                                       device=device), device, args.repeat)
+                                       inputs=[bvh.arrays, *arrs, any_hit, *out,
+                                               unclaimed(n, 1, device)], device=device),
+                               device, args.repeat)
                 t, tri = out[0].numpy(), out[1].numpy()
                 ours_hits[(width, kind)] = tri >= 0
                 rows.append({"part": "trace", "scene": name, "tris": len(f), "kind": kind,
@@ -263,8 +265,9 @@ def part_trace(args, device, clock: Clock, rows: list[dict]) -> None:
                     kern = _mesh_closest
 
                 ms = device_ms(partial(wp.launch, kern, dim=n,
-                                       inputs=[mesh.id, arrs[0], arrs[1], tmax], outputs=out,
-                                       device=device), device, args.repeat)
+                                       inputs=[mesh.id, arrs[0], arrs[1], tmax, *out,
+                                               unclaimed(n, 1, device)], device=device),
+                               device, args.repeat)
                 hit = out[-1].numpy() > 0 if any_hit else out[1].numpy() >= 0
                 ours = ours_hits.get((2, kind))
                 rows.append({"part": "trace", "scene": name, "tris": len(f), "kind": kind,
@@ -381,8 +384,8 @@ def part_sweep(args, device, clock: Clock, rows: list[dict]) -> None:
         if not clock.ok(f"sweep trace block {block}"):
             continue
         ms = device_ms(partial(wp.launch, trace_kernel, dim=len(o),
-                               inputs=[bvh.arrays, *arrs, 0], outputs=out, device=device,
-                               block_dim=block), device, args.repeat)
+                               inputs=[bvh.arrays, *arrs, 0, *out, unclaimed(len(o), 1, device)],
+                               device=device, block_dim=block), device, args.repeat)
         rows.append({"part": "sweep", "what": "trace primary w2 block_dim", "scene": name,
                      "block_dim": block, "ms": ms, "mrays_s": len(o) / ms / 1e3})
 

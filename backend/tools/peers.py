@@ -12,7 +12,7 @@ from collections.abc import Callable
 
 import numpy as np
 import warp as wp
-from scenesort.kernels.core import launch_split
+from scenesort.kernels.core import Claims, claimed_items, launch_claimed
 
 wp.set_module_options({"enable_backward": False})
 
@@ -22,18 +22,21 @@ MESH_CONSTRUCTORS = ("sah", "median", "cubql")
 
 @wp.kernel
 def _mesh_closest(mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
-                  tmax: float, out_t: wp.array(dtype=float), out_tri: wp.array(dtype=int)):
-    i = wp.tid()
-    q = wp.mesh_query_ray(mesh, o[i], d[i], tmax)
-    out_t[i] = wp.where(q.result, q.t, wp.inf)
-    out_tri[i] = wp.where(q.result, q.face, -1)
+                  tmax: float, out_t: wp.array(dtype=float), out_tri: wp.array(dtype=int),
+                  claims: Claims):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        q = wp.mesh_query_ray(mesh, o[i], d[i], tmax)
+        out_t[i] = wp.where(q.result, q.t, wp.inf)
+        out_tri[i] = wp.where(q.result, q.face, -1)
 
 
 @wp.kernel
 def _mesh_occluded(mesh: wp.uint64, o: wp.array(dtype=wp.vec3), d: wp.array(dtype=wp.vec3),
-                   tmax: float, out: wp.array(dtype=int)):
-    i = wp.tid()
-    out[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, o[i], d[i], tmax), 1, 0)
+                   tmax: float, out: wp.array(dtype=int), claims: Claims):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        out[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, o[i], d[i], tmax), 1, 0)
 
 
 class WarpMesh:
@@ -53,18 +56,20 @@ class WarpMesh:
 
     def closest(self, o: np.ndarray, d: np.ndarray, tmax: float = 1e30,
                 threads: int = 1) -> tuple[np.ndarray, np.ndarray]:
-        n = len(o)
-        t, tri = wp.empty(n, dtype=float), wp.empty(n, dtype=int)
-        launch_split(_mesh_closest, n, [self.mesh.id], [wp.array(o, dtype=wp.vec3),
-                     wp.array(d, dtype=wp.vec3)], [float(tmax)], [t, tri], self.device, threads)
-        return t.numpy(), tri.numpy()
+        t, tri = np.empty(len(o), np.float32), np.empty(len(o), np.int32)
+        launch_claimed(_mesh_closest, len(o), [self.mesh.id, *self._rays(o, d), float(tmax), t,
+                                               tri], self.device, threads)
+        return t, tri
 
     def occluded(self, o: np.ndarray, d: np.ndarray, tmax: float,
                  threads: int = 1) -> np.ndarray:
-        out = wp.empty(len(o), dtype=int)
-        launch_split(_mesh_occluded, len(o), [self.mesh.id], [wp.array(o, dtype=wp.vec3),
-                     wp.array(d, dtype=wp.vec3)], [float(tmax)], [out], self.device, threads)
-        return out.numpy().astype(bool)
+        out = np.empty(len(o), np.int32)
+        launch_claimed(_mesh_occluded, len(o), [self.mesh.id, *self._rays(o, d), float(tmax),
+                                                out], self.device, threads)
+        return out.astype(bool)
+
+    def _rays(self, o: np.ndarray, d: np.ndarray) -> list[np.ndarray]:
+        return [np.ascontiguousarray(x, np.float32) for x in (o, d)]
 
 
 def embree_available() -> bool:

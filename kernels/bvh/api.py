@@ -10,16 +10,15 @@ from typing import Literal
 import numpy as np
 import warp as wp
 
+from ..core.claim import claimed_arg, launch_claimed
 from ..core.hits import Hits
 from ..core.launch import (
     get_device,
     host_threads,
-    launch_split,
     load_modules,
     part_launcher,
     run_parts,
     sync_ms,
-    to_device,
 )
 from ..core.mesh import DeviceMesh
 from ..core.validate import as_rays, as_triangle_mesh, ray_range
@@ -382,16 +381,17 @@ def trace(
     tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)
     device = bvh.device
     t, tri, u, v = (np.empty(r, dt) for dt in (np.float32, np.int32, np.float32, np.float32))
-    outputs = [to_device(x, dt, device) for x, dt in ((t, float), (tri, int), (u, float),
-                                                       (v, float))]
-    inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
-              to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
+    outputs = [claimed_arg(x, dt, device) for x, dt in ((t, float), (tri, int), (u, float),
+                                                         (v, float))]
+    inputs = [claimed_arg(origins, wp.vec3, device), claimed_arg(directions, wp.vec3, device),
+              claimed_arg(tmin_a, float, device), claimed_arg(tmax_a, float, device)]
+    nthreads = host_threads(device, threads)
     if any_hit or not (packets and packets_apply(bvh)):
-        launch_split(trace_kernel, r, [bvh.arrays], inputs, [int(any_hit)], outputs, device,
-                     host_threads(device, threads))
+        launch_claimed(trace_kernel, r, [bvh.arrays, *inputs, int(any_hit), *outputs], device,
+                       nthreads)
     else:
-        launch_split(packet_trace_kernel, r, [bvh.arrays], inputs, [], outputs, device,
-                     host_threads(device, threads), align=PACKET)
+        launch_claimed(packet_trace_kernel, r, [bvh.arrays, *inputs, *outputs], device,
+                       nthreads, align=PACKET)
     if not device.is_cpu:
         t, tri, u, v = (a.numpy() for a in outputs)
     return Hits(t=t, triangle=tri, u=u, v=v)

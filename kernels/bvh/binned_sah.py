@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..core.atomics import shared_add, shared_max_vec3, shared_min_vec3
 from ..core.box import INF, half_area, max3, min3
-from ..pool.atomics import shared_add, shared_max_vec3, shared_min_vec3
 from ..pool.chunks import CHUNK
 from .build_data import BINS, BinFloats, BuildData, BuildTask
 

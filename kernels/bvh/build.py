@@ -23,12 +23,12 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..core.atomics import shared_add, shared_max
 from ..core.box import INF, max3, median_plane, min3
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.mesh import triangle_corners
 from ..core.triangle import is_degenerate
 from ..pool import clock
-from ..pool.atomics import shared_add, shared_max
 from ..pool.chunks import CHUNK, ceil_div, level_count
 from ..pool.phases import (
     aabb_chunks,

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import FAR_WIDEN, Hit, make_ray, per_ray
 from .leaf import finish_hit
@@ -109,14 +110,12 @@ def packet_trace_kernel(
     out_triangle: wp.array(dtype=int),
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
+    claims: Claims,  # chunks of a multiple of PACKET rays
 ):
-    # One thread a ray, of which every PACKET-th takes the packet it starts (the launch
-    # splits into parts by rays, as trace_kernel's does).
-    i = wp.tid()
-    if i % PACKET == 0:
-        trace_packet_hits(bvh, origins, directions, tmin, tmax, i,
-                          wp.min(i + PACKET, origins.shape[0]), out_t, out_triangle, out_u,
-                          out_v)
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1], PACKET):
+        trace_packet_hits(bvh, origins, directions, tmin, tmax, i, wp.min(i + PACKET, items[1]),
+                          out_t, out_triangle, out_u, out_v)
 
 
 def packets_apply(bvh) -> bool:

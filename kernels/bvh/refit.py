@@ -28,8 +28,9 @@ import numpy as np
 import warp as wp
 
 from ..core.box import INF, max3, min3
+from ..core.claim import Claims, claimed_items, launch_claimed
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.launch import host_threads, launch_split, load_modules, run_parts, sync_ms
+from ..core.launch import host_threads, load_modules, run_parts, sync_ms
 from ..core.mesh import DeviceMesh, degenerate_mask
 from ..core.validate import as_triangle_mesh
 from .api import Bvh, build_bvh
@@ -58,24 +59,28 @@ REBUILD_RATIO = 1.5
 @wp.kernel
 def refit_triangles(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
                     tri_ids: wp.array(dtype=int), tri_verts: wp.array(dtype=wp.vec3),
-                    positions: wp.array(dtype=int)):
+                    positions: wp.array(dtype=int), claims: Claims):
     """Leaf positions `positions` get their triangles' moved vertices."""
-    i = positions[wp.tid()]
-    store_leaf_triangle(vertices, indices, tri_ids[i], i, tri_verts)
+    items = claimed_items(claims, wp.tid())
+    for k in range(items[0], items[1]):
+        i = positions[k]
+        store_leaf_triangle(vertices, indices, tri_ids[i], i, tri_verts)
 
 
 @wp.kernel
 def refit_blocks(tri_verts: wp.array(dtype=wp.vec3), blocks: wp.array(dtype=float),
-                 block_ids: wp.array(dtype=int)):
+                 block_ids: wp.array(dtype=int), claims: Claims):
     """Each block's 4 lanes from the leaf position stored in its last row (wide.py)."""
-    b = block_ids[wp.tid()]
-    for k in range(BLOCK):
-        base = b * BLOCK_WORDS + k
-        i = float_bits(blocks[base + ROW_POSITION * BLOCK])
-        for m in range(3):
-            v = tri_verts[3 * i + m]
-            for a in range(3):
-                blocks[base + (3 * m + a) * BLOCK] = v[a]
+    items = claimed_items(claims, wp.tid())
+    for j in range(items[0], items[1]):
+        b = block_ids[j]
+        for k in range(BLOCK):
+            base = b * BLOCK_WORDS + k
+            i = float_bits(blocks[base + ROW_POSITION * BLOCK])
+            for m in range(3):
+                v = tri_verts[3 * i + m]
+                for a in range(3):
+                    blocks[base + (3 * m + a) * BLOCK] = v[a]
 
 
 @wp.func
@@ -216,7 +221,7 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
     nthreads = host_threads(device, threads)
 
     def run(kernel, shared: list, items: wp.array) -> None:
-        launch_split(kernel, items.shape[0], shared, [items], [], [], device, nthreads)
+        launch_claimed(kernel, items.shape[0], [*shared, items], device, nthreads)
 
     t0 = time.perf_counter()
     run(refit_triangles, [mesh.v, mesh.f, arrays.tri_ids, arrays.tri_verts], plan["positions"])

@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..core.atomics import shared_add, shared_max
 from ..core.box import INF, half_area, longest_axis, max3, min3
-from ..pool.atomics import shared_add, shared_max
 from .build_data import (
     MAX_DEPTH,
     METHOD_SAH,

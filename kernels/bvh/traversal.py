@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import Hit, Ray, hit_distance, intersect_box, make_ray, no_hit, per_ray
 from .binary_traversal import BinaryTree, make_binary_traversal
@@ -93,11 +94,13 @@ def trace_kernel(
     out_triangle: wp.array(dtype=int),
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
+    claims: Claims,
 ):
-    i = wp.tid()
-    r = make_ray(origins[i], directions[i])
-    h = traverse(bvh, r, per_ray(tmin, i), per_ray(tmax, i), find_any != 0)
-    out_t[i] = h.t
-    out_triangle[i] = h.triangle
-    out_u[i] = h.u
-    out_v[i] = h.v
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        r = make_ray(origins[i], directions[i])
+        h = traverse(bvh, r, per_ray(tmin, i), per_ray(tmax, i), find_any != 0)
+        out_t[i] = h.t
+        out_triangle[i] = h.triangle
+        out_u[i] = h.u
+        out_v[i] = h.v

@@ -56,10 +56,10 @@ from collections.abc import Callable
 import numpy as np
 import warp as wp
 
+from ..core.atomics import shared_add, shared_max
 from ..core.box import INF, half_area
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import host_pool
-from ..pool.atomics import shared_add, shared_max
 from ..pool.worker import launch_workers
 from .node import BvhNode
 

@@ -1,10 +1,11 @@
-"""Host-side launch helpers: the device, host threads, numpy views, split launches.
+"""Host-side launch helpers: the device, host threads, numpy views, launches in parts.
 
 A Warp CPU launch is one serial loop on one thread (WARP_FACTS.md), so on CPU independent
-work is split into parts that host threads launch side by side (the launch releases the
-Python lock); on CUDA one launch covers everything. The host threads are one persistent
-pool for the whole process (`host_pool`): starting threads for every call cost about
-0.5 ms per thread.
+work is split between host threads that launch side by side (the launch releases the
+Python lock): in parts with arguments of their own (`part_launcher`, `run_parts`), or as
+chunks claimed from one call's counter (core.claim); on CUDA one launch covers everything.
+The host threads are one persistent pool for the whole process (`host_pool`): starting
+threads for every call cost about 0.5 ms per thread.
 """
 
 from __future__ import annotations
@@ -19,10 +20,7 @@ from typing import Any
 import numpy as np
 import warp as wp
 
-PARTS_PER_THREAD = 8  # launch_split: parts per host thread, for load balance
-# launch_split: fewest items worth a launch of their own: a part's slices and arguments cost
-# ~50 us under the Python lock, and at 4096 a 10k-ray trace ran slower on 2 threads than on 1
-MIN_PART = 8192
+PARTS_PER_THREAD = 8  # parts per host thread of a launch in parts, for load balance
 
 
 def get_device(device) -> wp.context.Device:
@@ -63,35 +61,11 @@ def to_device(a: np.ndarray, dtype, device) -> wp.array:
     return wp.array(a, dtype=dtype, device=device, copy=not device.is_cpu)
 
 
-def launch_split(kernel, n: int, shared: list, per_item: list, scalars: list, outputs: list,
-                 device, threads: int, align: int = 1) -> None:
-    """Launch `kernel` over n items, split into contiguous parts run by `threads` host
-    threads (only on CPU, where a launch is serial), each starting at a multiple of `align`
-    (a packet kernel's packets stay the caller's runs). Arrays in `per_item` and `outputs`
-    of length n are sliced per part; shorter ones (a broadcast scalar) are passed whole."""
-    if n == 0:
-        return
-    # More parts than threads, taken in turn by the pool's threads: camera rays cost very
-    # different amounts in different parts of the image (sky against geometry).
-    parts = min(threads * PARTS_PER_THREAD, max(1, n // MIN_PART)) if threads > 1 else 1
-    if parts <= 1:
-        wp.launch(kernel, dim=n, inputs=[*shared, *per_item, *scalars], outputs=outputs,
-                  device=device)
-        return
-    wp.load_module(kernel.module, device=device)  # compile once, not in every thread
-    bounds = np.linspace(0, n, parts + 1).astype(int) // align * align
-    bounds[-1] = n
-    args = [*shared, *per_item, *scalars, *outputs]
-    sliced = [len(shared) + i for i, x in enumerate(per_item) if x.shape[0] == n]
-    sliced += [len(args) - len(outputs) + i for i, x in enumerate(outputs) if x.shape[0] == n]
-    launch = part_launcher(kernel, args, device)
-
-    def run(k: int) -> None:
-        a, b = int(bounds[k]), int(bounds[k + 1])
-        if b > a:
-            launch(b - a, {i: args[i][a:b] for i in sliced})
-
-    run_parts(run, parts, threads)
+def launch_key(kernel, device, args: list) -> tuple:
+    """What a recorded launch of `kernel` is specific to: a generic kernel's overload
+    follows its arguments' kinds (which struct, which dtype)."""
+    return (kernel, device.alias, tuple((type(x), getattr(x, "dtype", None),
+                                         getattr(x, "ndim", None)) for x in args))
 
 
 _recorded = threading.local()  # per host thread: {(kernel, device, argument kinds): Launch}
@@ -106,9 +80,7 @@ def part_launcher(kernel, args: list, device) -> Callable[[int, dict[int, Any]],
     arguments in a recorded one), and a split launch makes PARTS_PER_THREAD of them per
     thread: so each thread records a kernel's launch once per process and after that only
     sets the arguments, all of them at its first launch of a call, then what changed."""
-    # a generic kernel's overload follows its arguments' kinds (which struct, which dtype)
-    key = (kernel, device.alias, tuple((type(x), getattr(x, "dtype", None),
-                                        getattr(x, "ndim", None)) for x in args))
+    key = launch_key(kernel, device, args)
     call = object()  # which call's arguments a thread's launch holds
 
     def launch(dim: int, changes: dict[int, Any]) -> None:
@@ -185,6 +157,8 @@ def run_parts(fn: Callable[[int], None], parts: int, threads: int) -> None:
     try:
         runner()
     finally:
+        # a helper not yet awake when the parts ran out is not waited for (~0.1 ms)
+        helpers = [f for f in helpers if not f.cancel()]
         for f in helpers:
             f.exception()  # wait: the parts write into the caller's arrays
     for f in helpers:

@@ -14,8 +14,9 @@ import numpy as np
 import warp as wp
 
 from .box import max3, min3
+from .claim import Claims, claimed_arg, claimed_items, launch_claimed
 from .compile_options import MODULE_OPTIONS
-from .launch import get_device, host_threads, launch_split, to_device
+from .launch import get_device, host_threads
 from .triangle import is_degenerate
 from .validate import as_shading, as_triangle_mesh
 
@@ -47,9 +48,11 @@ def triangle_corners(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=
 
 @wp.kernel
 def degenerate_flags(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
-                     out: wp.array(dtype=wp.int8)):
-    t = triangle_corners(vertices, indices, wp.tid())
-    out[wp.tid()] = wp.int8(wp.where(is_degenerate(t[0], t[1], t[2]), 1, 0))
+                     out: wp.array(dtype=wp.int8), claims: Claims):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        t = triangle_corners(vertices, indices, i)
+        out[i] = wp.int8(wp.where(is_degenerate(t[0], t[1], t[2]), 1, 0))
 
 
 @wp.kernel
@@ -77,10 +80,11 @@ def degenerate_mask(vertices: np.ndarray, indices: np.ndarray, device=None,
     device = get_device(device)
     m = len(indices)
     flags = np.empty(m, np.int8)
-    out = to_device(flags, wp.int8, device)
-    launch_split(degenerate_flags, m, [to_device(vertices, wp.vec3, device)],
-                 [to_device(np.ascontiguousarray(indices, np.int32), wp.vec3i, device)], [],
-                 [out], device, host_threads(device, threads))
+    out = claimed_arg(flags, wp.int8, device)
+    launch_claimed(degenerate_flags, m, [
+        claimed_arg(vertices, wp.vec3, device),
+        claimed_arg(np.ascontiguousarray(indices, np.int32), wp.vec3i, device), out],
+        device, host_threads(device, threads))
     return (flags if device.is_cpu else out.numpy()).view(bool)
 
 

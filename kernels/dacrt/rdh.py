@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..core.atomics import shared_add, shared_max_vec3, shared_min_vec3
 from ..core.box import INF, median_plane
-from ..pool.atomics import shared_add, shared_max_vec3, shared_min_vec3
 from ..pool.chunks import CHUNK
 from .classify import CLS_LEFT, CLS_RIGHT, ray_span, side_of, widen, widened_range
 from .records import RayRecord

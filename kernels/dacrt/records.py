@@ -13,10 +13,11 @@ import numpy as np
 import warp as wp
 
 from ..core.box import INF
+from ..core.claim import Claims, claimed_items, launch_claimed
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
-from ..core.launch import host_threads, launch_split
+from ..core.launch import host_threads
 from ..core.mesh import DeviceMesh
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle, refine_hit
@@ -98,19 +99,21 @@ def prepare_rays(
     tmin: wp.array(dtype=float),
     tmax: wp.array(dtype=float),
     rays: wp.array(dtype=RayRecord),
+    claims: Claims,
 ):
-    i = wp.tid()
-    d = directions[i]
-    r = RayRecord()
-    r.origin = origins[i]
-    r.tmin = tmin[i]
-    r.inv_dir = wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2])  # +-inf where d == 0
-    r.tmax = tmax[i]
-    rays[i] = r
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        d = directions[i]
+        r = RayRecord()
+        r.origin = origins[i]
+        r.tmin = tmin[i]
+        r.inv_dir = wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2])  # +-inf where d == 0
+        r.tmax = tmax[i]
+        rays[i] = r
 
 
-@wp.kernel
-def write_hits(
+@wp.func
+def write_hit(
     tri_verts: wp.array(dtype=wp.vec3),
     rays: wp.array(dtype=RayRecord),
     directions: wp.array(dtype=wp.vec3),
@@ -119,10 +122,10 @@ def write_hits(
     out_triangle: wp.array(dtype=int),
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
+    i: int,
 ):
-    """Unpack the closest hit; t (and u, v) refined in float64 and clamped to the ray's range,
-    as `kernels.trace` does."""
-    i = wp.tid()
+    """Unpack ray i's closest hit; t (and u, v) refined in float64 and clamped to the ray's
+    range, as `kernels.trace` does."""
     key = best[i]
     out_t[i] = INF
     out_triangle[i] = -1
@@ -142,6 +145,23 @@ def write_hits(
     out_triangle[i] = tri
     out_u[i] = h[1]
     out_v[i] = h[2]
+
+
+@wp.kernel
+def write_hits(
+    tri_verts: wp.array(dtype=wp.vec3),
+    rays: wp.array(dtype=RayRecord),
+    directions: wp.array(dtype=wp.vec3),
+    best: wp.array(dtype=wp.uint64),
+    out_t: wp.array(dtype=float),
+    out_triangle: wp.array(dtype=int),
+    out_u: wp.array(dtype=float),
+    out_v: wp.array(dtype=float),
+    claims: Claims,
+):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        write_hit(tri_verts, rays, directions, best, out_t, out_triangle, out_u, out_v, i)
 
 
 def margin_for(vertices: np.ndarray, origins: np.ndarray) -> float:
@@ -173,8 +193,8 @@ def rays_and_triangles(mem: DeviceArrays, mesh: DeviceMesh, origins, directions,
     d.rays = mem.new(max(r, 1), RayRecord)
     per_ray = [mem.new(r, dt, data=x) for x, dt in ((origins, wp.vec3), (tmin, float),
                                                    (tmax, float))]
-    launch_split(prepare_rays, r, [], [per_ray[0], d.directions, *per_ray[1:]], [],
-                 [d.rays], mem.device, host_threads(mem.device, None))
+    launch_claimed(prepare_rays, r, [per_ray[0], d.directions, *per_ray[1:], d.rays],
+                   mem.device, host_threads(mem.device, None))
     mem.free(*per_ray)
     d.tri_verts, d.tri_lo, d.tri_hi = mesh.soup()
     mem.hold(mesh.v, mesh.f, d.tri_verts, d.tri_lo, d.tri_hi)
@@ -184,8 +204,8 @@ def rays_and_triangles(mem: DeviceArrays, mesh: DeviceMesh, origins, directions,
 def unpack_hits(mem: DeviceArrays, d: TraceArrays, r: int) -> Hits:
     """Unpack every ray's closest-hit key (both variants), split over the host threads."""
     out = [mem.new(max(r, 1), dt) for dt in (float, int, float, float)]
-    launch_split(write_hits, r, [d.tri_verts], [d.rays, d.directions, d.best], [], out,
-                 mem.device, host_threads(mem.device, None))
+    launch_claimed(write_hits, r, [d.tri_verts, d.rays, d.directions, d.best, *out],
+                   mem.device, host_threads(mem.device, None))
     t, tri, u, v = (a.numpy()[:r] for a in out)
     return Hits(t=t, triangle=tri.astype(np.int32), u=u, v=v)
 

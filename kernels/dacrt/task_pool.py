@@ -29,6 +29,7 @@ import numpy as np
 import warp as wp
 
 from ..core import mesh as core_mesh
+from ..core.atomics import shared_add, shared_max
 from ..core.box import INF, max3, median_plane, min3
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.device_arrays import DeviceArrays
@@ -37,7 +38,6 @@ from ..core.mesh import DeviceMesh
 from ..core.ray import make_ray
 from ..core.triangle import intersect_triangle
 from ..pool import clock
-from ..pool.atomics import shared_add, shared_max
 from ..pool.chunks import CHUNK, ceil_div, level_count
 from ..pool.phases import (
     aabb_chunks,

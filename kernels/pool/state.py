@@ -17,8 +17,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..core.launch import cpu_cores
-from .atomics import (
+from ..core.atomics import (
     cpu_relax,
     memory_fence,
     pool_load,
@@ -27,6 +26,7 @@ from .atomics import (
     shared_exch,
     shared_max,
 )
+from ..core.launch import cpu_cores
 from .clock import ticks, ticks_per_second
 
 EMPTY = wp.constant(-(1 << 30))

@@ -11,8 +11,9 @@ import warp as wp
 from scenesort.ao_options import DEFAULT_TERMINATOR_OFFSET
 
 from ..bvh.api import Bvh
+from ..core.claim import Claims, claimed_items, launch_claimed
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.launch import host_threads, launch_split
+from ..core.launch import host_threads
 from ..core.mesh import Shading
 from ..core.validate import ray_range
 from ..dacrt.api import dacrt_trace_mesh
@@ -24,16 +25,13 @@ from .tracers import MeshTracer, gather_surfaces, primary_kernel, scene_mesh, su
 wp.set_module_options(MODULE_OPTIONS)
 
 
-@wp.kernel
-def box_candidates_kernel(lo: wp.vec3d, hi: wp.vec3d, origins: wp.array(dtype=wp.vec3),
-                          directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
-                          tmax: wp.array(dtype=float), touches: wp.array(dtype=int)):
-    # A float64 slab test: exact enough that the box's widening covers its rounding.
-    i = wp.tid()
-    o = origins[i]
-    d = directions[i]
-    enter = wp.float64(tmin[i])
-    leave = wp.float64(tmax[i])
+@wp.func
+def box_touched(lo: wp.vec3d, hi: wp.vec3d, o: wp.vec3, d: wp.vec3, tmin: float,
+                tmax: float) -> int:
+    """1 if the ray's [tmin, tmax] segment may touch the box: a float64 slab test, exact
+    enough that the box's widening covers its rounding."""
+    enter = wp.float64(tmin)
+    leave = wp.float64(tmax)
     inside = int(1)
     for k in range(3):
         ok = wp.float64(o[k])
@@ -46,9 +44,17 @@ def box_candidates_kernel(lo: wp.vec3d, hi: wp.vec3d, origins: wp.array(dtype=wp
             b = (hi[k] - ok) * inv
             enter = wp.max(enter, wp.min(a, b))
             leave = wp.min(leave, wp.max(a, b))
-    touches[i] = 0
-    if inside == 1 and enter <= leave:
-        touches[i] = 1
+    return wp.where(inside == 1 and enter <= leave, 1, 0)
+
+
+@wp.kernel
+def box_candidates_kernel(lo: wp.vec3d, hi: wp.vec3d, origins: wp.array(dtype=wp.vec3),
+                          directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                          tmax: wp.array(dtype=float), touches: wp.array(dtype=int),
+                          claims: Claims):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        touches[i] = box_touched(lo, hi, origins[i], directions[i], tmin[i], tmax[i])
 
 
 def box_candidates(bounds: np.ndarray, origins: wp.array, directions: wp.array,
@@ -63,9 +69,9 @@ def box_candidates(bounds: np.ndarray, origins: wp.array, directions: wp.array,
         return np.zeros(0, dtype=np.int32)
     pad = 1e-5 * (np.abs(hi - lo).max() + np.abs(lo).max() + np.abs(hi).max()) + 1e-30
     touches = wp.empty(origins.shape[0], dtype=int, device=origins.device)
-    launch_split(box_candidates_kernel, origins.shape[0],
-                 [wp.vec3d(*(lo - pad)), wp.vec3d(*(hi + pad))],
-                 [origins, directions, tmin, tmax], [], [touches], origins.device, threads)
+    launch_claimed(box_candidates_kernel, origins.shape[0],
+                   [wp.vec3d(*(lo - pad)), wp.vec3d(*(hi + pad)), origins, directions, tmin,
+                    tmax, touches], origins.device, threads)
     return np.flatnonzero(touches.numpy()).astype(np.int32)
 
 
@@ -117,8 +123,8 @@ def trace_primary(bvh: Bvh | Scene, origins: np.ndarray, directions: np.ndarray,
     if m:
         per_item = rays if m == len(origins) else [
             wp.array(x[cand], dtype=dt, device=device) for x, dt in host]
-        launch_split(primary_kernel, m, [tracer, shading], per_item, [],
-                     [surfaces, hit], device, nthreads)
+        launch_claimed(primary_kernel, m, [tracer, shading, *per_item, surfaces, hit], device,
+                       nthreads)
     keep = np.flatnonzero(hit.numpy())
     return PrimaryHits(pixels=cand[keep], surfaces=gather_surfaces(surfaces, keep), traced=m)
 

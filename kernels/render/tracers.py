@@ -18,6 +18,7 @@ from ..bvh.api import Bvh
 from ..bvh.node import BvhArrays
 from ..bvh.packet import PACKET, trace_packet_hits
 from ..bvh.traversal import closest_hit, traverse
+from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import PARTS_PER_THREAD, part_launcher, run_parts
 from ..core.mesh import DeviceMesh, Shading
@@ -144,13 +145,15 @@ def primary_kernel(
     tmax: wp.array(dtype=float),
     out_surface: wp.array(dtype=Surface),
     out_hit: wp.array(dtype=int),
+    claims: Claims,
 ):
-    i = wp.tid()
-    s, hit = closest_surface(tracer, shading, origins[i], directions[i], tmin[i], tmax[i])
-    out_hit[i] = 0
-    if hit:
-        out_surface[i] = s
-        out_hit[i] = 1
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        s, hit = closest_surface(tracer, shading, origins[i], directions[i], tmin[i], tmax[i])
+        out_hit[i] = 0
+        if hit:
+            out_surface[i] = s
+            out_hit[i] = 1
 
 
 @wp.kernel

@@ -15,15 +15,9 @@ from ..bvh.api import trace as trace_bvh
 from ..bvh.binary_traversal import STACK_SIZE
 from ..bvh.node import empty_root
 from ..bvh.packet import PACKET
+from ..core.claim import claimed_arg, launch_claimed
 from ..core.hits import Hits
-from ..core.launch import (
-    get_device,
-    host_threads,
-    launch_split,
-    load_modules,
-    sync_ms,
-    to_device,
-)
+from ..core.launch import get_device, host_threads, load_modules, sync_ms
 from ..core.validate import as_rays, as_shading, as_terminator_offsets, ray_range
 from . import instances as inst
 from .packet import WARP_MODULES as PACKET_MODULES
@@ -302,18 +296,19 @@ def trace(
     device = scene.device
     load_modules(device, *WARP_MODULES)
     out = [np.empty(r, dt) for dt in (np.float32, np.int32, np.float32, np.float32, np.int32)]
-    outputs = [to_device(x, dt, device) for x, dt in zip(out, (float, int, float, float, int),
-                                                            strict=True)]
-    inputs = [to_device(origins, wp.vec3, device), to_device(directions, wp.vec3, device),
-              to_device(tmin_a, float, device), to_device(tmax_a, float, device)]
+    outputs = [claimed_arg(x, dt, device) for x, dt in zip(out, (float, int, float, float, int),
+                                                              strict=True)]
+    inputs = [claimed_arg(origins, wp.vec3, device), claimed_arg(directions, wp.vec3, device),
+              claimed_arg(tmin_a, float, device), claimed_arg(tmax_a, float, device)]
+    nthreads = host_threads(device, threads)
     if any_hit or not (packets and scene_packets_apply(device)):
-        launch_split(scene_trace_kernel, r, [scene.arrays], inputs, [int(any_hit)], outputs,
-                     device, host_threads(device, threads))
+        launch_claimed(scene_trace_kernel, r, [scene.arrays, *inputs, int(any_hit), *outputs],
+                       device, nthreads)
     else:
         load_modules(device, *PACKET_MODULES)
         scratch = scratch_arrays(instance_packets(r, device))
-        launch_split(scene_packet_kernel, r, [scene.arrays], [*inputs, *scratch], [], outputs,
-                     device, host_threads(device, threads), align=PACKET)
+        launch_claimed(scene_packet_kernel, r, [scene.arrays, *inputs, *scratch, *outputs],
+                       device, nthreads, align=PACKET)
     if not device.is_cpu:
         out = [a.numpy() for a in outputs]
     return Hits(t=out[0], triangle=out[1], u=out[2], v=out[3], instance=out[4])

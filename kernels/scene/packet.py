@@ -13,6 +13,7 @@ from ..bvh.binary_traversal import NodeStack
 from ..bvh.packet import PACKET, read_hit, trace_packet_leaf_order, write_hit
 from ..bvh.wide_traversal import simd_support
 from ..core.box import INF
+from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import per_ray
 from .top import (
@@ -224,7 +225,7 @@ def scene_packet_kernel(
     directions: wp.array(dtype=wp.vec3),
     tmin: wp.array(dtype=float),  # per ray, or one value for all
     tmax: wp.array(dtype=float),
-    # InstancePackets' arrays, one by one: core.launch.launch_split slices each per part
+    # InstancePackets' arrays (indexed as the rays), one by one
     scratch_origins: wp.array(dtype=wp.vec3),
     scratch_directions: wp.array(dtype=wp.vec3),
     scratch_tmax: wp.array(dtype=float),
@@ -239,24 +240,22 @@ def scene_packet_kernel(
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
     out_instance: wp.array(dtype=int),
+    claims: Claims,  # chunks of a multiple of PACKET rays
 ):
-    # One thread a ray, of which every PACKET-th takes the packet it starts (as
-    # bvh.packet.packet_trace_kernel).
-    i = wp.tid()
-    if i % PACKET == 0:
-        scratch = InstancePackets()
-        scratch.origins = scratch_origins
-        scratch.directions = scratch_directions
-        scratch.tmax = scratch_tmax
-        scratch.t = scratch_t
-        scratch.triangle = scratch_triangle
-        scratch.u = scratch_u
-        scratch.v = scratch_v
-        scratch.candidates = scratch_candidates
-        scratch.entry = scratch_entry
-        trace_scene_packet(s, origins, directions, tmin, tmax, i,
-                           wp.min(i + PACKET, origins.shape[0]), scratch, out_t, out_triangle,
-                           out_u, out_v, out_instance)
+    items = claimed_items(claims, wp.tid())
+    scratch = InstancePackets()
+    scratch.origins = scratch_origins
+    scratch.directions = scratch_directions
+    scratch.tmax = scratch_tmax
+    scratch.t = scratch_t
+    scratch.triangle = scratch_triangle
+    scratch.u = scratch_u
+    scratch.v = scratch_v
+    scratch.candidates = scratch_candidates
+    scratch.entry = scratch_entry
+    for i in range(items[0], items[1], PACKET):
+        trace_scene_packet(s, origins, directions, tmin, tmax, i, wp.min(i + PACKET, items[1]),
+                           scratch, out_t, out_triangle, out_u, out_v, out_instance)
 
 
 def scratch_arrays(scratch: InstancePackets) -> list:

@@ -26,6 +26,7 @@ from ..bvh.leaf import finish_traversal
 from ..bvh.node import BvhArrays, BvhNode
 from ..bvh.traversal import traverse_leaf_order
 from ..core.box import INF
+from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import Hit, Ray, make_ray, per_ray
 
@@ -315,15 +316,17 @@ def scene_trace_kernel(
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
     out_instance: wp.array(dtype=int),
+    claims: Claims,
 ):
-    i = wp.tid()
-    h = traverse_scene(s, origins[i], directions[i], per_ray(tmin, i), per_ray(tmax, i),
-                       find_any != 0)
-    out_t[i] = h.hit.t
-    out_triangle[i] = h.hit.triangle
-    out_u[i] = h.hit.u
-    out_v[i] = h.hit.v
-    out_instance[i] = h.instance
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        h = traverse_scene(s, origins[i], directions[i], per_ray(tmin, i), per_ray(tmax, i),
+                           find_any != 0)
+        out_t[i] = h.hit.t
+        out_triangle[i] = h.hit.triangle
+        out_u[i] = h.hit.u
+        out_v[i] = h.hit.v
+        out_instance[i] = h.instance
 
 
 WARP_MODULES = (scene_trace_kernel.module,)  # this module's kernels (core.launch.load_modules)

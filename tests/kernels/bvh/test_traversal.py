@@ -137,15 +137,21 @@ def test_equals_embree_on_shared_scenes(name, shared_scene):
     assert np.array_equal(occluded, hits.triangle >= 0)
 
 
-def test_threads_give_identical_results():
+@pytest.mark.parametrize("any_hit", [False, True])
+def test_threads_give_identical_results(any_hit):
+    """Whichever host thread claims a chunk of rays, and however small the call."""
     rng = np.random.default_rng(9)
     v, f = random_soup(rng, 2000)
     o, d = random_rays(rng, 50000, -0.5, 1.5)
     bvh = kernels.build_bvh(v, f)
-    one = kernels.trace(bvh, o, d, threads=1)
-    two = kernels.trace(bvh, o, d, threads=2)
-    for name in ("t", "triangle", "u", "v"):
-        assert np.array_equal(getattr(one, name), getattr(two, name))
+    for n in (1, 100, 50000):
+        one = kernels.trace(bvh, o[:n], d[:n], tmax=1.0, any_hit=any_hit, threads=1)
+        assert (one.triangle >= 0).any() or n == 1
+        for threads in (2, 5):
+            many = kernels.trace(bvh, o[:n], d[:n], tmax=1.0, any_hit=any_hit,
+                                 threads=threads)
+            for name in ("t", "triangle", "u", "v"):
+                assert np.array_equal(getattr(one, name), getattr(many, name))
 
 
 def test_empty_mesh_and_zero_rays():

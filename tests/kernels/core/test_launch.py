@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import warp as wp
 from scenesort.kernels.core import launch
+from scenesort.kernels.core.claim import MIN_CLAIM, Claims, claimed_items, launch_claimed
 from scenesort.kernels.core.launch import (
     host_pool,
-    launch_split,
     load_modules,
     part_launcher,
     run_parts,
@@ -86,9 +86,13 @@ def test_the_caller_runs_parts_and_an_error_waits_for_the_others():
     run_parts(part, 8, 2)
     assert threading.get_ident() in ran_on and len(ran_on) == 2
 
+    helper_started = threading.Event()
+
     def caller_fails(k: int) -> None:
         if threading.get_ident() == caller:
+            assert helper_started.wait(5)
             raise RuntimeError("the caller's part")
+        helper_started.set()
         time.sleep(0.05)
         finished.append(k)
 
@@ -96,6 +100,23 @@ def test_the_caller_runs_parts_and_an_error_waits_for_the_others():
     with pytest.raises(RuntimeError, match="the caller's part"):
         run_parts(caller_fails, 2, 2)
     assert len(finished) == 1  # the helper's part ended before the error came back
+
+
+def test_a_helper_not_yet_started_is_not_waited_for():
+    """When the caller has run every part before a helper woke, run_parts returns at once:
+    here every pool thread is busy, so no helper can start."""
+    pool = host_pool(2)
+    release = threading.Event()
+    busy = [pool.submit(release.wait, 10) for _ in range(launch._pool_size)]
+    try:
+        ran = []
+        start = time.perf_counter()
+        run_parts(ran.append, 4, 2)
+        assert sorted(ran) == [0, 1, 2, 3] and time.perf_counter() - start < 5
+    finally:
+        release.set()
+        for f in busy:
+            f.result()
 
 
 @wp.struct
@@ -160,24 +181,74 @@ def test_recorded_launches_follow_each_calls_arguments_and_keep_none_alive():
     assert np.array_equal(outs[1].numpy(), np.arange(6) - 1.0)
 
 
-def test_launch_split_outputs_equal_one_launch():
-    """Per-item arrays are sliced per part, shorter ones passed whole."""
-    n = 50_000
-    out_one = wp.zeros(n, dtype=float, device="cpu")
-    out_split = wp.zeros(n, dtype=float, device="cpu")
-    x = wp.array(np.arange(n, dtype=np.float32), dtype=float, device="cpu")
-    scale = wp.array(np.array([2.0], np.float32), dtype=float, device="cpu")
-    launch_split(_scaled, n, [scale], [x], [], [out_one], wp.get_device("cpu"), 1)
-    launch_split(_scaled, n, [scale], [x], [], [out_split], wp.get_device("cpu"), 4)
-    assert np.array_equal(out_one.numpy(), out_split.numpy())
-    assert out_split.numpy()[-1] == 2.0 * (n - 1)
-
-
 @wp.kernel
 def _scaled(scale: wp.array(dtype=float), x: wp.array(dtype=float),
             out: wp.array(dtype=float)):
     i = wp.tid()
     out[i] = scale[0] * x[i]
+
+
+@wp.kernel
+def _claimed(x: wp.array(dtype=wp.vec3), out: wp.array(dtype=float),
+             first: wp.array(dtype=int), claims: Claims):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        out[i] = out[i] + x[i][1]  # twice would show
+        first[i] = items[0]
+
+
+@pytest.mark.parametrize("threads", [1, 2, 4])
+@pytest.mark.parametrize("align", [1, 64])
+def test_claimed_chunks_cover_every_item_once(threads, align):
+    """Every item in exactly one chunk, each chunk starting at a multiple of `align` and
+    no longer than the call needs; numpy arrays and Warp arrays alike as arguments."""
+    device = wp.get_device("cpu")
+    for n in (1, 63, 64, 65, 1000, 100_003):
+        x = np.zeros((n, 3), np.float32)
+        x[:, 1] = np.arange(1, n + 1)
+        out = np.zeros(n, np.float32)
+        first = wp.full(n, -1, dtype=int, device=device)
+        launch_claimed(_claimed, n, [x, out, first], device, threads, align)
+        assert np.array_equal(out, x[:, 1])
+        starts = first.numpy()
+        assert (starts % align == 0).all() and (starts <= np.arange(n)).all()
+        chunk = np.arange(n) - starts
+        if threads > 1 and n > MIN_CLAIM * threads:
+            assert len(np.unique(starts)) > threads  # chunks, not one part a thread
+        assert chunk.max() < max(n // threads + align, MIN_CLAIM + align)
+
+
+def test_claimed_calls_from_two_threads_keep_their_own_arguments():
+    """Calls at once from two Python threads (a service's requests) each get their own
+    recorded launch."""
+    device = wp.get_device("cpu")
+    n = 50_000
+    results = {}
+
+    def call(k: int) -> None:
+        for _ in range(20):
+            x = np.full((n, 3), float(k), np.float32)
+            out = np.zeros(n, np.float32)
+            launch_claimed(_claimed, n, [x, out, wp.empty(n, dtype=int, device=device)],
+                           device, 2)
+            results.setdefault(k, []).append(bool((out == k).all()))
+
+    threads = [threading.Thread(target=call, args=(k,)) for k in (1, 2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert results == {1: [True] * 20, 2: [True] * 20}
+
+
+def test_a_claimed_launch_refuses_a_numpy_array_of_the_wrong_kind():
+    device = wp.get_device("cpu")
+    first = wp.empty(4, dtype=int, device=device)
+    for x in (np.zeros(12, np.float32), np.zeros((4, 3), np.float64),
+              np.zeros((3, 4), np.float32)[:, :3]):
+        with pytest.raises(TypeError, match="parameter x: a contiguous float32 array of "
+                                            "12-byte rows"):
+            launch_claimed(_claimed, 4, [x, np.zeros(4, np.float32), first], device, 1)
 
 
 def test_load_modules_reports_milliseconds():

@@ -1,4 +1,5 @@
-"""Real atomics for state that several pool workers share, on CPU and on CUDA.
+"""Real atomics for state that several launches share (the pool's workers, the host
+threads claiming one call's chunks: core.claim), on CPU and on CUDA.
 
 A Warp CPU launch is one serial loop and Warp's CPU atomics are plain read-modify-writes, so
 on CPU each core runs its own launch of a worker kernel and every access to state shared
