@@ -80,19 +80,25 @@ def owen_scramble(x: wp.uint32, seed: wp.uint32) -> wp.uint32:
 
 
 @wp.func
+def fold_down(x: wp.uint32, mask: wp.uint32, shift: wp.uint32) -> wp.uint32:
+    return x ^ ((x >> shift) & mask)
+
+
+@wp.func
 def sobol_dim1_reversed(index: wp.uint32) -> wp.uint32:
     """The second Sobol dimension with its bits reversed (the first, reversed, is the
-    index itself): what owen_scramble reverses first, so its direction numbers are built
-    reversed (start at bit 0, v ^ (v << 1) for v ^ (v >> 1)) and no reversal is needed."""
-    r = wp.uint32(0)
-    v = wp.uint32(1)
-    i = index
-    while i != wp.uint32(0):
-        if (i & wp.uint32(1)) != wp.uint32(0):
-            r = r ^ v
-        i = i >> wp.uint32(1)
-        v = v ^ (v << wp.uint32(1))
-    return r
+    index itself): what owen_scramble reverses first. Reversed, its direction numbers are
+    the rows of Pascal's triangle mod 2 (v_0 = 1, v_k = v_(k-1) ^ (v_(k-1) << 1): bit j of
+    v_k is C(k, j) mod 2, 1 exactly when j's bits are a subset of k's, by Lucas's theorem),
+    so bit j of the point is the XOR of the index's bits k over every superset k of j:
+    five fold steps, the same bits as XOR-ing v_k over the index's set bits, which took a
+    loop of up to 32 data-dependent branches for an Owen-scrambled index (the film's
+    filter positions: 34 ns a position that way, 12 ns this way)."""
+    x = fold_down(index, wp.uint32(0x55555555), wp.uint32(1))
+    x = fold_down(x, wp.uint32(0x33333333), wp.uint32(2))
+    x = fold_down(x, wp.uint32(0x0F0F0F0F), wp.uint32(4))
+    x = fold_down(x, wp.uint32(0x00FF00FF), wp.uint32(8))
+    return fold_down(x, wp.uint32(0x0000FFFF), wp.uint32(16))
 
 
 @wp.func

@@ -8,7 +8,12 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
-from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d_at
+from scenesort.kernels.render.sampling import (
+    SAMPLERS,
+    pixel_key,
+    sample_2d_at,
+    sobol_dim1_reversed,
+)
 
 U32 = np.uint64(0xFFFFFFFF)
 LK = (0x6C50B47C, 0xB82F1E52, 0xC7AFE638, 0x8D22F6E6)
@@ -79,3 +84,23 @@ def test_sobol_points_are_owen_scrambled_sobol(device):
     want = np.stack([x >> np.uint64(8), y >> np.uint64(8)], axis=1).astype(np.float64) * 2.0**-24
     np.testing.assert_array_equal(out.numpy(), want.astype(np.float32))
     assert SAMPLERS["sobol"] == 1
+
+
+@wp.kernel
+def _dim1_reversed(indices: wp.array(dtype=wp.uint32), out: wp.array(dtype=wp.uint32)):
+    i = wp.tid()
+    out[i] = sobol_dim1_reversed(indices[i])
+
+
+def test_the_second_dimension_in_closed_form_is_the_direction_numbers_sum(device):
+    """All 32 bits (the points keep 24 of them after the scramble), for every index below
+    2^16 and random 32-bit ones (the film's Owen-scrambled indices)."""
+    rng = np.random.default_rng(8)
+    idx = np.concatenate([np.arange(1 << 16), rng.integers(0, 1 << 32, 1 << 16),
+                          [0xFFFFFFFF, 0x80000000]]).astype(np.uint32)
+    out = wp.empty(len(idx), dtype=wp.uint32, device=device)
+    wp.launch(_dim1_reversed, dim=len(idx), inputs=[wp.array(idx, dtype=wp.uint32,
+                                                             device=device), out],
+              device=device)
+    want = reverse(sobol_dim1(idx.astype(np.uint64))).astype(np.uint32)
+    np.testing.assert_array_equal(out.numpy(), want)
