@@ -57,6 +57,8 @@ def as_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
             f"origins and directions must have the same length, got {len(origins)} and "
             f"{len(directions)}"
         )
+    if directions.all():  # no zero component at all (5 us for 10k rays, the rows 24 us)
+        return origins, directions
     zero = (directions[:, 0] == 0.0) & (directions[:, 1] == 0.0) & (directions[:, 2] == 0.0)
     if zero.any():  # (columnwise: four times faster than a row reduction)
         raise ValueError(
