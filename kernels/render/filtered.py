@@ -45,7 +45,7 @@ from .camera import Camera
 from .film import decorrelated_2d, filter_position, filter_table
 from .primary import scene_shading
 from .sampling import SAMPLERS, cosine_direction, pixel_key
-from .surface import occlusion_origin
+from .surface import Surface, occlusion_origin
 from .tracers import (
     PART_RAYS,
     MeshTracer,
@@ -53,6 +53,7 @@ from .tracers import (
     check_tracer,
     closest_surface,
     occluded,
+    packet_occlusion_origin,
     packet_rays,
     packet_surface,
     scene_mesh,
@@ -192,6 +193,16 @@ def sample_surface(tracer: Any, shading: Any, cam: FilmCamera, table: wp.array(d
     return closest_surface(tracer, shading, o, d, t0, t1)
 
 
+@wp.func
+def sample_origin(tracer: Any, shading: Any, rays: PacketRays, packet0: int, s: int,
+                  surface: Surface, w: wp.vec3) -> wp.vec3:
+    """`occlusion_origin` toward w of `sample_surface`'s surface of sample s (whose lift a
+    packet's surface leaves to packet_occlusion_origin)."""
+    if simd_lanes() > 0:
+        return packet_occlusion_origin(tracer, shading, rays, packet0 + s % PACKET, surface, w)
+    return occlusion_origin(surface, w)
+
+
 @wp.kernel
 def film_kernel(
     tracer: Any,  # MeshTracer or SceneArrays
@@ -234,7 +245,8 @@ def film_kernel(
         if hit:
             n_hit += 1
             w = cosine_direction(surface.n, sampler, key, i)
-            is_open = not occluded(bvh, occlusion_origin(surface, w), w, distance, True)
+            o = sample_origin(tracer, shading, rays, packet0, s, surface, w)
+            is_open = not occluded(bvh, o, w, distance, True)
         if is_open:
             n_open += 1
             if i < mid:

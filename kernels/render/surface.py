@@ -162,10 +162,12 @@ def occlusion_origin(s: Surface, w: wp.vec3) -> wp.vec3:
 @wp.func
 def surface_at(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, d: wp.vec3, u: float, v: float,
                smooth: bool, n0: wp.vec3, n1: wp.vec3, n2: wp.vec3, cutoff: float,
-               mirrored: bool) -> Surface:
+               mirrored: bool, lifted: bool) -> Surface:
     """The spawn point, normals and terminator lift of a hit at (u, v) on the triangle
     (v0, v1, v2) (world space), with corner normals n0..n2 where `smooth` (see `Surface`).
-    `mirrored`: the corners are a mirrored instance's, whose world winding is reversed."""
+    `mirrored`: the corners are a mirrored instance's, whose world winding is reversed.
+    `lifted` False leaves `lift` zero (half a smooth surface's cost) for a caller that
+    makes the surface again, lifted, for the few directions terminator_amount lifts."""
     # Geometric normal in float64 (degenerate triangles are never hit, so it is non-zero).
     # A mirror reverses the winding against the (inverse-transpose) corner normals: the
     # front face is the other side, as for a flattened mirrored mesh (addon/export.py
@@ -184,14 +186,16 @@ def surface_at(v0: wp.vec3, v1: wp.vec3, v2: wp.vec3, d: wp.vec3, u: float, v: f
     s.cutoff = 0.0
     if smooth:
         s.n = shading_normal(n0, n1, n2, u, v, s.ng, backfacing)
-        s.lift = smooth_surface_offset(v0, v1, v2, n0, n1, n2, u, v, s.ng)
+        if lifted:
+            s.lift = smooth_surface_offset(v0, v1, v2, n0, n1, n2, u, v, s.ng)
         s.cutoff = cutoff
     return s
 
 
 @wp.func
 def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
-            shading: Shading, d: wp.vec3, triangle: int, u: float, v: float) -> Surface:
+            shading: Shading, d: wp.vec3, triangle: int, u: float, v: float,
+            lifted: bool) -> Surface:
     """`surface_at` of a hit on a mesh's triangle."""
     t = triangle_corners(vertices, indices, triangle)
     n0 = wp.vec3(0.0)
@@ -204,12 +208,12 @@ def surface(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i)
         n2 = shading.normals[3 * triangle + 2]
         cutoff = shading.offsets[triangle]
     return surface_at(t[0], t[1], t[2], d, u, v, shading.smooth != 0, n0, n1, n2, cutoff,
-                      False)
+                      False, lifted)
 
 
 @wp.func
 def instance_surface(scene: SceneArrays, shading: SceneShading, d: wp.vec3,
-                     ih: InstanceHit) -> Surface:
+                     ih: InstanceHit, lifted: bool) -> Surface:
     """`surface_at` of a hit in an instance: its triangle and corner normals taken to world
     space (points by M, rounded once as a flattened scene's vertices would be; normals by
     the inverse transpose); a mirrored instance's front face is the side its normals
@@ -231,4 +235,5 @@ def instance_surface(scene: SceneArrays, shading: SceneShading, d: wp.vec3,
         n2 = world_normal(rec, shading.normals[base + 3 * tri + 2])
     return surface_at(world_point(rec, t[0]), world_point(rec, t[1]), world_point(rec, t[2]),
                       d, ih.hit.u, ih.hit.v, base >= 0, n0, n1, n2,
-                      shading.offsets[ih.instance], wp.determinant(rec.lin) < wp.float64(0.0))
+                      shading.offsets[ih.instance], wp.determinant(rec.lin) < wp.float64(0.0),
+                      lifted)

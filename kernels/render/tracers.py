@@ -29,7 +29,14 @@ from ..scene.packet import InstancePackets, instance_packets, read_instance_hit,
 from ..scene.top import SceneArrays, SceneShading, traverse_scene
 from .adaptive import RoundTracer
 from .sampling import SAMPLERS, cosine_direction, pixel_key
-from .surface import PrimaryHits, Surface, instance_surface, occlusion_origin, surface
+from .surface import (
+    PrimaryHits,
+    Surface,
+    instance_surface,
+    occlusion_origin,
+    surface,
+    terminator_amount,
+)
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -52,7 +59,7 @@ def closest_surface(g: MeshTracer, shading: Shading, o: wp.vec3, d: wp.vec3, tmi
     """(Surface, True) of the closest hit in [tmin, tmax], or (anything, False)."""
     h = closest_hit(g.bvh, o, d, tmin, tmax)
     if h.triangle >= 0:
-        return surface(g.vertices, g.indices, shading, d, h.triangle, h.u, h.v), True
+        return surface(g.vertices, g.indices, shading, d, h.triangle, h.u, h.v, True), True
     return Surface(), False
 
 
@@ -62,7 +69,7 @@ def closest_surface(g: SceneArrays, shading: SceneShading, o: wp.vec3, d: wp.vec
     """`closest_surface` through a two-level scene."""
     ih = traverse_scene(g, o, d, tmin, tmax, False)
     if ih.instance >= 0:
-        return instance_surface(g, shading, d, ih), True
+        return instance_surface(g, shading, d, ih, True), True
     return Surface(), False
 
 
@@ -97,17 +104,35 @@ def packet_rays(parts: int, scene: bool, device) -> PacketRays:
 
 
 @wp.func
+def packet_hit_surface(g: MeshTracer, shading: Shading, rays: PacketRays, k: int,
+                       lifted: bool):
+    """(Surface, True) of ray k of `rays`, traced, or (anything, False) (`lifted`: see
+    surface_at)."""
+    if rays.triangle[k] >= 0:
+        return surface(g.vertices, g.indices, shading, rays.directions[k], rays.triangle[k],
+                       rays.u[k], rays.v[k], lifted), True
+    return Surface(), False
+
+
+@wp.func  # a Warp overload of the one above: through a two-level scene
+def packet_hit_surface(g: SceneArrays, shading: SceneShading, rays: PacketRays,  # noqa: F811
+                       k: int, lifted: bool):
+    if rays.instance[k] >= 0:
+        ih = read_instance_hit(rays.t, rays.triangle, rays.u, rays.v, rays.instance, k)
+        return instance_surface(g, shading, rays.directions[k], ih, lifted), True
+    return Surface(), False
+
+
+@wp.func
 def packet_surface(g: MeshTracer, shading: Shading, rays: PacketRays, first: int, k: int,
                    last: int):
-    """`closest_surface` of ray k of rays [first, last) of `rays`; at k == first the
-    closest hits of them all are traced (trace_packet_hits), into `rays`."""
+    """`closest_surface` of ray k of rays [first, last) of `rays`, its lift left to
+    packet_occlusion_origin; at k == first the closest hits of them all are traced
+    (trace_packet_hits), into `rays`."""
     if k == first:
         trace_packet_hits(g.bvh, rays.origins, rays.directions, rays.tmin, rays.tmax, first,
                           last, rays.t, rays.triangle, rays.u, rays.v)
-    if rays.triangle[k] >= 0:
-        return surface(g.vertices, g.indices, shading, rays.directions[k], rays.triangle[k],
-                       rays.u[k], rays.v[k]), True
-    return Surface(), False
+    return packet_hit_surface(g, shading, rays, k, False)
 
 
 @wp.func  # a Warp overload of the one above: through a two-level scene (scene/packet.py)
@@ -116,10 +141,20 @@ def packet_surface(g: SceneArrays, shading: SceneShading, rays: PacketRays,  # n
     if k == first:
         trace_scene_packet(g, rays.origins, rays.directions, rays.tmin, rays.tmax, first, last,
                            rays.scene, rays.t, rays.triangle, rays.u, rays.v, rays.instance)
-    if rays.instance[k] >= 0:
-        ih = read_instance_hit(rays.t, rays.triangle, rays.u, rays.v, rays.instance, k)
-        return instance_surface(g, shading, rays.directions[k], ih), True
-    return Surface(), False
+    return packet_hit_surface(g, shading, rays, k, False)
+
+
+@wp.func
+def packet_occlusion_origin(g: Any, shading: Any, rays: PacketRays, k: int, s: Surface,
+                            w: wp.vec3) -> wp.vec3:
+    """`occlusion_origin` toward w of packet ray k's surface `s` (packet_surface's, made
+    without its lift): the lift is made only where terminator_amount moves the origin, for
+    directions near the terminator (a few percent of a film's samples; a smooth surface
+    costs 60 ns with its lift, 25 ns without)."""
+    if terminator_amount(s.n, s.ng, w, s.cutoff) > 0.0:
+        lifted, hit = packet_hit_surface(g, shading, rays, k, True)
+        return occlusion_origin(lifted, w)
+    return s.point
 
 
 @wp.func
@@ -169,7 +204,8 @@ def surface_kernel(
 ):
     """Surfaces of hits found by another tracer (engine="dacrt")."""
     i = wp.tid()
-    out_surface[i] = surface(vertices, indices, shading, directions[i], triangle[i], u[i], v[i])
+    out_surface[i] = surface(vertices, indices, shading, directions[i], triangle[i], u[i], v[i],
+                             True)
 
 
 @wp.kernel

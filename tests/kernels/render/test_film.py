@@ -5,11 +5,13 @@ from __future__ import annotations
 
 import functools
 import math
+from typing import Any
 
 import numpy as np
 import pytest
 import warp as wp
 from scenesort.backend.render.scenes import shared_scene
+from scenesort.kernels.bvh.packet import PACKET
 from scenesort.kernels.render.camera import Camera
 from scenesort.kernels.render.film import (
     FILTER_TABLE_SIZE,
@@ -18,7 +20,17 @@ from scenesort.kernels.render.film import (
     filter_table,
 )
 from scenesort.kernels.render.filtered import FilmCamera, camera_ray, device_camera, render_film
+from scenesort.kernels.render.primary import scene_shading
 from scenesort.kernels.render.sampling import SAMPLERS, pixel_key, sample_2d_at
+from scenesort.kernels.render.surface import occlusion_origin
+from scenesort.kernels.render.tracers import (
+    MeshTracer,
+    PacketRays,
+    packet_hit_surface,
+    packet_occlusion_origin,
+    packet_rays,
+    scene_mesh,
+)
 
 from scenesort import kernels
 from scenesort.ao_options import PIXEL_FILTERS
@@ -272,6 +284,63 @@ def test_camera_packets_render_as_single_rays(name):
     b = render_film(scene, cam, spp=80, filter_width=1.5)
     assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
     assert a.alpha.mean() > 0.1
+
+
+@wp.kernel
+def _deferred_origins(tracer: Any, shading: Any, rays: PacketRays,
+                      directions: wp.array2d(dtype=wp.vec3), out: wp.array2d(dtype=wp.vec3),
+                      lifted_out: wp.array2d(dtype=int)):
+    k, j = wp.tid()
+    unlifted, hit = packet_hit_surface(tracer, shading, rays, k, False)
+    lifted, hit_again = packet_hit_surface(tracer, shading, rays, k, True)
+    if hit:
+        w = directions[k, j]
+        if wp.dot(w, lifted.n) < 0.0:
+            w = -w
+        eager = occlusion_origin(lifted, w)
+        out[k, 2 * j] = eager
+        out[k, 2 * j + 1] = packet_occlusion_origin(tracer, shading, rays, k, unlifted, w)
+        lifted_out[k, j] = wp.where(eager == lifted.point, 0, 1)
+
+
+def test_a_packet_surfaces_lift_is_made_where_it_moves_the_origin():
+    """The film's camera packets leave a surface's terminator lift out and make the surface
+    again, lifted, only where the occlusion direction is near the terminator
+    (tracers.packet_occlusion_origin): every origin equals the one from the surface made
+    with its lift, on a mesh and through a two-level scene, with bent corner normals and
+    Cycles' terminator offset, for directions all over the hemisphere (some lifted)."""
+    sc = shared_scene("bunny")
+    v, f = sc.vertices, sc.indices
+    rng = np.random.default_rng(4)
+    ng = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])
+    ng /= np.linalg.norm(ng, axis=1, keepdims=True)
+    normals = (ng[:, None, :] + rng.normal(0.0, 0.3, (len(f), 3, 3))).astype(np.float32)
+    bvh = kernels.build_bvh(v, f)
+    scene = kernels.build_scene([bvh], np.array([0]), np.eye(4, dtype=np.float32)[None, :3])
+    cam = type(sc.camera).from_dict({**sc.camera.to_dict(), "width": 24, "height": 18})
+    o, d, _, _ = cam.rays()
+    hits = kernels.trace(bvh, o, d)
+    n, per = len(o), 64
+    w = rng.normal(size=(n, per, 3)).astype(np.float32)
+    w /= np.linalg.norm(w, axis=2, keepdims=True)
+    mesh_tracer = MeshTracer()
+    mesh_tracer.bvh = bvh.arrays
+    mesh_tracer.vertices, mesh_tracer.indices = scene_mesh(bvh).v, scene_mesh(bvh).f
+    for tracer, shading, two_level in (
+            (mesh_tracer, scene_shading(bvh, normals, 0.2), False),
+            (scene.arrays, scene_shading(scene, [normals], 0.2), True)):
+        rays = packet_rays(-(-n // PACKET), two_level, wp.get_device("cpu"))
+        for name, x in (("directions", d), ("t", hits.t), ("triangle", hits.triangle),
+                        ("u", hits.u), ("v", hits.v),
+                        ("instance", np.where(hits.triangle >= 0, 0, -1).astype(np.int32))):
+            getattr(rays, name)[:n].assign(x)
+        out = wp.zeros((n, 2 * per), dtype=wp.vec3)
+        lifted = wp.zeros((n, per), dtype=int)
+        wp.launch(_deferred_origins, dim=(n, per), inputs=[
+            tracer, shading, rays, wp.array(w, dtype=wp.vec3), out, lifted])
+        origins = out.numpy()
+        assert np.array_equal(origins[:, 0::2], origins[:, 1::2])
+        assert 0.005 < lifted.numpy()[hits.triangle >= 0].mean() < 0.9
 
 
 @wp.kernel
