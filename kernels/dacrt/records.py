@@ -12,14 +12,13 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..core.box import INF
 from ..core.claim import Claims, claimed_items, launch_claimed
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.device_arrays import DeviceArrays
 from ..core.hits import Hits
 from ..core.launch import host_threads
 from ..core.mesh import DeviceMesh
-from ..core.ray import make_ray
+from ..core.ray import Hit, make_ray, no_hit
 from ..core.triangle import intersect_triangle, refine_hit
 
 wp.set_module_options(MODULE_OPTIONS)
@@ -113,38 +112,25 @@ def prepare_rays(
 
 
 @wp.func
-def write_hit(
-    tri_verts: wp.array(dtype=wp.vec3),
-    rays: wp.array(dtype=RayRecord),
-    directions: wp.array(dtype=wp.vec3),
-    best: wp.array(dtype=wp.uint64),
-    out_t: wp.array(dtype=float),
-    out_triangle: wp.array(dtype=int),
-    out_u: wp.array(dtype=float),
-    out_v: wp.array(dtype=float),
-    i: int,
-):
-    """Unpack ray i's closest hit; t (and u, v) refined in float64 and clamped to the ray's
-    range, as `kernels.trace` does."""
-    key = best[i]
-    out_t[i] = INF
-    out_triangle[i] = -1
-    out_u[i] = 0.0
-    out_v[i] = 0.0
-    if key == KEY_NONE:
-        return
-    tri = int(key & wp.uint64(0xFFFFFFFF))
-    rec = rays[i]
-    r = make_ray(rec.origin, directions[i])
-    v0 = tri_verts[3 * tri]
-    v1 = tri_verts[3 * tri + 1]
-    v2 = tri_verts[3 * tri + 2]
-    h = refine_hit(r, v0, v1, v2, rec.tmin, rec.tmax,
-                   intersect_triangle(r, v0, v1, v2, rec.tmin, rec.tmax))
-    out_t[i] = h[0]
-    out_triangle[i] = tri
-    out_u[i] = h[1]
-    out_v[i] = h[2]
+def unpacked_hit(tri_verts: wp.array(dtype=wp.vec3), rec: RayRecord, direction: wp.vec3,
+                 key: wp.uint64) -> Hit:
+    """A ray's closest-hit key unpacked: t (and u, v) refined in float64 and clamped to the
+    ray's range, as `kernels.trace` does; a miss for KEY_NONE."""
+    out = Hit()  # u, v: 0
+    no_hit(out)
+    if key != KEY_NONE:
+        tri = int(key & wp.uint64(0xFFFFFFFF))
+        r = make_ray(rec.origin, direction)
+        v0 = tri_verts[3 * tri]
+        v1 = tri_verts[3 * tri + 1]
+        v2 = tri_verts[3 * tri + 2]
+        h = refine_hit(r, v0, v1, v2, rec.tmin, rec.tmax,
+                       intersect_triangle(r, v0, v1, v2, rec.tmin, rec.tmax))
+        out.t = h[0]
+        out.triangle = tri
+        out.u = h[1]
+        out.v = h[2]
+    return out
 
 
 @wp.kernel
@@ -161,7 +147,11 @@ def write_hits(
 ):
     items = claimed_items(claims, wp.tid())
     for i in range(items[0], items[1]):
-        write_hit(tri_verts, rays, directions, best, out_t, out_triangle, out_u, out_v, i)
+        h = unpacked_hit(tri_verts, rays[i], directions[i], best[i])
+        out_t[i] = h.t
+        out_triangle[i] = h.triangle
+        out_u[i] = h.u
+        out_v[i] = h.v
 
 
 def margin_for(vertices: np.ndarray, origins: np.ndarray) -> float:
