@@ -241,6 +241,36 @@ def test_claimed_calls_from_two_threads_keep_their_own_arguments():
     assert results == {1: [True] * 20, 2: [True] * 20}
 
 
+@wp.kernel
+def _claimed_applied(op: Any, x: wp.array(dtype=float), out: wp.array(dtype=float),
+                     claims: Claims):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        out[i] = _apply(op, x[i])
+
+
+def test_claimed_launches_follow_each_calls_arguments_and_keep_none_alive():
+    """A kept recorded launch serves later calls: another overload of a generic kernel
+    (another struct) is another launch, every call's arrays are its own, and no array
+    outlives its call through the kept launch."""
+    device = wp.get_device("cpu")
+    x = wp.array(np.arange(300, dtype=np.float32), dtype=float, device=device)
+    add, times = _Add(), _Times()
+    add.value, times.value = 10.0, 3.0
+    for op, expected in ((add, np.arange(300) + 10.0), (times, np.arange(300) * 3.0),
+                         (add, np.arange(300) + 10.0)):
+        for threads in (1, 2):
+            out = wp.zeros(300, dtype=float, device=device)
+            launch_claimed(_claimed_applied, 300, [op, x, out], device, threads)
+            assert np.array_equal(out.numpy(), expected)
+    out = wp.zeros(300, dtype=float, device=device)
+    gone = weakref.ref(out)
+    launch_claimed(_claimed_applied, 300, [add, x, out], device, 2)
+    del out
+    gc.collect()
+    assert gone() is None
+
+
 def test_a_claimed_launch_refuses_a_numpy_array_of_the_wrong_kind():
     device = wp.get_device("cpu")
     first = wp.empty(4, dtype=int, device=device)
