@@ -1,7 +1,7 @@
 """Chunks of one call's items, claimed by the host threads that share it
-(core.launch.launch_claimed): each thread's launch takes the next unclaimed chunk from a
-counter until none is left, the pool's work claiming (2012 paper, sec. 3.3) at the scale
-of one kernel call. A kernel item is a chunk of items, not one: Warp's CPU launch loop costs
+(`launch_claimed`): each thread's launch takes the next unclaimed chunk from a counter
+until none is left, the pool's work claiming (2012 paper, sec. 3.3) at the scale of one
+kernel call. A kernel item is a chunk of items, not one: Warp's CPU launch loop costs
 about 12 ns a kernel item (measured: 10^6 cheap any-hit rays ran at 24.5 Mrays/s one ray a
 kernel item, 35 Mrays/s 64 rays and more a kernel item).
 """
@@ -56,8 +56,8 @@ def unclaimed(n: int, chunk: int, device) -> Claims:
 
 
 def launch_claimed(kernel, n: int, args: list, device, threads: int, align: int = 1) -> None:
-    """`kernel` over n items in chunks: its last parameter, a Claims, is set
-    here, its others are `args`. On CPU each of the call's `threads` host threads runs one
+    """`kernel` over n items in chunks: its last parameter, a Claims, is set here, its
+    others are `args`. On CPU each of the call's `threads` host threads runs one
     launch, every launch taking the next unclaimed chunk (at least MIN_CLAIM items, a
     multiple of `align`) until none is left: a thread that wakes late or meets costly items
     takes fewer, and no array is sliced. There a numpy array may stand for an array
