@@ -1,7 +1,9 @@
-"""Closest-hit rays traced in packets of coherent rays (wide_packet.h: ranged packet
-traversal of the wide tree on an AVX2 CPU); a packet the packet traversal declines, or any
-packet on other devices, is traced ray by ray. The hits are the single-ray traversal's
-(wide_packet.h's header says where a triangle may differ at the same distance).
+"""Rays traced together through the wide tree on an AVX2 CPU: closest-hit rays in packets
+of coherent rays (wide_packet.h: ranged packet traversal), any-hit rays in groups of 64
+(wide_occlusion.h: a masked packet, each ray's first hit as its own traversal finds it). A
+packet or group the native traversal declines, or any on other devices, is traced ray by
+ray. The hits are the single-ray traversal's (wide_packet.h's header says where a closest
+hit's triangle may differ at the same distance).
 """
 
 from __future__ import annotations
@@ -13,22 +15,26 @@ from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import FAR_WIDEN, Hit, make_ray, per_ray
 from .leaf import finish_hit
 from .node import BvhArrays
-from .traversal import traverse_leaf_order
+from .traversal import traverse, traverse_leaf_order
 from .wide import NATIVE_LAYOUT
 from .wide_traversal import SIMD_GUARD, native_source, simd_support
 
 wp.set_module_options(MODULE_OPTIONS)
 
 PACKET = 64  # rays per packet: a camera's 8 x 8 tile, or a run of 64 pixels of a row
+GROUP = 64  # any-hit rays per group (wide_occlusion.h): one bit each of a 64-bit mask
 COHERENT_SPREAD = 0.5  # most spread of a packet's unit directions on an axis (wide_packet.h)
 
-_SOURCE = native_source("wide_packet.h")
-_LAYOUT = "".join(f"    constexpr int {name} = {int(value)};\n"
-                  for name, value in {**NATIVE_LAYOUT, "PACKET": PACKET}.items())
-_LAYOUT += f"    constexpr float COHERENT_SPREAD = {COHERENT_SPREAD}f;\n"
+
+def _native(name: str, constants: dict[str, int]) -> str:
+    """The body of a `wp.func_native` running native text `name` (wide_simd.h's header
+    says how): where SIMD_GUARD holds, the constants, then the text; 0 elsewhere."""
+    layout = "".join(f"    constexpr int {k} = {int(v)};\n" for k, v in constants.items())
+    layout += f"    constexpr float COHERENT_SPREAD = {COHERENT_SPREAD}f;\n"
+    return f"{SIMD_GUARD}\n{layout}{native_source(name)}#else\n    return 0;\n#endif\n"
 
 
-@wp.func_native(f"{SIMD_GUARD}\n{_LAYOUT}{_SOURCE}#else\n    return 0;\n#endif\n")
+@wp.func_native(_native("wide_packet.h", {**NATIVE_LAYOUT, "PACKET": PACKET}))
 def traverse_packet_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=float),
                          width_arg: int, origins: wp.array(dtype=wp.vec3),
                          directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
@@ -39,6 +45,21 @@ def traverse_packet_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=flo
     """Rays [first_ray, last_ray) as one packet: each closest hit in [tmin, tmax] (t, leaf
     position, u, v; t inf and -1 on a miss) into the outputs; 0 where the packet traversal
     does not apply (wide_packet.h's header), the outputs untouched."""
+    ...
+
+
+@wp.func_native(_native("wide_occlusion.h", {**NATIVE_LAYOUT, "GROUP": GROUP}))
+def traverse_occlusion_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=float),
+                            width_arg: int, origins: wp.array(dtype=wp.vec3),
+                            directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                            tmax: wp.array(dtype=float), first_ray: int, last_ray: int,
+                            widen: float, out_t: wp.array(dtype=float),
+                            out_triangle: wp.array(dtype=int), out_u: wp.array(dtype=float),
+                            out_v: wp.array(dtype=float)) -> int:
+    """Rays [first_ray, last_ray) as one group of any-hit rays: each ray's first hit found
+    (t, leaf position, u, v; t inf and -1 on a miss) into the outputs, the same as its own
+    traversal finds; 0 where the group traversal does not apply (wide_occlusion.h's
+    header), the outputs untouched."""
     ...
 
 
@@ -116,6 +137,57 @@ def packet_trace_kernel(
     for i in range(items[0], items[1], PACKET):
         trace_packet_hits(bvh, origins, directions, tmin, tmax, i, wp.min(i + PACKET, items[1]),
                           out_t, out_triangle, out_u, out_v)
+
+
+@wp.func(inline=False)  # inlined, it made the film kernel around it 1.3x slower
+def any_hit_ray(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
+                directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                tmax: wp.array(dtype=float), k: int, find_any: bool) -> Hit:
+    """Ray k's first hit found, by its own traversal (a group the group traversal declined)."""
+    return traverse(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k), per_ray(tmax, k),
+                    find_any)
+
+
+@wp.func
+def trace_occlusion_group(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
+                          directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                          tmax: wp.array(dtype=float), first: int, last: int,
+                          out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
+                          out_u: wp.array(dtype=float), out_v: wp.array(dtype=float),
+                          find_any: bool):
+    """The first hits of any-hit rays [first, last) as `traverse` gives them (the caller's
+    triangle index): as one group where the group traversal takes them, else ray by ray
+    (`find_any`: True, passed as a run-time value, as traverse asks)."""
+    grouped = traverse_occlusion_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions,
+                                      tmin, tmax, first, last, FAR_WIDEN, out_t, out_triangle,
+                                      out_u, out_v)
+    for k in range(first, last):
+        if grouped == 0:
+            write_hit(any_hit_ray(bvh, origins, directions, tmin, tmax, k, find_any), k, out_t,
+                      out_triangle, out_u, out_v)
+        elif out_triangle[k] >= 0:
+            out_triangle[k] = bvh.tri_ids[out_triangle[k]]
+
+
+@wp.kernel
+def occlusion_group_kernel(
+    bvh: BvhArrays,
+    origins: wp.array(dtype=wp.vec3),
+    directions: wp.array(dtype=wp.vec3),
+    tmin: wp.array(dtype=float),  # per ray, or one value for all
+    tmax: wp.array(dtype=float),
+    out_t: wp.array(dtype=float),
+    out_triangle: wp.array(dtype=int),
+    out_u: wp.array(dtype=float),
+    out_v: wp.array(dtype=float),
+    find_any: int,  # 1
+    claims: Claims,  # chunks of a multiple of GROUP rays
+):
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1], GROUP):
+        trace_occlusion_group(bvh, origins, directions, tmin, tmax, i,
+                              wp.min(i + GROUP, items[1]), out_t, out_triangle, out_u, out_v,
+                              find_any != 0)
 
 
 def packets_apply(bvh) -> bool:

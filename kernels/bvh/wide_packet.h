@@ -31,70 +31,23 @@
     // slower even where it never ran.
     auto packet = [&]() __attribute__((noinline)) -> int {
 #pragma clang fp contract(off)
-    static_assert(MAX_WIDTH == 8 && BLOCK == 4, "wide_simd.h's layout");
-    typedef float f8 __attribute__((vector_size(8 * sizeof(float))));
-    typedef int i8 __attribute__((vector_size(8 * sizeof(int))));
-    typedef float f4 __attribute__((vector_size(4 * sizeof(float))));
-    typedef int i4 __attribute__((vector_size(4 * sizeof(int))));
-    constexpr int width = 8;
-    auto splat8 = [](float x) { f8 v = {x, x, x, x, x, x, x, x}; return v; };
-    auto splat4 = [](float x) { f4 v = {x, x, x, x}; return v; };
-    auto vmin = [](f8 a, f8 b) { return __builtin_ia32_minps256(a, b); };
-    auto vmax = [](f8 a, f8 b) { return __builtin_ia32_maxps256(a, b); };
-    const float inf = __builtin_inff();
-    const int n = last_ray - first_ray;
-    if (width_arg != 8 || n <= 0 || n > PACKET)
-        return 0;
-    const int* words = (const int*)wide.data;
-
-    // The rays, as make_ray makes them (core/ray.py), in columns.
-    float org[3][PACKET], inv[3][PACKET], shear[3][PACKET], tlo[PACKET], tfar[PACKET];
-    int axis[3][PACKET];
-    float hit_t[PACKET], hit_u[PACKET], hit_v[PACKET];
-    int hit_pos[PACKET];
+    constexpr int RAYS = PACKET;
+WIDE_RAYS
     int negative[3];
     for (int i = 0; i < n; ++i) {
-        const int k = first_ray + i;
-        const float* o = origins.data[k].c;
-        const float* d = directions.data[k].c;
+        if (!load_ray(i, first_ray + i))
+            return 0;
         for (int a = 0; a < 3; ++a) {
-            if (!(__builtin_fabsf(o[a]) < inf) || d[a] == 0.0f)
-                return 0;
+            const int s = inv[a][i] < 0.0f;
             if (i == 0)
-                negative[a] = d[a] < 0.0f;
-            else if ((d[a] < 0.0f) != negative[a])
+                negative[a] = s;
+            else if (s != negative[a])
                 return 0;
-            org[a][i] = o[a];
-            inv[a][i] = 1.0f / d[a];
         }
-        const float ad[3] = {__builtin_fabsf(d[0]), __builtin_fabsf(d[1]), __builtin_fabsf(d[2])};
-        int kz = 0;
-        if (ad[1] > ad[kz])
-            kz = 1;
-        if (ad[2] > ad[kz])
-            kz = 2;
-        int kx = (kz + 1) % 3, ky = (kx + 1) % 3;
-        if (d[kz] < 0.0f) {
-            const int tmp = kx;
-            kx = ky;
-            ky = tmp;
-        }
-        axis[0][i] = kx;
-        axis[1][i] = ky;
-        axis[2][i] = kz;
-        shear[0][i] = d[kx] / d[kz];
-        shear[1][i] = d[ky] / d[kz];
-        shear[2][i] = 1.0f / d[kz];
-        tlo[i] = tmin.data[k < tmin.shape[0] ? k : tmin.shape[0] - 1];
-        tfar[i] = tmax.data[k < tmax.shape[0] ? k : tmax.shape[0] - 1];
-        hit_t[i] = inf;
-        hit_u[i] = hit_v[i] = 0.0f;
-        hit_pos[i] = -1;
     }
     // The packet's bounds, for the frustum test: origins, inverse directions (one sign per
     // axis), the lowest tmin and the highest far bound (kept up to date as hits come).
     float omin[3], omax[3], imin[3], imax[3];
-    int near_row[3], far_row[3];
     float tlo_min = inf, tfar_max = -inf;
     for (int a = 0; a < 3; ++a) {
         omin[a] = omax[a] = org[a][0];
@@ -105,8 +58,6 @@
             imin[a] = inv[a][i] < imin[a] ? inv[a][i] : imin[a];
             imax[a] = inv[a][i] > imax[a] ? inv[a][i] : imax[a];
         }
-        near_row[a] = (2 * a + negative[a]) * width;
-        far_row[a] = (2 * a + 1 - negative[a]) * width;
     }
     for (int i = 0; i < n; ++i) {
         tlo_min = tlo[i] < tlo_min ? tlo[i] : tlo_min;
@@ -144,27 +95,6 @@
             if (dmax[a] - dmin[a] > COHERENT_SPREAD)
                 return 0;
     }
-    const f8 widen8 = splat8(widen);
-    auto row8 = [&](const float* nd, int k) {
-        f8 v;
-        __builtin_memcpy(&v, nd + k, sizeof(f8));
-        return v;
-    };
-
-    // Ray i's test of the node's 8 boxes: wide_simd.h's (no zero direction component).
-    auto ray_mask = [&](const float* nd, int i, f8& t0) -> int {
-        f8 enter[3], leave[3];
-        for (int a = 0; a < 3; ++a) {
-            const f8 o = splat8(org[a][i]), v = splat8(inv[a][i]);
-            enter[a] = (row8(nd, near_row[a]) - o) * v;
-            leave[a] = (row8(nd, far_row[a]) - o) * v;
-        }
-        const f8 t_far8 = splat8(tfar[i] < __FLT_MAX__ ? tfar[i] : __FLT_MAX__);
-        t0 = vmax(vmax(enter[0], enter[1]), vmax(enter[2], splat8(tlo[i])));
-        const i8 in_box = (t0 <= vmin(leave[0] * widen8, leave[1] * widen8))
-                          & (t0 <= vmin(leave[2] * widen8, t_far8));
-        return __builtin_ia32_movmskps256((f8)in_box);
-    };
     // The frustum: per box, a lower bound of every ray's entry and an upper bound of every
     // ray's exit, from the same operations at the corners of the packet's bounds (rounding
     // is monotone and (p - o) * v is bilinear, so the corners bound every ray's value).
@@ -172,7 +102,7 @@
         f8 lo = splat8(tlo_min), hi = splat8(tfar_max < __FLT_MAX__ ? tfar_max : __FLT_MAX__);
         for (int a = 0; a < 3; ++a) {
             const f8 v0 = splat8(imin[a]), v1 = splat8(imax[a]);
-            const f8 np = row8(nd, near_row[a]), fp = row8(nd, far_row[a]);
+            const f8 np = row8(nd, near_row[a][0]), fp = row8(nd, far_row[a][0]);
             const f8 n0 = np - splat8(omax[a]), n1 = np - splat8(omin[a]);
             const f8 f0 = fp - splat8(omax[a]), f1 = fp - splat8(omin[a]);
             lo = vmax(lo, vmin(vmin(n0 * v0, n0 * v1), vmin(n1 * v0, n1 * v1)));
@@ -180,27 +110,6 @@
         }
         lower = lo;
         return __builtin_ia32_movmskps256((f8)(lo <= hi));
-    };
-
-    // Ray i's test of a leaf's blocks (wide_block.h), closest hit.
-WIDE_BLOCK_TEST
-    auto leaf_ray = [&](int block, int blocks_used, int i) -> bool {
-        const int kx = axis[0][i], ky = axis[1][i], kz = axis[2][i];
-        const f4 ox = splat4(org[kx][i]), oy = splat4(org[ky][i]), oz = splat4(org[kz][i]);
-        const f4 sx = splat4(shear[0][i]), sy = splat4(shear[1][i]), sz = splat4(shear[2][i]);
-        const f4 tmin4 = splat4(tlo[i]);
-        bool found = false;
-        for (int q = 0; q < blocks_used; ++q) {
-            const float* p = blocks.data + (long long)(block + q) * BLOCK_WORDS;
-            f4 t, v, w, inv_det;
-            const int mask = block_test(p, kx, ky, kz, ox, oy, oz, sx, sy, sz, tmin4,
-                                        hit_t[i] < tfar[i] ? hit_t[i] : tfar[i], t, v, w,
-                                        inv_det);
-            if (mask && keep_hit(p, mask, t, v, w, inv_det, true, hit_t[i], hit_u[i],
-                                 hit_v[i], hit_pos[i]))
-                found = true;
-        }
-        return found;
     };
 
     // The stack: a reference (wide_simd.h's), its rays' range and the frustum's entry bound.
@@ -229,7 +138,7 @@ WIDE_BLOCK_TEST
             bool shrunk = false;
             f8 t0;
             for (int i = first; i <= last; ++i) {
-                if (((ray_mask(nd, i, t0) >> lane) & 1) && leaf_ray(block, used, i)) {
+                if (((ray_mask(nd, i, t0) >> lane) & 1) && leaf_ray(block, used, i, true)) {
                     tfar[i] = hit_t[i];
                     shrunk = true;
                 }
@@ -287,13 +196,7 @@ WIDE_BLOCK_TEST
             ++sp;
         }
     }
-    for (int i = 0; i < n; ++i) {
-        const int k = first_ray + i;
-        out_t.data[k] = hit_t[i];
-        out_u.data[k] = hit_u[i];
-        out_v.data[k] = hit_v[i];
-        out_triangle.data[k] = hit_pos[i];
-    }
+    store_hits(n);
     return 1;
     };
     return packet();

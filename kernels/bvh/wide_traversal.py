@@ -93,10 +93,11 @@ def simd_lanes() -> int:
 
 
 def native_source(name: str) -> str:
-    """A native text of this folder, wide_block.h pasted where its line WIDE_BLOCK_TEST is."""
+    """A native text of this folder, wide_rays.h pasted where its line WIDE_RAYS is and
+    wide_block.h where WIDE_BLOCK_TEST is."""
     here = Path(__file__).parent
-    block = (here / "wide_block.h").read_text()
-    return (here / name).read_text().replace("WIDE_BLOCK_TEST\n", block)
+    text = (here / name).read_text().replace("WIDE_RAYS\n", (here / "wide_rays.h").read_text())
+    return text.replace("WIDE_BLOCK_TEST\n", (here / "wide_block.h").read_text())
 
 
 SIMD_SOURCE = native_source("wide_simd.h")

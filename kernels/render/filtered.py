@@ -48,11 +48,16 @@ from .sampling import SAMPLERS, cosine_direction, pixel_key
 from .surface import Surface, occlusion_origin
 from .tracers import (
     PART_RAYS,
+    GroupRays,
     MeshTracer,
     PacketRays,
+    add_group_ray,
     check_tracer,
     closest_surface,
+    group_rays,
     occluded,
+    occluded_group,
+    open_sample,
     packet_occlusion_origin,
     packet_rays,
     packet_surface,
@@ -221,7 +226,8 @@ def film_kernel(
     mid: int,  # out_open_mid counts the open samples with index below this (absolute)
     quarter: int,  # out_open_quarter: those below this
     rays: PacketRays,  # one packet per part of the round
-    packet0: int,  # this launch's packet in `rays`
+    group: GroupRays,  # one group per part: the occlusion rays of the packet's hits
+    packet0: int,  # this launch's packet in `rays` and group in `group`
     out_open: wp.array(dtype=int),  # per slot: samples whose value is 1
     out_open_mid: wp.array(dtype=int),
     out_open_quarter: wp.array(dtype=int),
@@ -233,29 +239,35 @@ def film_kernel(
     key = pixel_key(k, seed)
     row = k / width
     col = k - row * width
-    n_open = int(0)
-    n_mid = int(0)
-    n_quarter = int(0)
+    opened = wp.vec3i(0, 0, 0)  # open samples: all, below mid, below quarter
     n_hit = int(0)
+    # The occlusion rays of a packet's hits go as one group at the packet's end (rays from
+    # around one point: bvh/wide_occlusion.h).
+    m = int(0)
     for s in range(count):
         i = first + s
         surface, hit = sample_surface(tracer, shading, cam, table, sampler, key, first, s,
                                       count, row, col, rays, packet0)
-        is_open = True  # a miss counts 1, as render_ao's pixels do
         if hit:
             n_hit += 1
             w = cosine_direction(surface.n, sampler, key, i)
             o = sample_origin(tracer, shading, rays, packet0, s, surface, w)
-            is_open = not occluded(bvh, o, w, distance, True)
-        if is_open:
-            n_open += 1
-            if i < mid:
-                n_mid += 1
-                if i < quarter:
-                    n_quarter += 1
-    out_open[j] = n_open
-    out_open_mid[j] = n_mid
-    out_open_quarter[j] = n_quarter
+            if simd_lanes() > 0:
+                add_group_ray(group, packet0 + m, o, w, distance, i)
+                m += 1
+            elif not occluded(bvh, o, w, distance, True):  # elsewhere ray by ray
+                opened += open_sample(i, mid, quarter)
+        else:  # a miss counts 1, as render_ao's pixels do
+            opened += open_sample(i, mid, quarter)
+        if m > 0 and (s % PACKET == PACKET - 1 or s == count - 1):
+            occluded_group(bvh, group, packet0, packet0 + m)
+            for g in range(packet0, packet0 + m):
+                if group.triangle[g] < 0:
+                    opened += open_sample(group.sample[g], mid, quarter)
+            m = 0
+    out_open[j] = opened[0]
+    out_open_mid[j] = opened[1]
+    out_open_quarter[j] = opened[2]
     out_hit[j] = n_hit
 
 
@@ -413,12 +425,13 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
     nthreads = host_threads(device, opts.threads)
     head = [tracer, shading, arrays, device_camera(camera), camera.width, table,
             SAMPLERS[opts.sampler], opts.seed, dist]
-    kept: list[PacketRays] = []
+    kept: list[tuple[PacketRays, GroupRays]] = []
 
-    def packets(parts: int) -> PacketRays:
-        """One packet per part, kept for the render's later rounds."""
-        if not kept or kept[0].t.shape[0] < parts * PACKET:
-            kept[:] = [packet_rays(parts, isinstance(bvh, Scene), device)]
+    def packets(parts: int) -> tuple[PacketRays, GroupRays]:
+        """One packet and one group per part, kept for the render's later rounds."""
+        if not kept or kept[0][0].t.shape[0] < parts * PACKET:
+            kept[:] = [(packet_rays(parts, isinstance(bvh, Scene), device),
+                        group_rays(parts, device))]
         return kept[0]
 
     def trace(pixels: np.ndarray, first: int, count: int, mid: int,
@@ -432,11 +445,11 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
                            k * count // PART_RAYS, k))
         bounds = np.linspace(0, k, parts + 1).astype(int)
         launch = part_launcher(film_kernel, [*head, active, 0, int(first), int(count),
-                                             int(mid), int(quarter), packets(parts), 0, *outs],
+                                             int(mid), int(quarter), *packets(parts), 0, *outs],
                                device)
 
         def run(p: int) -> None:
-            launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p]), 16: p * PACKET})
+            launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p]), 17: p * PACKET})
 
         run_parts(run, parts, nthreads)
         return tuple(out.numpy().astype(np.int64) for out in outs)

@@ -1,14 +1,22 @@
-"""Closest-hit rays in packets (kernels/bvh/packet.py, wide_packet.h): the same hits, bit for
-bit, as the single-ray traversal and as the float64 brute force; which packets the packet
-traversal takes and which it declines; equal-t ties resolved alike by every traversal."""
+"""Rays traced together (kernels/bvh/packet.py): closest-hit rays in packets (wide_packet.h)
+and any-hit rays in groups (wide_occlusion.h) give the same hits, bit for bit, as the
+single-ray traversal, and the float64 brute force's; which packets and groups the native
+traversals take and which they decline; equal-t ties resolved alike by every traversal."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import warp as wp
+from scenesort.backend.tools.peers import ao_rays
 from scenesort.kernels.bvh import BvhArrays
-from scenesort.kernels.bvh.packet import PACKET, packets_apply, traverse_packet_simd
+from scenesort.kernels.bvh.packet import (
+    GROUP,
+    PACKET,
+    packets_apply,
+    traverse_occlusion_simd,
+    traverse_packet_simd,
+)
 from scenesort.kernels.bvh.wide_traversal import simd_support
 from scenesort.kernels.core.ray import FAR_WIDEN
 
@@ -25,24 +33,34 @@ def packets_taken(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                   directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
                   tmax: wp.array(dtype=float), out_t: wp.array(dtype=float),
                   out_triangle: wp.array(dtype=int), out_u: wp.array(dtype=float),
-                  out_v: wp.array(dtype=float), taken: wp.array(dtype=int)):
+                  out_v: wp.array(dtype=float), any_hit: int, taken: wp.array(dtype=int)):
     p = wp.tid()
-    first = p * PACKET
-    taken[p] = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions, tmin,
-                                    tmax, first, wp.min(first + PACKET, origins.shape[0]),
-                                    FAR_WIDEN, out_t, out_triangle, out_u, out_v)
+    if any_hit == 0:
+        first = p * PACKET
+        taken[p] = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions,
+                                        tmin, tmax, first,
+                                        wp.min(first + PACKET, origins.shape[0]), FAR_WIDEN,
+                                        out_t, out_triangle, out_u, out_v)
+    else:
+        first = p * GROUP
+        taken[p] = traverse_occlusion_simd(bvh.wide, bvh.blocks, bvh.width, origins,
+                                           directions, tmin, tmax, first,
+                                           wp.min(first + GROUP, origins.shape[0]), FAR_WIDEN,
+                                           out_t, out_triangle, out_u, out_v)
 
 
-def taken(bvh, o, d, tmin=0.0, tmax=np.inf) -> np.ndarray:
-    """Per packet of PACKET consecutive rays: 1 where the packet traversal took it."""
+def taken(bvh, o, d, tmin=0.0, tmax=np.inf, any_hit=False) -> np.ndarray:
+    """Per packet of PACKET consecutive rays (any_hit: per group of GROUP): 1 where the
+    native traversal took it."""
     n = len(o)
+    size = GROUP if any_hit else PACKET
     arr = [wp.array(np.broadcast_to(np.float32(x), (n,)).copy(), dtype=float)
            for x in (tmin, tmax)]
     outs = [wp.empty(n, dtype=dt) for dt in (float, int, float, float)]
-    flags = wp.zeros((n + PACKET - 1) // PACKET, dtype=int)
+    flags = wp.zeros((n + size - 1) // size, dtype=int)
     wp.launch(packets_taken, dim=flags.shape[0],
               inputs=[bvh.arrays, wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3), *arr,
-                      *outs, flags])
+                      *outs, int(any_hit), flags])
     return flags.numpy()
 
 
@@ -139,3 +157,59 @@ def test_equal_t_ties_give_the_first_leaf_position_in_every_traversal(shared_sce
     identical(packets, single(bvh, o, d))
     for width in (2, 4):
         identical(packets, kernels.trace(kernels.build_bvh(v, f, width=width), o, d))
+
+
+@pytest.mark.parametrize("name", ["sponza", "conference", "dragon"])
+def test_any_hit_groups_equal_single_rays_on_shared_scenes(name, shared_scene):
+    """AO rays (4 cosine rays a camera hit, tmax 0.1 x diagonal), in camera order and
+    shuffled: every group taken, and each ray's first hit (triangle, t, u, v) bit for bit
+    the one its own any-hit traversal finds, which depends on the order of the visits."""
+    scene = shared_scene(name)
+    v, f = scene.vertices, scene.indices
+    bvh = kernels.build_bvh(v, f)
+    cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": 96, "height": 72})
+    o, d, _, _ = cam.rays()
+    hits = kernels.trace(bvh, o, d)
+    ao_o, ao_d = ao_rays(v, f, o, d, hits.t, hits.triangle, per_hit=4)
+    tmax = 0.1 * float(np.linalg.norm(np.ptp(v, axis=0)))
+    shuffled = np.random.default_rng(3).permutation(len(ao_o))
+    for oo, dd in ((ao_o, ao_d), (ao_o[shuffled], ao_d[shuffled])):
+        assert taken(bvh, oo, dd, tmax=tmax, any_hit=True).all()
+        grouped = kernels.trace(bvh, oo, dd, tmax=tmax, any_hit=True)
+        assert 0.1 < (grouped.triangle >= 0).mean() < 0.9
+        identical(grouped, single(bvh, oo, dd, tmax=tmax, any_hit=True))
+
+
+def test_any_hit_groups_equal_brute_force_with_per_ray_ranges():
+    """Rays from a few points over a random soup, tmin and tmax per ray, 1000 rays (the last
+    group partial): occluded exactly where the float64 brute force finds a hit, and bit for
+    bit the single rays' first hits."""
+    rng = np.random.default_rng(8)
+    v, f = random_soup(rng, 3000)
+    bvh = kernels.build_bvh(v, f)
+    n = 1000
+    o = np.repeat(rng.random((n // 8, 3)).astype(np.float32), 8, axis=0)
+    d = rng.normal(size=(n, 3)).astype(np.float32)
+    tmin = (rng.random(n) * 0.05).astype(np.float32)
+    tmax = tmin + (rng.random(n) * 0.3).astype(np.float32)
+    assert taken(bvh, o, d, any_hit=True).all()
+    hits = kernels.trace(bvh, o, d, tmin=tmin, tmax=tmax, any_hit=True)
+    _, ref_tri = brute_force(v, f, o, d, tmin, tmax)
+    assert 0.2 < (ref_tri >= 0).mean() < 0.8
+    assert np.array_equal(hits.triangle >= 0, ref_tri >= 0)
+    identical(hits, single(bvh, o, d, tmin=tmin, tmax=tmax, any_hit=True))
+
+
+def test_any_hit_groups_with_a_zero_direction_component_are_declined():
+    """A group holding a ray with a zero direction component (the single traversal's careful
+    path) is declined and traced ray by ray: the same hits all the same."""
+    rng = np.random.default_rng(9)
+    v, f = random_soup(rng, 100)
+    bvh = kernels.build_bvh(v, f)
+    o = np.tile(np.float32([0.5, 0.5, 0.5]), (2 * GROUP, 1))
+    d = rng.normal(size=(2 * GROUP, 3)).astype(np.float32)
+    d[GROUP + 5] = [0.0, 0.3, 1.0]
+    assert list(taken(bvh, o, d, any_hit=True)) == [1, 0]
+    hits = kernels.trace(bvh, o, d, tmax=0.1, any_hit=True)
+    assert 0 < (hits.triangle >= 0).sum() < 2 * GROUP
+    identical(hits, single(bvh, o, d, tmax=0.1, any_hit=True))
