@@ -375,7 +375,8 @@ def trace(
 
     On CPU the rays are split between `threads` host threads (default: every core), each
     launching its share: a Warp CPU launch runs on one thread. Closest hits of coherent
-    runs of 64 rays go as packets where `packets_apply` (the same hits; False: ray by ray)."""
+    runs of 64 rays go as packets, any hits as groups of 64, where `packets_apply` (the same
+    hits; False: ray by ray)."""
     origins, directions = as_rays(origins, directions)
     r = len(origins)
     tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)

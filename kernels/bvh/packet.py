@@ -191,6 +191,7 @@ def occlusion_group_kernel(
 
 
 def packets_apply(bvh) -> bool:
-    """Whether `trace` sends closest-hit rays through packet_trace_kernel: a CPU with the
-    SIMD traversal and a tree of width 8 (elsewhere every packet would be declined)."""
+    """Whether `trace` sends closest-hit rays through packet_trace_kernel and any-hit rays
+    through occlusion_group_kernel: a CPU with the SIMD traversal and a tree of width 8
+    (elsewhere every packet and group would be declined)."""
     return bvh.device.is_cpu and bvh.stats.width == 8 and simd_support(bvh.device)[0] == 8
