@@ -25,6 +25,7 @@
 #pragma clang fp contract(off)
     static_assert(GROUP <= 64, "a ray's bit in a 64-bit mask");
     constexpr int RAYS = GROUP;
+    constexpr bool SAME_SIGNS = false;
 WIDE_RAYS
     for (int i = 0; i < n; ++i)
         if (!load_ray(i, first_ray + i))

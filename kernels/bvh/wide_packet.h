@@ -32,6 +32,7 @@
     auto packet = [&]() __attribute__((noinline)) -> int {
 #pragma clang fp contract(off)
     constexpr int RAYS = PACKET;
+    constexpr bool SAME_SIGNS = true;
 WIDE_RAYS
     int negative[3];
     for (int i = 0; i < n; ++i) {
