@@ -2,10 +2,9 @@
     // ray's test of a node's boxes and of a leaf's blocks, wide_simd.h's and wide_block.h's
     // operation for operation. Pasted where WIDE_RAYS stands in wide_packet.h and
     // wide_occlusion.h (whose functions take the same arguments), after their RAYS and
-    // SAME_SIGNS (below, ray_mask); the
-    // function returns 0 here where its rays are not for the W = 8 tree or too many. FMA
-    // contraction is off where it is pasted (`#pragma clang fp contract(off)` opens the
-    // block).
+    // SAME_SIGNS (see ray_mask); the function returns 0 here where its rays are not for the
+    // W = 8 tree or are too many. FMA contraction is off where it is pasted (`#pragma clang
+    // fp contract(off)` opens the block).
     static_assert(MAX_WIDTH == 8 && BLOCK == 4, "wide_simd.h's layout");
     typedef float f8 __attribute__((vector_size(8 * sizeof(float))));
     typedef int i8 __attribute__((vector_size(8 * sizeof(int))));
