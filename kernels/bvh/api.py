@@ -37,7 +37,7 @@ from .build_data import (
     BuildTask,
 )
 from .node import BvhArrays, BvhNode, empty_root, sah_cost
-from .packet import GROUP, PACKET, occlusion_group_kernel, packet_trace_kernel, packets_apply
+from .packet import PACKET, packet_trace_kernel, packets_apply
 from .stats import BvhStats
 from .traversal import trace_kernel
 from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
@@ -387,15 +387,9 @@ def trace(
     inputs = [claimed_arg(origins, wp.vec3, device), claimed_arg(directions, wp.vec3, device),
               claimed_arg(tmin_a, float, device), claimed_arg(tmax_a, float, device)]
     nthreads = host_threads(device, threads)
-    if not (packets and packets_apply(bvh)):
-        launch_claimed(trace_kernel, r, [bvh.arrays, *inputs, int(any_hit), *outputs], device,
-                       nthreads)
-    elif any_hit:
-        launch_claimed(occlusion_group_kernel, r, [bvh.arrays, *inputs, *outputs, 1], device,
-                       nthreads, align=GROUP)
-    else:
-        launch_claimed(packet_trace_kernel, r, [bvh.arrays, *inputs, *outputs], device,
-                       nthreads, align=PACKET)
+    kernel = packet_trace_kernel if packets and packets_apply(bvh) else trace_kernel
+    launch_claimed(kernel, r, [bvh.arrays, *inputs, int(any_hit), *outputs], device, nthreads,
+                   align=PACKET)
     if not device.is_cpu:
         t, tri, u, v = (a.numpy() for a in outputs)
     return Hits(t=t, triangle=tri, u=u, v=v)

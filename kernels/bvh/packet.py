@@ -23,6 +23,7 @@ wp.set_module_options(MODULE_OPTIONS)
 
 PACKET = 64  # rays per packet: a camera's 8 x 8 tile, or a run of 64 pixels of a row
 GROUP = 64  # any-hit rays per group (wide_occlusion.h): one bit each of a 64-bit mask
+assert GROUP == PACKET  # packet_trace_kernel steps over both in runs of one size
 COHERENT_SPREAD = 0.5  # most spread of a packet's unit directions on an axis (wide_packet.h)
 
 
@@ -120,25 +121,6 @@ def trace_packet_hits(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
         write_hit(h, k, out_t, out_triangle, out_u, out_v)
 
 
-@wp.kernel
-def packet_trace_kernel(
-    bvh: BvhArrays,
-    origins: wp.array(dtype=wp.vec3),
-    directions: wp.array(dtype=wp.vec3),
-    tmin: wp.array(dtype=float),  # per ray, or one value for all
-    tmax: wp.array(dtype=float),
-    out_t: wp.array(dtype=float),
-    out_triangle: wp.array(dtype=int),
-    out_u: wp.array(dtype=float),
-    out_v: wp.array(dtype=float),
-    claims: Claims,  # chunks of a multiple of PACKET rays
-):
-    items = claimed_items(claims, wp.tid())
-    for i in range(items[0], items[1], PACKET):
-        trace_packet_hits(bvh, origins, directions, tmin, tmax, i, wp.min(i + PACKET, items[1]),
-                          out_t, out_triangle, out_u, out_v)
-
-
 @wp.func(inline=False)  # inlined, it made the film kernel around it 1.3x slower
 def any_hit_ray(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                 directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
@@ -170,28 +152,32 @@ def trace_occlusion_group(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
 
 
 @wp.kernel
-def occlusion_group_kernel(
+def packet_trace_kernel(
     bvh: BvhArrays,
     origins: wp.array(dtype=wp.vec3),
     directions: wp.array(dtype=wp.vec3),
     tmin: wp.array(dtype=float),  # per ray, or one value for all
     tmax: wp.array(dtype=float),
+    find_any: int,  # 0: closest hits in packets; 1: any hits in groups
     out_t: wp.array(dtype=float),
     out_triangle: wp.array(dtype=int),
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
-    find_any: int,  # 1
-    claims: Claims,  # chunks of a multiple of GROUP rays
+    claims: Claims,  # chunks of a multiple of PACKET (= GROUP) rays
 ):
     items = claimed_items(claims, wp.tid())
-    for i in range(items[0], items[1], GROUP):
-        trace_occlusion_group(bvh, origins, directions, tmin, tmax, i,
-                              wp.min(i + GROUP, items[1]), out_t, out_triangle, out_u, out_v,
-                              find_any != 0)
+    for i in range(items[0], items[1], PACKET):
+        last = wp.min(i + PACKET, items[1])
+        if find_any != 0:
+            trace_occlusion_group(bvh, origins, directions, tmin, tmax, i, last, out_t,
+                                  out_triangle, out_u, out_v, find_any != 0)
+        else:
+            trace_packet_hits(bvh, origins, directions, tmin, tmax, i, last, out_t,
+                              out_triangle, out_u, out_v)
 
 
 def packets_apply(bvh) -> bool:
-    """Whether `trace` sends closest-hit rays through packet_trace_kernel and any-hit rays
-    through occlusion_group_kernel: a CPU with the SIMD traversal and a tree of width 8
+    """Whether `trace` sends its rays through packet_trace_kernel (closest hits in packets,
+    any hits in groups): a CPU with the SIMD traversal and a tree of width 8
     (elsewhere every packet and group would be declined)."""
     return bvh.device.is_cpu and bvh.stats.width == 8 and simd_support(bvh.device)[0] == 8

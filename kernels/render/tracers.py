@@ -40,7 +40,6 @@ from .surface import (
 )
 
 wp.set_module_options(MODULE_OPTIONS)
-assert GROUP >= PACKET  # a packet's occlusion rays fill one group
 
 PART_RAYS = 4096  # fewest occlusion rays worth a host thread of their own
 LAUNCH_RAYS = 1 << 30  # most rays per launch (a launch's thread index is int32)

@@ -145,6 +145,15 @@ def _applied(op: Any, x: wp.array(dtype=float), out: wp.array(dtype=float)):
     out[i] = _apply(op, x[i])
 
 
+def _overload_cases(n: int) -> list:
+    """(op, expected) for x = arange(n): a struct, another struct (another overload of a
+    generic kernel), the first again."""
+    add, times = _Add(), _Times()
+    add.value, times.value = 10.0, 3.0
+    return [(add, np.arange(n) + 10.0), (times, np.arange(n) * 3.0),
+            (add, np.arange(n) + 10.0)]
+
+
 def test_recorded_launches_follow_each_calls_arguments_and_keep_none_alive():
     """A thread's recorded launch is reused by later calls: with another overload of a
     generic kernel (another struct) it is another launch, every call's arrays are its own
@@ -152,10 +161,9 @@ def test_recorded_launches_follow_each_calls_arguments_and_keep_none_alive():
     through the kept launch."""
     device = wp.get_device("cpu")
     x = wp.array(np.arange(6, dtype=np.float32), dtype=float, device=device)
-    add, times = _Add(), _Times()
-    add.value, times.value = 10.0, 3.0
-    for op, expected in ((add, np.arange(6) + 10.0), (times, np.arange(6) * 3.0),
-                         (add, np.arange(6) + 10.0)):
+    cases = _overload_cases(6)
+    add = cases[0][0]
+    for op, expected in cases:
         out = wp.zeros(6, dtype=float, device=device)
         part_launcher(_applied, [op, x, out], device)(6, {})
         assert np.array_equal(out.numpy(), expected)
@@ -255,10 +263,9 @@ def test_claimed_launches_follow_each_calls_arguments_and_keep_none_alive():
     outlives its call through the kept launch."""
     device = wp.get_device("cpu")
     x = wp.array(np.arange(300, dtype=np.float32), dtype=float, device=device)
-    add, times = _Add(), _Times()
-    add.value, times.value = 10.0, 3.0
-    for op, expected in ((add, np.arange(300) + 10.0), (times, np.arange(300) * 3.0),
-                         (add, np.arange(300) + 10.0)):
+    cases = _overload_cases(300)
+    add = cases[0][0]
+    for op, expected in cases:
         for threads in (1, 2):
             out = wp.zeros(300, dtype=float, device=device)
             launch_claimed(_claimed_applied, 300, [op, x, out], device, threads)
