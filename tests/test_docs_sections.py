@@ -16,12 +16,14 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.mark.parametrize("doc", sorted((ROOT / "docs").glob("*.md")), ids=lambda p: p.name)
 def test_sections_are_paired_and_not_nested(doc: Path) -> None:
-    open_name = None
+    open_name, seen = None, set()
     for marker in MARKER.findall(doc.read_text()):
         name, kind = re.match(r"<!-- ([\w.-]+):(begin|end) -->", marker).groups()
         if kind == "begin":
             assert open_name is None, f"{doc.name}: {name} begins inside {open_name}"
+            assert name not in seen, f"{doc.name}: {name} appears twice"
             open_name = name
+            seen.add(name)
         else:
             assert open_name == name, f"{doc.name}: {name} ends while {open_name} is open"
             open_name = None
@@ -35,6 +37,15 @@ def test_write_section_replaces_its_own_text_only(tmp_path: Path) -> None:
     assert doc.read_text() == "hand\n<!-- a:begin -->\nnew\n<!-- a:end -->\nhand too\n"
     write_section("b", "appended", doc)
     assert doc.read_text().endswith("hand too\n\n<!-- b:begin -->\nappended\n<!-- b:end -->\n")
+
+
+def test_write_section_refuses_a_section_written_twice(tmp_path: Path) -> None:
+    doc = tmp_path / "doc.md"
+    text = "<!-- a:begin -->\nnew\n<!-- a:end -->\n<!-- a:begin -->\nstale\n<!-- a:end -->\n"
+    doc.write_text(text)
+    with pytest.raises(ValueError, match="'a' appears 2 times"):
+        write_section("a", "newer", doc)
+    assert doc.read_text() == text
 
 
 def test_write_section_refuses_to_wipe_a_section_inside_it(tmp_path: Path) -> None:
