@@ -8,7 +8,7 @@ kernel item, 35 Mrays/s 64 rays and more a kernel item).
 
 from __future__ import annotations
 
-import functools
+import ctypes
 
 import numpy as np
 import warp as wp
@@ -69,35 +69,19 @@ def launch_claimed(kernel, n: int, args: list, device, threads: int, align: int 
         wp.launch(kernel, dim=-(-n // align), inputs=[*args, unclaimed(n, align, device)],
                   device=device)
         return
-    claims = Claims()
-    claims.count = n
     threads = max(1, min(threads, -(-n // MIN_CLAIM)))
     # one thread: one chunk, one kernel item
     chunk = n if threads == 1 else max(MIN_CLAIM, -(-n // (threads * CLAIMS_PER_THREAD)))
-    claims.chunk = -(-chunk // align) * align
-    chunks = -(-n // claims.chunk)
+    chunk = -(-chunk // align) * align
+    chunks = -(-n // chunk)
     key = launch_key(kernel, device, args)
     idle = _idle_launches.setdefault(key, [])
+    launch = idle.pop() if idle else _Recorded(kernel, args, device)
     try:
-        cmd, counter, next_chunk = idle.pop()
-    except IndexError:  # none idle: record one (62 us for the trace kernel)
-        counter = wp.zeros(1, dtype=wp.int32, device=device)
-        next_chunk = counter.numpy()
-        values = [wp.empty(0, dtype=a.type.dtype, device=device)
-                  if isinstance(x, np.ndarray) else x
-                  for x, a in zip(args, kernel.adj.args, strict=False)]
-        cmd = wp.launch(kernel, dim=1, inputs=[*values, claims], device=device,
-                        record_cmd=True)
-        cmd.fwd_args = cmd.adj_args = None  # kept between calls: it must keep no array alive
-    try:
-        next_chunk[0] = 0
-        claims.counter = counter
-        for i, x in enumerate([*args, claims]):
-            if isinstance(x, np.ndarray):
-                _set_host_array(cmd, i, x)
-            else:
-                cmd.set_param_at_index(i, x)
-        cmd.set_dim(chunks)
+        launch.next_chunk[0] = 0
+        launch.claims.chunk, launch.claims.count = chunk, n  # in place: no struct packed
+        launch.set(args, chunks)
+        cmd, next_chunk = launch.cmd, launch.next_chunk
 
         def run(k: int) -> None:
             if k == 0 or next_chunk[0] < chunks:  # a late thread finds every chunk taken
@@ -105,12 +89,62 @@ def launch_claimed(kernel, n: int, args: list, device, threads: int, align: int 
 
         run_parts(run, threads, threads)
     finally:
-        idle.append((cmd, counter, next_chunk))
+        idle.append(launch)
 
 
-# recorded launches of launch_claimed that no call is using, with their chunk counters (and
-# a numpy view of each), per launch_key
-_idle_launches: dict[tuple, list] = {}
+class _Recorded:
+    """A recorded launch of launch_claimed's kernel, with its chunk counter (and a numpy
+    view of it) and the numbers it was last given: a call sets only what changed (a small
+    call's fixed cost is mostly setting parameters, ~1.5 us each through Warp)."""
+
+    __slots__ = ("cmd", "counter", "next_chunk", "claims", "host", "other", "last", "dim")
+
+    def __init__(self, kernel, args: list, device) -> None:
+        # recording costs 62 us for the trace kernel, so recorded launches are kept
+        self.counter = wp.zeros(1, dtype=wp.int32, device=device)
+        self.next_chunk = self.counter.numpy()
+        claims = Claims()
+        claims.counter, claims.chunk, claims.count = self.counter, 1, 0
+        values = [wp.empty(0, dtype=a.type.dtype, device=device)
+                  if isinstance(x, np.ndarray) else x
+                  for x, a in zip(args, kernel.adj.args, strict=False)]
+        self.cmd = wp.launch(kernel, dim=1, inputs=[*values, claims], device=device,
+                             record_cmd=True)
+        self.cmd.fwd_args = self.cmd.adj_args = None  # kept between calls: no array kept alive
+        self.claims = self.cmd.params[len(args) + 1]  # the packed Claims, set in place
+        # the numpy arrays' parameters (launch_key fixes which arguments are arrays):
+        # index, Warp's array_t, numpy scalar type, row bytes
+        self.host = [(i, self.cmd.params[i + 1], *_array_rows(kernel.adj.args[i].type.dtype))
+                     for i, x in enumerate(args) if isinstance(x, np.ndarray)]
+        for _, param, _, row in self.host:
+            param.strides[0] = row
+        self.other = [i for i, x in enumerate(args) if not isinstance(x, np.ndarray)]
+        self.last: list = [None] * len(args)
+        self.dim = 1
+
+    def set(self, args: list, dim: int) -> None:
+        for i, param, scalar, row in self.host:
+            a = args[i]  # set in place in the launch's array_t, no Warp array made
+            if a.dtype != scalar or not a.flags.c_contiguous or a.nbytes != len(a) * row:
+                raise TypeError(f"parameter {self.cmd.kernel.adj.args[i].label}: a contiguous "
+                                f"{scalar.name} array of {row}-byte rows, got {a.dtype} "
+                                f"{a.shape}")
+            param.data = _address(a)
+            param.shape[0] = len(a)
+        for i in self.other:
+            x = args[i]
+            if type(x) not in (int, float):  # a struct is packed every call: mutable
+                self.cmd.set_param_at_index(i, x)
+            elif type(self.last[i]) is not type(x) or self.last[i] != x:
+                self.cmd.set_param_at_index(i, x)
+                self.last[i] = x
+        if dim != self.dim:
+            self.cmd.set_dim(dim)
+            self.dim = dim
+
+
+# recorded launches of launch_claimed that no call is using, per launch_key
+_idle_launches: dict[tuple, list[_Recorded]] = {}
 
 
 def claimed_arg(a: np.ndarray, dtype, device) -> np.ndarray | wp.array:
@@ -119,22 +153,16 @@ def claimed_arg(a: np.ndarray, dtype, device) -> np.ndarray | wp.array:
     return np.ascontiguousarray(a) if device.is_cpu else wp.array(a, dtype=dtype, device=device)
 
 
-@functools.cache
-def _array_rows(kernel, i: int) -> tuple[np.dtype, int]:
-    """The numpy scalar type and the row bytes of 1-d array parameter i of `kernel`."""
-    dtype = kernel.adj.args[i].type.dtype
+def _address(a: np.ndarray) -> int:
+    """The address of a contiguous array's data: through ctypes' buffer view in 0.3 us,
+    numpy's `a.ctypes.data` (1 us) for a read-only or empty array, which have none."""
+    try:
+        return ctypes.addressof(ctypes.c_char.from_buffer(a))
+    except (TypeError, ValueError):
+        return a.ctypes.data
+
+
+def _array_rows(dtype) -> tuple[np.dtype, int]:
+    """The numpy scalar type and the row bytes of a 1-d Warp array of `dtype`."""
     return (np.dtype(wp.dtype_to_numpy(getattr(dtype, "_wp_scalar_type_", dtype))),
             wp.types.type_size_in_bytes(dtype))
-
-
-def _set_host_array(cmd, i: int, a: np.ndarray) -> None:
-    """Parameter i of a recorded CPU launch set to a contiguous numpy array, in place in
-    the launch's own `array_t` (Warp's ctypes array)."""
-    scalar, row = _array_rows(cmd.kernel, i)
-    if a.dtype != scalar or not a.flags.c_contiguous or a.size * a.itemsize != len(a) * row:
-        raise TypeError(f"parameter {cmd.kernel.adj.args[i].label}: a contiguous "
-                        f"{scalar.name} array of {row}-byte rows, got {a.dtype} {a.shape}")
-    param = cmd.params[i + 1]
-    param.data = a.ctypes.data
-    param.shape[0] = len(a)
-    param.strides[0] = row

@@ -11,7 +11,7 @@ def _float_array(a, name: str, width: int) -> np.ndarray:
     a = np.asarray(a)
     if a.ndim != 2 or a.shape[1] != width:
         raise ValueError(f"{name} must have shape (N, {width}), got {a.shape}")
-    if not np.issubdtype(a.dtype, np.floating):
+    if a.dtype.kind != "f":  # (np.issubdtype's answer in a tenth of its 1 us)
         raise ValueError(f"{name} must be a float32 array, got dtype {a.dtype}")
     if a.dtype != np.float32 and a.size:
         big = np.abs(np.where(np.isfinite(a), a, 0.0)).max()
@@ -93,6 +93,10 @@ def as_surface_points(triangles, u, v, triangle_count: int) -> tuple[np.ndarray,
 def per_ray(value, count: int, name: str, *, keep_scalar: bool = False) -> np.ndarray:
     """A scalar or (R,) array as a float32 (R,) array, or with `keep_scalar` a scalar as a
     (1,) array for kernels that broadcast it; NaN is rejected, +-inf allowed."""
+    if isinstance(value, float | int) and keep_scalar:  # a small call's fast path (~0.5 us)
+        if value != value:
+            raise ValueError(f"{name} contains NaN")
+        return np.array((value,), dtype=np.float32)
     a = np.asarray(value, dtype=np.float32)
     if a.ndim == 0:
         a = a.reshape(1) if keep_scalar else np.full(count, a, dtype=np.float32)
@@ -107,7 +111,8 @@ def ray_range(tmin, tmax, count: int, *, keep_scalar: bool = False) -> tuple[np.
     """`per_ray` of both ends of the rays' [tmin, tmax], checked to be in order."""
     tmin = per_ray(tmin, count, "tmin", keep_scalar=keep_scalar)
     tmax = per_ray(tmax, count, "tmax", keep_scalar=keep_scalar)
-    if np.any(tmax < tmin):
+    # two scalars compared as such: 0.2 us against 2 for the arrays
+    if (tmax[0] < tmin[0]) if tmin.size == tmax.size == 1 else np.any(tmax < tmin):
         raise ValueError("tmax must be >= tmin for every ray")
     return tmin, tmax
 

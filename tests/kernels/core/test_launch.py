@@ -209,11 +209,13 @@ def _claimed(x: wp.array(dtype=wp.vec3), out: wp.array(dtype=float),
 @pytest.mark.parametrize("align", [1, 64])
 def test_claimed_chunks_cover_every_item_once(threads, align):
     """Every item in exactly one chunk, each chunk starting at a multiple of `align` and
-    no longer than the call needs; numpy arrays and Warp arrays alike as arguments."""
+    no longer than the call needs; numpy arrays (read-only too, as a request body's) and
+    Warp arrays alike as arguments."""
     device = wp.get_device("cpu")
     for n in (1, 63, 64, 65, 1000, 100_003):
         x = np.zeros((n, 3), np.float32)
         x[:, 1] = np.arange(1, n + 1)
+        x.flags.writeable = n % 2 == 0
         out = np.zeros(n, np.float32)
         first = wp.full(n, -1, dtype=int, device=device)
         launch_claimed(_claimed, n, [x, out, first], device, threads, align)
