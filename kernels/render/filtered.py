@@ -431,7 +431,7 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
         """One packet and one group per part, kept for the render's later rounds."""
         if not kept or kept[0][0].t.shape[0] < parts * PACKET:
             kept[:] = [(packet_rays(parts, isinstance(bvh, Scene), device),
-                        group_rays(parts, device))]
+                        group_rays(parts, isinstance(occluders, Scene), device))]
         return kept[0]
 
     def trace(pixels: np.ndarray, first: int, count: int, mid: int,

@@ -26,7 +26,13 @@ from ..core.mesh import DeviceMesh, Shading
 from ..core.ray import make_ray
 from ..dacrt.api import dacrt_trace_mesh
 from ..scene.api import Scene
-from ..scene.packet import InstancePackets, instance_packets, read_instance_hit, trace_scene_packet
+from ..scene.packet import (
+    InstancePackets,
+    instance_packets,
+    read_instance_hit,
+    trace_scene_group,
+    trace_scene_packet,
+)
 from ..scene.top import SceneArrays, SceneShading, traverse_scene
 from .adaptive import RoundTracer
 from .sampling import SAMPLERS, cosine_direction, pixel_key
@@ -89,16 +95,18 @@ class GroupRays:
     triangle: wp.array(dtype=int)
     u: wp.array(dtype=float)
     v: wp.array(dtype=float)
+    scene: InstancePackets  # a two-level scene's scratch (scene/packet.py)
 
 
-def group_rays(parts: int, device) -> GroupRays:
-    """Room for one group per part."""
+def group_rays(parts: int, scene: bool, device) -> GroupRays:
+    """Room for one group per part (with a two-level scene's scratch if `scene`)."""
     rays = GroupRays()
     n = parts * GROUP
     rays.origins, rays.directions = (wp.empty(n, dtype=wp.vec3, device=device) for _ in "od")
     rays.tmin, rays.tmax, rays.t, rays.u, rays.v = (wp.empty(n, dtype=float, device=device)
                                                     for _ in range(5))
     rays.sample, rays.triangle = (wp.empty(n, dtype=int, device=device) for _ in "st")
+    rays.scene = instance_packets(n if scene else 0, device)
     return rays
 
 
@@ -121,13 +129,10 @@ def occluded_group(g: BvhArrays, rays: GroupRays, first: int, last: int):
                           rays.t, rays.triangle, rays.u, rays.v, True)
 
 
-@wp.func  # a Warp overload of the one above: through a two-level scene, ray by ray
+@wp.func  # a Warp overload of the one above: through a two-level scene (scene/packet.py)
 def occluded_group(g: SceneArrays, rays: GroupRays, first: int, last: int):  # noqa: F811
-    for k in range(first, last):
-        rays.triangle[k] = -1
-        if traverse_scene(g, rays.origins[k], rays.directions[k], rays.tmin[k], rays.tmax[k],
-                          True).instance >= 0:
-            rays.triangle[k] = 0
+    trace_scene_group(g, rays.origins, rays.directions, rays.tmin, rays.tmax, first, last,
+                      rays.scene, rays.triangle)
 
 
 @wp.func
@@ -429,7 +434,8 @@ def occlusion_round(bvh, hits, pix, active, first, count, sampler_id, seed, dist
     span = int(count) if device.is_cpu else 1
     launch = part_launcher(occlusion_kernel, [
         bvh.arrays, hits.surfaces, pix, act, 0, int(first), int(count), span, sampler_id,
-        seed, dist, 1, int(mid), int(quarter), group_rays(parts, device), 0, *outs], device)
+        seed, dist, 1, int(mid), int(quarter), group_rays(parts, isinstance(bvh, Scene), device), 0,
+        *outs], device)
 
     def run(p: int) -> None:
         launch(int(bounds[p + 1] - bounds[p]) * (count // span), {4: int(bounds[p]),

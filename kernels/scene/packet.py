@@ -1,8 +1,11 @@
-"""Closest-hit rays through a two-level scene in packets (camera rays): the instances that
-any ray of a packet may enter, nearest entry first, each traced as one packet in its object
-space (bvh/packet.py), every ray's closest hit kept as the top level keeps it
+"""Rays through a two-level scene together: closest-hit rays in packets (camera rays), the
+instances that any ray of a packet may enter, nearest entry first, each traced as one packet
+in its object space (bvh/packet.py), every ray's closest hit kept as the top level keeps it
 (top.keep_instance_hit: which instance wins does not depend on the order of the visits), so
-the hits are `traverse_scene`'s, bit for bit.
+the hits are `traverse_scene`'s, bit for bit; and occlusion rays in groups the same way,
+each instance traced as one group of the rays not yet blocked, so whether a ray is blocked
+is `traverse_scene`'s answer (which triangle blocks it may differ: any hit is the first
+found, and the order of the instances is the group's).
 """
 
 from __future__ import annotations
@@ -10,7 +13,13 @@ from __future__ import annotations
 import warp as wp
 
 from ..bvh.binary_traversal import NodeStack
-from ..bvh.packet import PACKET, read_hit, trace_packet_leaf_order, write_hit
+from ..bvh.packet import (
+    PACKET,
+    read_hit,
+    trace_occlusion_group,
+    trace_packet_leaf_order,
+    write_hit,
+)
 from ..bvh.wide_traversal import simd_support
 from ..core.box import INF
 from ..core.claim import Claims, claimed_items
@@ -216,6 +225,44 @@ def trace_scene_packet(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
             ih = finish_instance_hit(s, origins[k], directions[k], per_ray(tmin, k),
                                      per_ray(tmax, k), kept, False)
             write_instance_hit(ih, k, out_t, out_triangle, out_u, out_v, out_instance)
+
+
+@wp.func
+def trace_scene_group(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                      directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                      tmax: wp.array(dtype=float), first: int, last: int,
+                      scratch: InstancePackets, out_triangle: wp.array(dtype=int)):
+    """Whether each any-hit ray of [first, last) (at most PACKET) meets a triangle in
+    [tmin, tmax]: out_triangle[k] a triangle of the mesh of an instance it meets, else -1.
+    The instances that some ray may reach (packet_candidates), nearest first, each traced
+    as one group of the rays not yet blocked, in its object space; ray by ray where there
+    are too many."""
+    count = packet_candidates(s, origins, directions, tmin, tmax, first, last, scratch)
+    for k in range(first, last):
+        out_triangle[k] = -1
+        if count < 0:
+            ih = traverse_scene(s, origins[k], directions[k], per_ray(tmin, k), per_ray(tmax, k),
+                                True)
+            out_triangle[k] = ih.hit.triangle
+    for c in range(count):
+        rec = s.instances[scratch.candidates[first + c]]
+        open_rays = int(0)
+        for k in range(first, last):
+            o, d = object_coords(rec, origins[k], directions[k])
+            scratch.origins[k] = o
+            scratch.directions[k] = d
+            scratch.tmax[k] = -1.0  # blocked: an empty range below tmin (>= 0 here)
+            if out_triangle[k] < 0:
+                scratch.tmax[k] = per_ray(tmax, k)
+                open_rays += 1
+        if open_rays == 0:
+            return
+        trace_occlusion_group(mesh_view(s.meshes[rec.mesh]), scratch.origins, scratch.directions,
+                              tmin, scratch.tmax, first, last, scratch.t, scratch.triangle,
+                              scratch.u, scratch.v, True)
+        for k in range(first, last):
+            if out_triangle[k] < 0:
+                out_triangle[k] = scratch.triangle[k]
 
 
 @wp.kernel

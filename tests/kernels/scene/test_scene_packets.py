@@ -1,7 +1,8 @@
 """Closest-hit rays through a two-level scene in packets (kernels/scene/packet.py): the hits of
 `traverse_scene` ray by ray, bit for bit, with instances that overlap, mirror, scale and
 coincide (equal t: the lower instance wins whatever the order of the visits), per-ray
-ranges, partial packets, and more instances than a packet holds (ray by ray)."""
+ranges, partial packets, and more instances than a packet holds (ray by ray). Occlusion
+rays in groups: blocked exactly where `traverse_scene` finds a hit."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from scenesort.kernels.scene.packet import (
     instance_packets,
     packet_candidates,
     packet_top_ray,
+    trace_scene_group,
 )
 from scenesort.kernels.scene.top import SceneArrays, enter_padded_box, top_ray
 
@@ -134,6 +136,65 @@ def test_candidates_nearest_first_and_too_many_go_ray_by_ray(shared_scene):
         assert (np.diff(e) >= 0).all()
         assert list(cand[p * PACKET: p * PACKET + 6]) == list(range(6))  # nearest is 0
     identical(kernels.trace(few, o, d), kernels.trace(few, o, d, packets=False))
+
+
+@wp.kernel(enable_backward=False)
+def groups_kernel(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
+                  directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                  tmax: wp.array(dtype=float), scratch: InstancePackets,
+                  out: wp.array(dtype=int)):
+    first = wp.tid() * PACKET
+    trace_scene_group(s, origins, directions, tmin, tmax, first,
+                      wp.min(first + PACKET, origins.shape[0]), scratch, out)
+
+
+def blocked_in_groups(scene, o, d, tmin, tmax) -> np.ndarray:
+    n = len(o)
+    out = wp.empty(n, dtype=int)
+    wp.launch(groups_kernel, dim=-(-n // PACKET),
+              inputs=[scene.arrays, wp.array(o, dtype=wp.vec3), wp.array(d, dtype=wp.vec3),
+                      wp.array(tmin, dtype=float), wp.array(tmax, dtype=float),
+                      instance_packets(n, "cpu"), out])
+    return out.numpy() >= 0
+
+
+def test_scene_groups_block_exactly_as_single_rays(shared_scene):
+    """Occlusion rays in groups of 64 (trace_scene_group, as the film and the AO rounds
+    trace them): blocked exactly where `traverse_scene` ray by ray finds a hit, through the
+    instance set (rotated, scaled, mirrored, coincident instances) and through more
+    instances than a group holds (ray by ray): 64 cosine-spread rays from each of a
+    pixel's hits, short and long ranges, in camera order and shuffled, a partial last
+    group."""
+    sc = shared_scene("bunny")
+    v, f = sc.vertices, sc.indices
+    v = (v - v.mean(axis=0)) / np.abs(v - v.mean(axis=0)).max()
+    rng = np.random.default_rng(5)
+    sets = {"instance set": np.concatenate([instance_set(rng)[:5],
+                                            np.eye(3, 4, dtype=np.float32)[None]]),
+            "many": np.stack([transform(rotation(rng), (0.4, 0.4, 0.4),
+                                        rng.uniform(-1.5, 1.5, 3))
+                              for _ in range(MAX_CANDIDATES + 8)])}
+    corners = np.array([[-4.5, -4.5, -2.5], [4.5, 4.5, 4.5]], np.float32)
+    for name, transforms in sets.items():
+        scene = scene_of(v, f, transforms)
+        o, d = pixel_rays(framing_camera(corners, 160, 120), rng, 60, scene, per_pixel=1)
+        hits = kernels.trace(scene, o, d, packets=False)
+        o, d, t = o[hits.hit], d[hits.hit], hits.t[hits.hit]
+        point = o + t[:, None] * d
+        origins = np.repeat(point - 1e-3 * d, PACKET, axis=0).astype(np.float32)
+        w = rng.normal(size=(len(origins), 3))
+        w /= np.linalg.norm(w, axis=1, keepdims=True)
+        w = np.where((w * np.repeat(d, PACKET, axis=0)).sum(1, keepdims=True) > 0, -w, w)
+        w = w.astype(np.float32)
+        tmax = rng.choice(np.float32([0.05, 0.3, 2.0, np.inf]), len(w))
+        tmin = np.zeros(len(w), np.float32)
+        for order in (np.arange(len(w) - 23), rng.permutation(len(w) - 23)):
+            oo, ww, t0, t1 = origins[order], w[order], tmin[order], tmax[order]
+            single = kernels.trace(scene, oo, ww, t0, t1, any_hit=True).instance >= 0
+            assert 0.1 < single.mean() < 0.9, name
+            assert np.array_equal(blocked_in_groups(scene, oo, ww, t0, t1), single), name
+        count, _, _ = candidates(scene, origins, w)
+        assert (count == -1).any() == (name == "many"), name
 
 
 @wp.kernel
