@@ -39,19 +39,17 @@ def test_write_section_replaces_its_own_text_only(tmp_path: Path) -> None:
     assert doc.read_text().endswith("hand too\n\n<!-- b:begin -->\nappended\n<!-- b:end -->\n")
 
 
-def test_write_section_refuses_a_section_written_twice(tmp_path: Path) -> None:
+@pytest.mark.parametrize("text, match", [
+    # a section inside another: the outer one's run would wipe it
+    ("<!-- a:begin -->\n<!-- b:begin -->\nkept\n<!-- b:end -->\n<!-- a:end -->\n", "'a' holds"),
+    # a pasted copy: a run would update one and leave the stale one
+    ("<!-- a:begin -->\nnew\n<!-- a:end -->\n<!-- a:begin -->\nstale\n<!-- a:end -->\n",
+     "'a' appears 2 times"),
+], ids=["nested", "twice"])
+def test_write_section_refuses_and_leaves_the_doc_as_it_was(tmp_path: Path, text: str,
+                                                            match: str) -> None:
     doc = tmp_path / "doc.md"
-    text = "<!-- a:begin -->\nnew\n<!-- a:end -->\n<!-- a:begin -->\nstale\n<!-- a:end -->\n"
     doc.write_text(text)
-    with pytest.raises(ValueError, match="'a' appears 2 times"):
-        write_section("a", "newer", doc)
-    assert doc.read_text() == text
-
-
-def test_write_section_refuses_to_wipe_a_section_inside_it(tmp_path: Path) -> None:
-    doc = tmp_path / "doc.md"
-    text = "<!-- a:begin -->\n<!-- b:begin -->\nkept\n<!-- b:end -->\n<!-- a:end -->\n"
-    doc.write_text(text)
-    with pytest.raises(ValueError, match="'a' holds"):
+    with pytest.raises(ValueError, match=match):
         write_section("a", "new", doc)
     assert doc.read_text() == text
