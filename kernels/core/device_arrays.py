@@ -36,3 +36,13 @@ class DeviceArrays:
     def free(self, *arrays: wp.array) -> None:
         for a in arrays:
             self.bytes -= a.capacity
+
+
+def struct_of_arrays(struct, count: int, device):
+    """An instance of the Warp struct `struct` whose array fields each hold `count` entries
+    of their own dtype, uninitialised (scratch that kernels fill); other fields as made."""
+    out = struct()
+    for name, var in struct.vars.items():
+        if wp.types.is_array(var.type):
+            setattr(out, name, wp.empty(count, dtype=var.type.dtype, device=device))
+    return out

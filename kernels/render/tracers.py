@@ -21,6 +21,7 @@ from ..bvh.traversal import closest_hit, traverse
 from ..bvh.wide_traversal import simd_lanes
 from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
+from ..core.device_arrays import struct_of_arrays
 from ..core.launch import PARTS_PER_THREAD, part_launcher, run_parts
 from ..core.mesh import DeviceMesh, Shading
 from ..core.ray import make_ray
@@ -100,13 +101,8 @@ class GroupRays:
 
 def group_rays(parts: int, scene: bool, device) -> GroupRays:
     """Room for one group per part (with a two-level scene's scratch if `scene`)."""
-    rays = GroupRays()
-    n = parts * GROUP
-    rays.origins, rays.directions = (wp.empty(n, dtype=wp.vec3, device=device) for _ in "od")
-    rays.tmin, rays.tmax, rays.t, rays.u, rays.v = (wp.empty(n, dtype=float, device=device)
-                                                    for _ in range(5))
-    rays.sample, rays.triangle = (wp.empty(n, dtype=int, device=device) for _ in "st")
-    rays.scene = instance_packets(n if scene else 0, device)
+    rays = struct_of_arrays(GroupRays, parts * GROUP, device)
+    rays.scene = instance_packets(parts * GROUP if scene else 0, device)
     return rays
 
 
@@ -162,13 +158,8 @@ class PacketRays:
 
 def packet_rays(parts: int, scene: bool, device) -> PacketRays:
     """Room for one packet per part (with a two-level scene's scratch if `scene`)."""
-    rays = PacketRays()
-    n = parts * PACKET
-    rays.origins, rays.directions = (wp.empty(n, dtype=wp.vec3, device=device) for _ in "od")
-    rays.tmin, rays.tmax, rays.t, rays.u, rays.v = (wp.empty(n, dtype=float, device=device)
-                                                    for _ in range(5))
-    rays.triangle, rays.instance = (wp.empty(n, dtype=int, device=device) for _ in "ti")
-    rays.scene = instance_packets(n if scene else 0, device)
+    rays = struct_of_arrays(PacketRays, parts * PACKET, device)
+    rays.scene = instance_packets(parts * PACKET if scene else 0, device)
     return rays
 
 

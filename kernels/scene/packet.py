@@ -24,6 +24,7 @@ from ..bvh.wide_traversal import simd_support
 from ..core.box import INF
 from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
+from ..core.device_arrays import struct_of_arrays
 from ..core.ray import per_ray
 from .top import (
     InstanceHit,
@@ -62,13 +63,7 @@ class InstancePackets:
 
 def instance_packets(rays: int, device) -> InstancePackets:
     """Room for packets of `rays` rays, numbered from 0."""
-    out = InstancePackets()
-    out.origins, out.directions = (wp.empty(rays, dtype=wp.vec3, device=device) for _ in "od")
-    out.tmax, out.t, out.u, out.v = (wp.empty(rays, dtype=float, device=device)
-                                     for _ in range(4))
-    out.triangle, out.candidates = (wp.empty(rays, dtype=int, device=device) for _ in "tc")
-    out.entry = wp.empty(rays, dtype=float, device=device)
-    return out
+    return struct_of_arrays(InstancePackets, rays, device)
 
 
 @wp.func
