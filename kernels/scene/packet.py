@@ -242,7 +242,7 @@ def trace_scene_group(s: SceneArrays, origins: wp.array(dtype=wp.vec3),
     for c in range(count):
         rec = s.instances[scratch.candidates[first + c]]
         open_rays = int(0)
-        for k in range(first, last):
+        for k in range(first, last):  # every ray set: a group declines a non-finite one
             o, d = object_coords(rec, origins[k], directions[k])
             scratch.origins[k] = o
             scratch.directions[k] = d
