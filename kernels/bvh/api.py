@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -79,7 +79,6 @@ class Bvh:
     bounds: np.ndarray  # (2, 3) float32
     stats: BvhStats
     mesh: DeviceMesh | None = None  # the mesh on the device, reused by AO and DACRT
-    refit_plan: dict | None = field(default=None, repr=False)  # bvh.refit: levels, once
 
     def nodes(self) -> np.ndarray:
         """The node array as a numpy structured array (lo, first, hi, count)."""
@@ -157,18 +156,18 @@ def build_bvh(
 
     t0 = time.perf_counter()
     node_count, depth = tree.node_count, tree.depth
-    tri_verts = wp.empty(max(3 * n, 1), dtype=wp.vec3, device=device)
     tri_ids = wp.empty(n, dtype=int, device=device)
     arrays = BvhArrays()
     arrays.nodes = b.nodes if n > 0 else empty_root(device)
-    arrays.tri_verts = tri_verts
     arrays.tri_ids = tri_ids
+    arrays.vertices, arrays.indices = v_wp, f_wp
+    arrays.tri_verts = wp.empty(1, dtype=wp.vec3, device=device)
 
     def reorder() -> None:
         # in more parts than threads: while the collapse's serial start holds one host
         # thread, the others take the parts, and it joins them when it is done
-        launch_parts(bb.gather_leaf_triangles, [v_wp, f_wp, b.items, 0, tri_ids, tri_verts],
-                     3, n, max(1, min(REORDER_PARTS * threads, n // PART_ITEMS))
+        launch_parts(bb.gather_leaf_ids, [b.items, 0, tri_ids], 1, n,
+                     max(1, min(REORDER_PARTS * threads, n // PART_ITEMS))
                      if threads > 1 else 1, threads, device)
         release_scratch(b)  # before the collapse allocates the wide tree
         phase_ms["reorder"] = sync_ms(device, t0)
@@ -177,7 +176,7 @@ def build_bvh(
     arrays.blocks = wp.zeros(1, dtype=float, device=device)
     if width > 2 and n > 0:
         # the collapse's serial start runs beside the reorder: "collapse" is what it adds
-        arrays.wide, arrays.blocks, wide_stats = collapse(b.nodes, node_count, tri_verts, n,
+        arrays.wide, arrays.blocks, wide_stats = collapse(b.nodes, node_count, arrays, n,
                                                           width, device, tree.workers,
                                                           alongside=reorder)
         if wide_stats["wide_stack"] > WIDE_STACK:  # not seen on real scenes: see WIDE_STACK
@@ -191,6 +190,11 @@ def build_bvh(
         arrays.wide = wp.zeros(1, dtype=float, device=device)
     arrays.width = width
     phase_ms["collapse"] = sync_ms(device, t0 + phase_ms["reorder"] / 1e3)  # after it
+    if (width == 2 or not device.is_cpu) and n > 0:  # the binary traversal's leaves
+        t0 = time.perf_counter()
+        arrays.tri_verts = wp.empty(3 * n, dtype=wp.vec3, device=device)
+        fill_leaf_triangles(arrays, n, device, threads)
+        phase_ms["leaf triangles"] = sync_ms(device, t0)
     total_ms = (time.perf_counter() - t_total) * 1e3
 
     node_count = node_count if n > 0 else 1
@@ -209,6 +213,12 @@ def build_bvh(
     return Bvh(vertices=mesh.vertices, indices=mesh.indices, method=method,
                leaf_size=int(leaf_size), device=device, arrays=arrays, bounds=box[:2].copy(),
                stats=stats, mesh=mesh)
+
+
+def fill_leaf_triangles(arrays: BvhArrays, n: int, device, threads: int) -> None:
+    """`arrays.tri_verts` from the mesh in leaf order (bb.leaf_triangles)."""
+    launch_claimed(bb.leaf_triangles, n, [arrays.vertices, arrays.indices, arrays.tri_ids,
+                                          arrays.tri_verts], device, threads)
 
 
 def tree_bytes(arrays: BvhArrays) -> int:

@@ -25,6 +25,7 @@ import warp as wp
 
 from ..core.atomics import shared_add, shared_max
 from ..core.box import INF, max3, median_plane, min3
+from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.mesh import triangle_corners
 from ..core.triangle import is_degenerate
@@ -486,32 +487,27 @@ def compact_valid(
         b.items[offsets[i]] = it
 
 
-@wp.func
-def store_leaf_triangle(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
-                        tri: int, i: int, tri_verts: wp.array(dtype=wp.vec3)):
-    """Leaf position i's three vertices (triangle `tri` of the mesh), one after the other,
-    so a leaf reads one contiguous block."""
-    t = triangle_corners(vertices, indices, tri)
-    tri_verts[3 * i] = t[0]
-    tri_verts[3 * i + 1] = t[1]
-    tri_verts[3 * i + 2] = t[2]
+@wp.kernel
+def gather_leaf_ids(items: wp.array(dtype=BuildItem), first: int,
+                    tri_ids: wp.array(dtype=int)):
+    """The caller's index of each triangle in leaf order (first + tid: one part of them)."""
+    i = first + wp.tid()
+    tri_ids[i] = items[i].tri
 
 
 @wp.kernel
-def gather_leaf_triangles(
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.vec3i),
-    items: wp.array(dtype=BuildItem),
-    first: int,
-    tri_ids: wp.array(dtype=int),
-    tri_verts: wp.array(dtype=wp.vec3),
-):
-    """Triangles in leaf order (first + tid: one part of them): the caller's index of each,
-    and its vertices."""
-    i = first + wp.tid()
-    tri = items[i].tri
-    tri_ids[i] = tri
-    store_leaf_triangle(vertices, indices, tri, i, tri_verts)
+def leaf_triangles(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
+                   tri_ids: wp.array(dtype=int), tri_verts: wp.array(dtype=wp.vec3),
+                   claims: Claims):
+    """The binary traversal's leaves: leaf position i's three vertices one after the other
+    (triangle tri_ids[i] of the mesh), so a leaf reads one contiguous run. After a build
+    and after a refit."""
+    items = claimed_items(claims, wp.tid())
+    for i in range(items[0], items[1]):
+        t = triangle_corners(vertices, indices, tri_ids[i])
+        tri_verts[3 * i] = t[0]
+        tri_verts[3 * i + 1] = t[1]
+        tri_verts[3 * i + 2] = t[2]
 
 
 # this module's kernels and the pool clock's rate probe (see core.launch.load_modules)

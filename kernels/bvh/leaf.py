@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..core.mesh import triangle_corners
 from ..core.ray import Hit, Ray
 from ..core.triangle import intersect_triangle, refine_hit
 from .node import BvhArrays
@@ -36,16 +37,16 @@ def intersect_leaf(bvh: BvhArrays, r: Ray, first: int, count: int, tmin: float,
 @wp.func
 def finish_hit(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, hit: Hit) -> Hit:
     """The closest hit found (leaf position in hit.triangle) refined in float64 and given
-    the caller's triangle index."""
+    the caller's triangle index. The triangle is read from the mesh: the same float32
+    corners as the leaf's, whichever tree found it (a CPU wide tree keeps no tri_verts)."""
     if hit.triangle >= 0:
-        i = hit.triangle
-        exact = refine_hit(r, bvh.tri_verts[3 * i], bvh.tri_verts[3 * i + 1],
-                           bvh.tri_verts[3 * i + 2], tmin, tmax,
-                           wp.vec3(hit.t, hit.u, hit.v))
+        tri = bvh.tri_ids[hit.triangle]
+        t = triangle_corners(bvh.vertices, bvh.indices, tri)
+        exact = refine_hit(r, t[0], t[1], t[2], tmin, tmax, wp.vec3(hit.t, hit.u, hit.v))
         hit.t = exact[0]
         hit.u = exact[1]
         hit.v = exact[2]
-        hit.triangle = bvh.tri_ids[i]
+        hit.triangle = tri
     return hit
 
 

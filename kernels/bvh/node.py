@@ -21,8 +21,14 @@ class BvhNode:
 @wp.struct
 class BvhArrays:
     nodes: wp.array(dtype=BvhNode)
-    tri_verts: wp.array(dtype=wp.vec3)  # v0, v1, v2 per triangle, in leaf order
+    # v0, v1, v2 per triangle in leaf order, for the binary traversal's leaves only (CUDA,
+    # width 2): a CPU wide tree's leaves are its blocks, and one entry stands in
+    tri_verts: wp.array(dtype=wp.vec3)
     tri_ids: wp.array(dtype=int)  # the caller's triangle index per leaf position
+    # the mesh (DeviceMesh.v, .f): finish_hit's triangle, and what the collapse and the
+    # refit fill the leaves from
+    vertices: wp.array(dtype=wp.vec3)
+    indices: wp.array(dtype=wp.vec3i)
     wide: wp.array(dtype=float)  # width 4 or 8: the wide nodes (layout in bvh.wide) ...
     blocks: wp.array(dtype=float)  # ... and their leaves' triangle blocks
     width: int  # 2: traverse `nodes`; 4 or 8: traverse `wide`

@@ -2,8 +2,9 @@
 as Embree's and OptiX's refit builds do for meshes whose topology stays (armatures, shape
 keys, simulations).
 
-Order of work: the leaf-order triangles (`tri_verts`) from the new vertices and the wide
-tree's 4-triangle blocks from them (split between host threads), then the binary nodes and
+Order of work: the wide tree's 4-triangle blocks from the new vertices (and the binary
+traversal's leaf-order triangles, where the tree keeps them; split between host threads),
+then the binary nodes and
 the wide nodes, each tree in one pass from its last node to its root (children are numbered
 after their parents, so they are done first, and memory is read in order), the two trees
 side by side on two host threads (they share nothing). One serial pass per tree measured
@@ -31,11 +32,10 @@ from ..core.box import INF, max3, min3
 from ..core.claim import Claims, claimed_items, launch_claimed
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import host_threads, load_modules, run_parts, sync_ms
-from ..core.mesh import DeviceMesh, degenerate_mask
+from ..core.mesh import DeviceMesh, degenerate_mask, triangle_corners
 from ..core.validate import as_triangle_mesh
-from .api import Bvh, build_bvh
-from .build import store_leaf_triangle
-from .node import BvhNode
+from .api import Bvh, build_bvh, fill_leaf_triangles
+from .node import BvhArrays
 from .wide import (
     BLOCK,
     BLOCK_WORDS,
@@ -57,30 +57,17 @@ REBUILD_RATIO = 1.5
 
 
 @wp.kernel
-def refit_triangles(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.vec3i),
-                    tri_ids: wp.array(dtype=int), tri_verts: wp.array(dtype=wp.vec3),
-                    positions: wp.array(dtype=int), claims: Claims):
-    """Leaf positions `positions` get their triangles' moved vertices."""
+def refit_blocks(bvh: BvhArrays, claims: Claims):
+    """Each block's 4 lanes from the mesh, by the leaf position in its last row (wide.py)."""
     items = claimed_items(claims, wp.tid())
-    for k in range(items[0], items[1]):
-        i = positions[k]
-        store_leaf_triangle(vertices, indices, tri_ids[i], i, tri_verts)
-
-
-@wp.kernel
-def refit_blocks(tri_verts: wp.array(dtype=wp.vec3), blocks: wp.array(dtype=float),
-                 block_ids: wp.array(dtype=int), claims: Claims):
-    """Each block's 4 lanes from the leaf position stored in its last row (wide.py)."""
-    items = claimed_items(claims, wp.tid())
-    for j in range(items[0], items[1]):
-        b = block_ids[j]
+    for b in range(items[0], items[1]):
         for k in range(BLOCK):
             base = b * BLOCK_WORDS + k
-            i = float_bits(blocks[base + ROW_POSITION * BLOCK])
+            i = float_bits(bvh.blocks[base + ROW_POSITION * BLOCK])
+            t = triangle_corners(bvh.vertices, bvh.indices, bvh.tri_ids[i])
             for m in range(3):
-                v = tri_verts[3 * i + m]
                 for a in range(3):
-                    blocks[base + (3 * m + a) * BLOCK] = v[a]
+                    bvh.blocks[base + (3 * m + a) * BLOCK] = t[m, a]
 
 
 @wp.func
@@ -120,22 +107,24 @@ def lane_box(wide: wp.array(dtype=float), blocks: wp.array(dtype=float), w: int,
 
 
 @wp.kernel
-def refit_binary(nodes: wp.array(dtype=BvhNode), tri_verts: wp.array(dtype=wp.vec3),
-                 count: int, out_sah: wp.array(dtype=wp.float64)):
+def refit_binary(bvh: BvhArrays, count: int, out_sah: wp.array(dtype=wp.float64)):
     """One thread, nodes from the last to the root: a node's children have higher indices
     than it (the build numbers them as it makes them), so they are done first, and memory
     is read in order. A leaf's box from its triangles, an inner node's from its children.
     out_sah[0] gets the SAH sum of `node.sah_cost` (before the division by the root's area,
     which is the caller's)."""
+    nodes = bvh.nodes
     total = wp.float64(0.0)
     for k in range(count - 1, -1, -1):
         n = nodes[k]
         lo = wp.vec3(INF)
         hi = wp.vec3(-INF)
         if n.count > 0:
-            for j in range(3 * n.first, 3 * (n.first + n.count)):
-                lo = min3(lo, tri_verts[j])
-                hi = max3(hi, tri_verts[j])
+            for i in range(n.first, n.first + n.count):
+                t = triangle_corners(bvh.vertices, bvh.indices, bvh.tri_ids[i])
+                for m in range(3):
+                    lo = min3(lo, t[m])
+                    hi = max3(hi, t[m])
         else:
             left = nodes[n.first]
             right = nodes[n.first + 1]
@@ -169,24 +158,6 @@ def refit_wide(wide: wp.array(dtype=float), blocks: wp.array(dtype=float), width
                     wide[base + (2 * a + 1) * w + j] = box[1, a]
 
 
-def _plan(bvh: Bvh) -> dict:
-    """What a refit launches, worked out from the tree once and kept on the Bvh."""
-    if bvh.refit_plan is None:
-        device = bvh.device
-        triangles = len(bvh.permutation())  # 0: the empty root, no tree to refit
-        w = bvh.arrays.width
-        bvh.refit_plan = {
-            "positions": wp.array(np.arange(triangles, dtype=np.int32), dtype=int,
-                                  device=device),
-            "blocks": wp.array(np.arange(bvh.stats.leaf_blocks if w > 2 else 0,
-                                         dtype=np.int32), dtype=int, device=device),
-            "nodes": bvh.arrays.nodes.shape[0] if triangles else 0,
-            "wide": bvh.arrays.wide.shape[0] // (int(WORDS_PER_LANE) * w)
-            if w > 2 and triangles else 0,
-        }
-    return bvh.refit_plan
-
-
 def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_RATIO,
               threads: int | None = None) -> Bvh:
     """The BVH of the same triangles at moved `vertices` ((N, 3), the same N as the build's):
@@ -200,7 +171,7 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
     if not rebuild_ratio > 0:
         raise ValueError(f"rebuild_ratio must be > 0, got {rebuild_ratio!r}")
     device = bvh.device
-    compile_ms = load_modules(device, refit_triangles.module)
+    compile_ms = load_modules(device, refit_blocks.module)
     t_total = t0 = time.perf_counter()
     phase_ms: dict[str, float] = {}
     if np.shape(vertices) != bvh.vertices.shape:
@@ -216,21 +187,24 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
         gained_area = bool(np.any(was_flat & ~degenerate_mask(vertices, indices, device)))
     mesh = DeviceMesh(vertices, indices, device, validated=True)
     phase_ms["validate"] = sync_ms(device, t0)
-    plan = _plan(bvh)
     arrays = bvh.arrays
+    arrays.vertices, arrays.indices = mesh.v, mesh.f  # what finish_hit and the refit read
     nthreads = host_threads(device, threads)
-
-    def run(kernel, shared: list, items: wp.array) -> None:
-        launch_claimed(kernel, items.shape[0], [*shared, items], device, nthreads)
+    triangles = arrays.tri_ids.shape[0]  # 0: the empty root, no tree to refit
+    w = arrays.width
+    nodes = arrays.nodes.shape[0] if triangles else 0
+    wide_nodes = arrays.wide.shape[0] // (int(WORDS_PER_LANE) * w) if w > 2 and triangles else 0
 
     t0 = time.perf_counter()
-    run(refit_triangles, [mesh.v, mesh.f, arrays.tri_ids, arrays.tri_verts], plan["positions"])
-    run(refit_blocks, [arrays.tri_verts, arrays.blocks], plan["blocks"])
+    if arrays.tri_verts.shape[0] == 3 * triangles:  # kept for a binary traversal
+        fill_leaf_triangles(arrays, triangles, device, nthreads)
+    launch_claimed(refit_blocks, bvh.stats.leaf_blocks if w > 2 else 0, [arrays], device,
+                   nthreads)
     phase_ms["triangles"] = sync_ms(device, t0)
     t0 = time.perf_counter()
     sah = wp.zeros(1, dtype=wp.float64, device=device)
-    trees = [(refit_binary, [arrays.nodes, arrays.tri_verts, plan["nodes"], sah]),
-             (refit_wide, [arrays.wide, arrays.blocks, arrays.width, plan["wide"]])]
+    trees = [(refit_binary, [arrays, nodes, sah]),
+             (refit_wide, [arrays.wide, arrays.blocks, w, wide_nodes])]
 
     def refit_tree(k: int) -> None:
         wp.launch(trees[k][0], dim=1, inputs=trees[k][1], device=device)
@@ -240,7 +214,7 @@ def refit_bvh(bvh: Bvh, vertices: np.ndarray, *, rebuild_ratio: float = REBUILD_
     box = bvh.nodes()[0]
     e = np.maximum(box["hi"] - box["lo"], np.float32(0.0))
     root = float(e[0] * e[1] + e[1] * e[2] + e[2] * e[0])
-    cost = float(sah.numpy()[0]) / root if root > 0 else float(plan["nodes"])
+    cost = float(sah.numpy()[0]) / root if root > 0 else float(nodes)
     ratio = cost / build_cost if build_cost > 0 else 1.0
     bvh.vertices, bvh.mesh = vertices, mesh
     bvh.bounds = np.stack([box["lo"], box["hi"]]).astype(np.float32)

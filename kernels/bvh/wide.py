@@ -25,7 +25,7 @@ Triangle4). A block is BLOCK_WORDS = 40 words, 160 bytes:
     bytes [  0,  16)  v0.x of the 4 triangles   [ 48,  64) v1.x   [ 96, 112) v2.x
           [ 16,  32)  v0.y                      [ 64,  80) v1.y   [112, 128) v2.y
           [ 32,  48)  v0.z                      [ 80,  96) v1.z   [128, 144) v2.z
-          [144, 160)  int32 leaf-order position of each (into tri_verts / tri_ids)
+          [144, 160)  int32 leaf-order position of each (into tri_ids)
 
 so coordinate k of vertex m is row 3 m + k, and the test's axis permutation (kx, ky, kz)
 is a choice of rows. A last block with fewer than 4 triangles repeats its last one: a
@@ -60,8 +60,9 @@ from ..core.atomics import shared_add, shared_max
 from ..core.box import INF, half_area
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.launch import host_pool
+from ..core.mesh import triangle_corners
 from ..pool.worker import launch_workers
-from .node import BvhNode
+from .node import BvhArrays, BvhNode
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -151,14 +152,15 @@ def prefetch_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int), i:
 @wp.func_native(
     """
 #if !defined(__CUDA_ARCH__)
-    const char* p = (const char*)&tri_verts.data[3 * first];
-    const char* end = (const char*)&tri_verts.data[3 * (first + count)];
+    const char* p = (const char*)&tri_ids.data[first];
+    const char* end = (const char*)&tri_ids.data[first + count];
     for (; p < end; p += 64) __builtin_prefetch(p);
 #endif
 """
 )
-def prefetch_triangles(tri_verts: wp.array(dtype=wp.vec3), first: int, count: int):
-    """Start loading leaf-order triangles [first, first + count) (CPU; a no-op on CUDA)."""
+def prefetch_leaf_ids(tri_ids: wp.array(dtype=int), first: int, count: int):
+    """Start loading the triangle ids of leaf positions [first, first + count) (CPU; a
+    no-op on CUDA)."""
     ...
 
 
@@ -218,15 +220,15 @@ def block_count(triangles: int) -> int:
 
 
 @wp.func
-def fill_block(tri_verts: wp.array(dtype=wp.vec3), blocks: wp.array(dtype=float), block: int,
-               first: int, n: int):
-    """Block `block`: leaf-order triangles [first, first + n) in its lanes, the last one
-    repeated in the lanes after them."""
+def fill_block(bvh: BvhArrays, blocks: wp.array(dtype=float), block: int, first: int, n: int):
+    """Block `block`: leaf-order triangles [first, first + n) in its lanes (from the mesh),
+    the last one repeated in the lanes after them."""
     for k in range(BLOCK):
         i = first + wp.min(k, n - 1)
         base = block * BLOCK_WORDS + k
+        t = triangle_corners(bvh.vertices, bvh.indices, bvh.tri_ids[i])
         for m in range(3):
-            v = tri_verts[3 * i + m]
+            v = t[m]
             for a in range(3):
                 blocks[base + (3 * m + a) * BLOCK] = v[a]
         blocks[base + ROW_POSITION * BLOCK] = bits_float(i)
@@ -395,7 +397,7 @@ def write_lane(wide: wp.array(dtype=float), base: int, width: int, j: int, lo: w
 
 @wp.func
 def write_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int),
-               starts: wp.array(dtype=int), tri_verts: wp.array(dtype=wp.vec3),
+               starts: wp.array(dtype=int), bvh: BvhArrays,
                wide: wp.array(dtype=float), blocks: wp.array(dtype=float), width: int,
                k: int, p: WidePlan, child_base: int, block_base: int):
     """Wide node k from its plan, whose slab's node q is wide node child_base + q and whose
@@ -414,7 +416,7 @@ def write_node(nodes: wp.array(dtype=BvhNode), sizes: wp.array(dtype=int),
                 write_lane(wide, base, width, j, n.lo, n.hi, block, size)
                 first = starts[c]
                 for q in range(block_count(size)):
-                    fill_block(tri_verts, blocks, block, first + q * BLOCK,
+                    fill_block(bvh, blocks, block, first + q * BLOCK,
                                wp.min(BLOCK, size - q * BLOCK))
                     block += 1
             else:
@@ -429,7 +431,7 @@ def collapse_subtrees(
     limit: int,
     sizes: wp.array(dtype=int),
     starts: wp.array(dtype=int),
-    tri_verts: wp.array(dtype=wp.vec3),
+    bvh: BvhArrays,  # the mesh and the leaf order (tri_ids) the blocks are filled from
     top: wp.array(dtype=WidePlan),
     subtrees: wp.array(dtype=int),
     plans: wp.array(dtype=WidePlan),  # `limit` per worker: its subtree's, breadth first
@@ -452,7 +454,7 @@ def collapse_subtrees(
         if t >= queued:
             p = top[t - queued]
             if p.first_child >= 0:  # not a subtree's root
-                write_node(nodes, sizes, starts, tri_verts, wide, blocks, width, t - queued,
+                write_node(nodes, sizes, starts, bvh, wide, blocks, width, t - queued,
                            p, 0, 0)
             continue
         root = subtrees[t]
@@ -460,17 +462,17 @@ def collapse_subtrees(
         # its leaves' blocks are filled from this range, in no order the hardware prefetcher
         # follows: loaded in order while the subtree is planned
         b = plans[slab].binary
-        prefetch_triangles(tri_verts, starts[b], sizes[b])
+        prefetch_leaf_ids(bvh.tri_ids, starts[b], sizes[b])
         r = plan_breadth_first(nodes, sizes, plans, slab, width, 0, subtrees)  # defers none
         count = r[0]
         shared_max(counters, MOST, r[2])
         # its node q > 0 is wide node base + q, its block b is block block_base + b
         base = shared_add(counters, WIDE_NODES, count - 1) - 1
         block_base = shared_add(counters, LEAF_BLOCKS, r[1])
-        write_node(nodes, sizes, starts, tri_verts, wide, blocks, width, root, plans[slab],
+        write_node(nodes, sizes, starts, bvh, wide, blocks, width, root, plans[slab],
                    base, block_base)
         for q in range(1, count):
-            write_node(nodes, sizes, starts, tri_verts, wide, blocks, width, base + q,
+            write_node(nodes, sizes, starts, bvh, wide, blocks, width, base + q,
                        plans[slab + q], base, block_base)
 
 
@@ -481,7 +483,7 @@ def empty_wide(width: int, device) -> wp.array:
     return wp.array(node.ravel(), dtype=float, device=device)
 
 
-def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: int, width: int,
+def collapse(nodes: wp.array, node_count: int, bvh: BvhArrays, triangles: int, width: int,
              device, workers: int, alongside: Callable[[], None] = lambda: None
              ) -> tuple[wp.array, wp.array, dict]:
     """The wide tree of width 4 or 8 of a binary tree of `node_count` nodes over
@@ -489,8 +491,9 @@ def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: i
     most traversal stack entries, leaf blocks). The serial start plans the top, then
     `workers` collapse the subtrees below it; the subtrees' places in the wide tree are in
     the order the workers finish them (the tree, and so every traversal, is the same).
-    `alongside` (what fills `tri_verts`, which only the workers read) runs on the calling
-    thread while the serial start runs on a host thread (on CPU; before it elsewhere)."""
+    The blocks are filled from `bvh`'s mesh in the order of `bvh.tri_ids`; `alongside` (what
+    fills `bvh.tri_ids`, which only the workers read) runs on the calling thread while the
+    serial start runs on a host thread (on CPU; before it elsewhere)."""
     workers = min(workers, MAX_WORKERS)
     inner = max(node_count // 2, 1)  # a wide node is made from an inner binary node
     sizes, starts = (wp.empty(max(node_count, 1), dtype=int, device=device) for _ in range(2))
@@ -516,7 +519,7 @@ def collapse(nodes: wp.array, node_count: int, tri_verts: wp.array, triangles: i
     bound, used = int(c[BOUND]), int(c[BLOCKS])
     wide = wp.empty(bound * int(WORDS_PER_LANE) * width, dtype=float, device=device)
     blocks = wp.empty(max(used, 1) * int(BLOCK_WORDS), dtype=float, device=device)
-    launch_workers(collapse_subtrees, workers, [nodes, width, limit, sizes, starts, tri_verts,
+    launch_workers(collapse_subtrees, workers, [nodes, width, limit, sizes, starts, bvh,
                                                 top, subtrees, plans, wide, blocks, counters],
                    device)
     c = counters.numpy()

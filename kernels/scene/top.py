@@ -104,6 +104,8 @@ def mesh_view(rec: MeshRecord) -> BvhArrays:
     b.tri_ids = wp.array(ptr=rec.tri_ids, shape=(rec.tri_count,), dtype=int)
     b.wide = wp.array(ptr=rec.wide, shape=(rec.wide_count,), dtype=float)
     b.blocks = wp.array(ptr=rec.blocks, shape=(rec.blocks_count,), dtype=float)
+    b.vertices = mesh_vertices(rec)
+    b.indices = mesh_indices(rec)
     b.width = rec.width
     return b
 

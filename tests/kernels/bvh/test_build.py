@@ -56,16 +56,18 @@ def test_sah_cost_statistic_matches_a_float64_sum(shared_scene):
 
 @pytest.mark.parametrize("width", [2, 4, 8])
 def test_bvh_bytes_statistic_counts_right_sized_arrays(width, shared_scene):
-    """bvh_bytes from the tree's own counts and the documented layouts (32-byte nodes, 36
-    bytes and an id per leaf-order triangle, 32 bytes per lane of a wide node, 160-byte leaf
-    blocks): the arrays the Bvh keeps are no larger than the tree (no worst-case buffer
-    kept alive behind a view)."""
+    """bvh_bytes from the tree's own counts and the documented layouts (32-byte nodes, an
+    id per leaf-order triangle and, for the binary traversal alone, its 36 bytes of
+    vertices, 32 bytes per lane of a wide node, 160-byte leaf blocks): the arrays the Bvh
+    keeps are no larger than the tree (no worst-case buffer kept alive behind a view)."""
     scene = shared_scene("conference")  # degenerate triangles: fewer in the tree than given
     s = kernels.build_bvh(scene.vertices, scene.indices, width=width).stats
     n = s.triangles - s.degenerate
     # width 2: a one-word placeholder each for the wide nodes and blocks
+    # width 2: one-entry placeholders for the wide nodes and blocks; else for tri_verts
     wide = 8 if width == 2 else 32 * width * s.wide_nodes + 160 * s.leaf_blocks
-    assert s.bvh_bytes == 32 * s.nodes + 40 * n + wide
+    leaf_vertices = 36 * n if width == 2 else 12
+    assert s.bvh_bytes == 32 * s.nodes + 4 * n + leaf_vertices + wide
 
 
 def test_in_place_exchange_gives_the_pools_tree(shared_scene):

@@ -64,8 +64,8 @@ def test_wide_tree_covers_every_triangle_once_with_tight_boxes(width, method, le
     nodes = decode(bvh)
     assert bvh.stats.wide_nodes == len(nodes)
     blocks = bvh.arrays.blocks.numpy().reshape(-1, 10, 4)
-    tri_verts = bvh.arrays.tri_verts.numpy().reshape(-1, 3, 3)
-    covered = np.zeros(len(tri_verts), dtype=int)
+    corners = bvh.vertices[bvh.indices[bvh.permutation()]]  # (leaf position, vertex, xyz)
+    covered = np.zeros(len(corners), dtype=int)
     reached = np.zeros(len(nodes), dtype=int)
     reached[0] = 1
     for k, n in enumerate(nodes):
@@ -81,7 +81,7 @@ def test_wide_tree_covers_every_triangle_once_with_tight_boxes(width, method, le
                 pos = rows[:, 9].copy().view(np.int32)
                 assert np.array_equal(pos, pos[0] + lanes), f"lane {k}.{j}: leaf positions"
                 tris = rows[:, :9].reshape(-1, 3, 3)
-                assert np.array_equal(tris, tri_verts[pos])
+                assert np.array_equal(tris, corners[pos])
                 if count % 4:
                     last = blocks[block + (count - 1) // 4]
                     assert np.all(last[:, count % 4:] == last[:, count % 4 - 1: count % 4])
@@ -127,7 +127,7 @@ def test_collapse_is_the_same_tree_whatever_the_workers(width):
     v, f = random_soup(np.random.default_rng(8), 4000)
     bvh = kernels.build_bvh(v, f, width=2)
     nodes, n = bvh.arrays.nodes, len(bvh.permutation())
-    trees = [wide.collapse(nodes, nodes.shape[0], bvh.arrays.tri_verts, n, width, bvh.device,
+    trees = [wide.collapse(nodes, nodes.shape[0], bvh.arrays, n, width, bvh.device,
                            workers) for workers in (1, 4)]
     assert trees[0][2] == trees[1][2]
     assert trees[0][2]["wide_nodes"] > 20
