@@ -475,8 +475,10 @@ def test_requests_past_the_connection_cap_get_503(svc) -> None:
 def test_many_event_streams_on_one_job_are_capped(svc, client, scene_id) -> None:
     camera = {"matrix_world": TOP,
               "width": 512, "height": 512}
+    # the most work the budget lets a job have (MAX_WORK): it outlasts the twelve requests,
+    # whose streams would end with it and free their slots
     job_id = client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera,
-                                           "spp": 64}).json()["job_id"]
+                                           "spp": 256}).json()["job_id"]
     streams, statuses = [], []
     try:
         for _ in range(12):
