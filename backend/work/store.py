@@ -29,28 +29,37 @@ def bvh_key(scene_id: str, method: str, leaf_size: int) -> str:
     return f"{scene_id}/bvh/{method}/{leaf_size}"
 
 
-def _array_bytes(value: Any) -> int:
-    """Bytes held by a numpy or Warp array (0 for anything else)."""
-    nbytes = getattr(value, "nbytes", None)
-    if isinstance(nbytes, int):
-        return nbytes
+def _array(value: Any) -> tuple[int, int] | None:
+    """(address, bytes) of a numpy or Warp array; None for anything else."""
+    interface = getattr(value, "__array_interface__", None)  # numpy
+    if isinstance(interface, dict) and isinstance(getattr(value, "nbytes", None), int):
+        return interface["data"][0], value.nbytes
     capacity = getattr(value, "capacity", None)  # wp.array
-    return capacity if isinstance(capacity, int) else 0
+    if isinstance(capacity, int):
+        return getattr(value, "ptr", None) or id(value), capacity
+    return None
 
 
-def _held_bytes(value: Any) -> int:
-    """Bytes of an array, of the arrays in a tuple/list, or of a Warp struct's array fields."""
+def _arrays(value: Any, depth: int = 1) -> list[tuple[int, int]]:
+    """The arrays in `value`: itself, a tuple/list's items, a Warp struct's array fields,
+    or, `depth` levels down, an object's attributes (a Bvh's DeviceMesh)."""
+    found = _array(value)
+    if found is not None:
+        return [found]
     if isinstance(value, tuple | list):
-        return sum(_array_bytes(v) for v in value)
-    struct = getattr(value, "_cls", None)  # a @wp.struct instance: count its fields
+        return [a for v in value for a in _arrays(v, 0)]
+    struct = getattr(value, "_cls", None)  # a @wp.struct instance: its fields
     if struct is not None and isinstance(getattr(struct, "vars", None), dict):
-        return sum(_array_bytes(getattr(value, name, None)) for name in struct.vars)
-    return _array_bytes(value)
+        return [a for name in struct.vars for a in _arrays(getattr(value, name, None), 0)]
+    if depth > 0 and hasattr(value, "__dict__"):
+        return [a for v in vars(value).values() for a in _arrays(v, depth - 1)]
+    return []
 
 
 def bvh_nbytes(bvh: Any) -> int:
-    """Bytes a built BVH holds: host arrays, device arrays and its struct's arrays."""
-    total = sum(_held_bytes(v) for v in vars(bvh).values()) if hasattr(bvh, "__dict__") else 0
+    """Bytes a built BVH holds: host arrays, device arrays and its struct's arrays, each
+    buffer once (on CPU the device mesh is the host arrays themselves)."""
+    total = sum(dict(_arrays(bvh)).values())
     if total == 0:  # an engine object we cannot inspect: estimate from its statistics
         total = int(getattr(getattr(bvh, "stats", None), "nodes", 0)) * _NODE_BYTES_ESTIMATE
     return max(total, 1)

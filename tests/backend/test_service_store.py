@@ -56,13 +56,14 @@ def test_budget_must_be_positive() -> None:
         Store(0)
 
 
-def test_a_real_bvh_is_charged_for_its_device_arrays(box_scene) -> None:
-    """The cache budget counts the BVH's nodes and triangle copies, not just its inputs."""
+def test_a_real_bvh_is_charged_for_each_of_its_arrays_once(box_scene) -> None:
+    """The cache budget counts the BVH's tree, not just its inputs, and its mesh once: on
+    CPU the device mesh (in the Bvh, its DeviceMesh and its struct) is the input arrays."""
     from scenesort.backend.work.store import bvh_nbytes
 
     from scenesort import kernels
 
-    vertices, indices = box_scene
-    bvh = kernels.build_bvh(vertices, indices, device="cpu")
-    inputs = vertices.nbytes + indices.nbytes
-    assert bvh_nbytes(bvh) > inputs + 32 * bvh.stats.nodes
+    bvh = kernels.build_bvh(*box_scene, device="cpu")
+    inputs = bvh.vertices.nbytes + bvh.indices.nbytes
+    assert bvh.stats.bvh_bytes > 32 * bvh.stats.nodes
+    assert bvh_nbytes(bvh) == inputs + bvh.stats.bvh_bytes + bvh.bounds.nbytes
