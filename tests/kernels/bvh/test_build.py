@@ -54,6 +54,21 @@ def test_sah_cost_statistic_matches_a_float64_sum(shared_scene):
     assert bvh.stats.sah_cost == pytest.approx(expected, rel=1e-6)
 
 
+def test_cpu_build_reads_the_callers_arrays_in_place():
+    """On CPU float32 vertices and int32 indices are the BVH's mesh themselves (docs/
+    kernels-api.md: read as Embree reads shared buffers), not copies; other dtypes are
+    converted once."""
+    v, f = random_soup(np.random.default_rng(11), 300)
+    v, f = v.astype(np.float32), f.astype(np.int32)
+    bvh = kernels.build_bvh(v, f, device="cpu")
+    assert bvh.mesh.v.ptr == v.ctypes.data and bvh.mesh.f.ptr == f.ctypes.data
+    assert bvh.arrays.vertices.ptr == v.ctypes.data
+    converted = kernels.build_bvh(v.astype(np.float64), f.astype(np.int64), device="cpu")
+    assert converted.mesh.v.ptr != v.ctypes.data
+    assert np.array_equal(converted.mesh.v.numpy(), v)
+    assert np.array_equal(converted.mesh.f.numpy(), f)
+
+
 @pytest.mark.parametrize("width", [2, 4, 8])
 def test_bvh_bytes_statistic_counts_right_sized_arrays(width, shared_scene):
     """bvh_bytes from the tree's own counts and the documented layouts (32-byte nodes, an
