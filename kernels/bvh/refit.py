@@ -44,6 +44,7 @@ from .wide import (
     ROW_POSITION,
     WORDS_PER_LANE,
     float_bits,
+    store_lane_corners,
 )
 
 wp.set_module_options(MODULE_OPTIONS)
@@ -63,11 +64,8 @@ def refit_blocks(bvh: BvhArrays, claims: Claims):
     for b in range(items[0], items[1]):
         for k in range(BLOCK):
             base = b * BLOCK_WORDS + k
-            i = float_bits(bvh.blocks[base + ROW_POSITION * BLOCK])
-            t = triangle_corners(bvh.vertices, bvh.indices, bvh.tri_ids[i])
-            for m in range(3):
-                for a in range(3):
-                    bvh.blocks[base + (3 * m + a) * BLOCK] = t[m, a]
+            store_lane_corners(bvh, bvh.blocks, base,
+                               float_bits(bvh.blocks[base + ROW_POSITION * BLOCK]))
 
 
 @wp.func

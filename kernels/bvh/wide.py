@@ -220,17 +220,23 @@ def block_count(triangles: int) -> int:
 
 
 @wp.func
+def store_lane_corners(bvh: BvhArrays, blocks: wp.array(dtype=float), base: int, i: int):
+    """The corners of leaf position i, from the mesh, into the block lane whose first word
+    is `base` (its coordinate rows; the build and the refit)."""
+    t = triangle_corners(bvh.vertices, bvh.indices, bvh.tri_ids[i])
+    for m in range(3):
+        for a in range(3):
+            blocks[base + (3 * m + a) * BLOCK] = t[m, a]
+
+
+@wp.func
 def fill_block(bvh: BvhArrays, blocks: wp.array(dtype=float), block: int, first: int, n: int):
     """Block `block`: leaf-order triangles [first, first + n) in its lanes (from the mesh),
     the last one repeated in the lanes after them."""
     for k in range(BLOCK):
         i = first + wp.min(k, n - 1)
         base = block * BLOCK_WORDS + k
-        t = triangle_corners(bvh.vertices, bvh.indices, bvh.tri_ids[i])
-        for m in range(3):
-            v = t[m]
-            for a in range(3):
-                blocks[base + (3 * m + a) * BLOCK] = v[a]
+        store_lane_corners(bvh, blocks, base, i)
         blocks[base + ROW_POSITION * BLOCK] = bits_float(i)
 
 
@@ -459,8 +465,8 @@ def collapse_subtrees(
             continue
         root = subtrees[t]
         plans[slab] = top[root]
-        # its leaves' blocks are filled from this range, in no order the hardware prefetcher
-        # follows: loaded in order while the subtree is planned
+        # its leaves' blocks are filled from this range of ids, in no order the hardware
+        # prefetcher follows: loaded in order while the subtree is planned
         b = plans[slab].binary
         prefetch_leaf_ids(bvh.tri_ids, starts[b], sizes[b])
         r = plan_breadth_first(nodes, sizes, plans, slab, width, 0, subtrees)  # defers none
