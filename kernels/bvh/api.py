@@ -51,7 +51,7 @@ Width = Literal[2, 4, 8]
 # the binary tree on other CPUs (the lane-by-lane wide traversal ran slower than it, docs/
 # architecture.md, "Wide BVH") and on CUDA (an H200 ran the wide one, lane by lane, 10-30x
 # slower; CUDA kernels now traverse the binary tree whatever the width, see
-# traversal.wide_tree_traversed).
+# leaf.wide_tree_traversed).
 SIMD_WIDTH, PORTABLE_WIDTH = 8, 2
 # K of eq. 3.1 per device: the paper's 14 on CPU; on CUDA 64, where 33,792 one-thread workers
 # grabbing fewer, larger runs of chunks built Conference 1.5x and the 1.1 M-triangle bunny 3x

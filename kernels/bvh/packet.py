@@ -13,7 +13,7 @@ import warp as wp
 from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import FAR_WIDEN, Hit, make_ray, per_ray
-from .leaf import finish_hit
+from .leaf import finish_hit, leaf_position
 from .node import BvhArrays
 from .traversal import traverse, traverse_leaf_order
 from .wide import NATIVE_LAYOUT
@@ -116,9 +116,10 @@ def trace_packet_hits(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
     trace_packet_leaf_order(bvh, origins, directions, tmin, tmax, first, last, out_t,
                             out_triangle, out_u, out_v)
     for k in range(first, last):
-        h = finish_hit(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
-                       per_ray(tmax, k), read_hit(out_t, out_triangle, out_u, out_v, k))
-        write_hit(h, k, out_t, out_triangle, out_u, out_v)
+        if out_triangle[k] >= 0:  # a miss is written already, and its ray need not be made
+            h = finish_hit(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
+                           per_ray(tmax, k), read_hit(out_t, out_triangle, out_u, out_v, k))
+            write_hit(h, k, out_t, out_triangle, out_u, out_v)
 
 
 @wp.func(inline=False)  # inlined, it made the film kernel around it 1.3x slower
@@ -148,7 +149,7 @@ def trace_occlusion_group(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
             write_hit(any_hit_ray(bvh, origins, directions, tmin, tmax, k, find_any), k, out_t,
                       out_triangle, out_u, out_v)
         elif out_triangle[k] >= 0:
-            out_triangle[k] = bvh.tri_ids[out_triangle[k]]
+            out_triangle[k] = bvh.tri_ids[leaf_position(bvh, out_triangle[k])]
 
 
 @wp.kernel

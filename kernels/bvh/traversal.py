@@ -14,7 +14,7 @@ from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.ray import Hit, Ray, hit_distance, intersect_box, make_ray, no_hit, per_ray
 from .binary_traversal import BinaryTree, make_binary_traversal
-from .leaf import finish_traversal, intersect_leaf, leaf_order_hit
+from .leaf import finish_traversal, intersect_leaf, leaf_order_hit, wide_leaves
 from .node import BvhArrays
 from .wide_traversal import traverse_wide
 
@@ -35,30 +35,13 @@ def traverse_binary(bvh: BvhArrays, r: Ray, tmin: float, tmax: float, any_hit: b
     return traverse_binary_tree(bvh, bvh.nodes, r, tmin, tmax, any_hit)
 
 
-@wp.func_native(
-    """
-#if defined(__CUDA_ARCH__)
-    return 0;
-#else
-    return 1;
-#endif
-"""
-)
-def wide_tree_traversed() -> int:
-    """1 on CPU, 0 on CUDA: a constant the compiler folds, so that a CUDA kernel holds the
-    binary traversal alone. Compiled in, the wide traversal (lane by lane on CUDA) cost the
-    trace kernel 255 registers and a 3 kB stack, and ran 10-30x slower than the binary one
-    on an H200; the binary tree it was collapsed from is always there."""
-    ...
-
-
 @wp.func
 def traverse_leaf_order(bvh: BvhArrays, r: Ray, tmin: float, tmax: float,
                         any_hit: bool) -> Hit:
-    """`traverse`'s hit as the traversal found it: hit.triangle a leaf position, t, u, v
-    unrefined (`leaf.finish_traversal` finishes it). Two-level scenes compare these
+    """`traverse`'s hit as the traversal found it: hit.triangle its reference (leaf.py), t,
+    u, v unrefined (`leaf.finish_traversal` finishes it). Two-level scenes compare these
     across instances and finish the closest alone."""
-    if wide_tree_traversed() != 0 and bvh.width > 2:
+    if wide_leaves(bvh):
         return traverse_wide(bvh, r, tmin, tmax, any_hit)
     return traverse_binary(bvh, r, tmin, tmax, any_hit)
 

@@ -230,6 +230,28 @@ def store_lane_corners(bvh: BvhArrays, blocks: wp.array(dtype=float), base: int,
 
 
 @wp.func
+def lane_word(ref: int) -> int:
+    """The first word of block lane `ref` (block * BLOCK + lane: a wide traversal's hit)."""
+    return (ref / BLOCK) * BLOCK_WORDS + ref % BLOCK
+
+
+@wp.func
+def lane_corners(blocks: wp.array(dtype=float), ref: int) -> wp.mat33:
+    """Rows: the three corners of block lane `ref` (store_lane_corners's)."""
+    b = lane_word(ref)
+    return wp.matrix_from_rows(
+        wp.vec3(blocks[b], blocks[b + BLOCK], blocks[b + 2 * BLOCK]),
+        wp.vec3(blocks[b + 3 * BLOCK], blocks[b + 4 * BLOCK], blocks[b + 5 * BLOCK]),
+        wp.vec3(blocks[b + 6 * BLOCK], blocks[b + 7 * BLOCK], blocks[b + 8 * BLOCK]))
+
+
+@wp.func
+def lane_position(blocks: wp.array(dtype=float), ref: int) -> int:
+    """The leaf-order position of block lane `ref`'s triangle."""
+    return float_bits(blocks[lane_word(ref) + ROW_POSITION * BLOCK])
+
+
+@wp.func
 def fill_block(bvh: BvhArrays, blocks: wp.array(dtype=float), block: int, first: int, n: int):
     """Block `block`: leaf-order triangles [first, first + n) in its lanes (from the mesh),
     the last one repeated in the lanes after them."""

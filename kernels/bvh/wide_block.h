@@ -57,10 +57,18 @@
         return __builtin_ia32_movmskps((f4)ok);
     };
     // Of block p's lanes in `mask` (block_test's), the nearest (`ordered`; else the first)
-    // goes into the hit (t, u, v, leaf position) if nearer, or as near at an earlier leaf
-    // position (so that ties go alike whatever the order of the visits); true if it did.
-    auto keep_hit = [&](const float* p, int mask, f4 t, f4 v, f4 w, f4 inv_det, bool ordered,
-                        float& hit_t, float& hit_u, float& hit_v, int& hit_position) -> bool {
+    // goes into the hit (t, u, v, and its reference `block_index * BLOCK + lane`, from which
+    // the finish reads the corners while the block is still cached: bvh/leaf.py) if nearer,
+    // or as near at an earlier leaf position (so that ties go alike whatever the order of
+    // the visits); true if it did.
+    auto block_position = [&](int ref) {
+        int position;
+        __builtin_memcpy(&position, blocks.data + (long long)(ref / BLOCK) * BLOCK_WORDS
+                                    + ROW_POSITION * BLOCK + ref % BLOCK, sizeof(int));
+        return position;
+    };
+    auto keep_hit = [&](int block_index, int mask, f4 t, f4 v, f4 w, f4 inv_det, bool ordered,
+                        float& hit_t, float& hit_u, float& hit_v, int& hit_ref) -> bool {
         int best = __builtin_ctz(mask);
         if (ordered) {
             for (int m = mask & (mask - 1); m; m &= m - 1) {
@@ -69,13 +77,13 @@
                     best = l;
             }
         }
-        int position;
-        __builtin_memcpy(&position, p + ROW_POSITION * BLOCK + best, sizeof(int));
-        if (!(t[best] < hit_t || (t[best] == hit_t && position < hit_position)))
+        const int ref = block_index * BLOCK + best;
+        if (!(t[best] < hit_t || (t[best] == hit_t && hit_ref >= 0
+                                  && block_position(ref) < block_position(hit_ref))))
             return false;
         hit_t = t[best];
         hit_u = v[best] * inv_det[best];
         hit_v = w[best] * inv_det[best];
-        hit_position = position;
+        hit_ref = ref;
         return true;
     };

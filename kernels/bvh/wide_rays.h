@@ -23,7 +23,7 @@
     float org[3][RAYS], inv[3][RAYS], shear[3][RAYS], tlo[RAYS], tfar[RAYS];
     int axis[3][RAYS], near_row[3][RAYS], far_row[3][RAYS];
     float hit_t[RAYS], hit_u[RAYS], hit_v[RAYS];
-    int hit_pos[RAYS];
+    int hit_ref[RAYS];
     // Ray k of the arguments into column i, without a hit; false where the SIMD tests do
     // not apply: a direction component 0 (wide_simd.h's careful path), an origin not finite.
     auto load_ray = [&](int i, int k) -> bool {
@@ -60,7 +60,7 @@
         tfar[i] = tmax.data[k < tmax.shape[0] ? k : tmax.shape[0] - 1];
         hit_t[i] = inf;
         hit_u[i] = hit_v[i] = 0.0f;
-        hit_pos[i] = -1;
+        hit_ref[i] = -1;
         return true;
     };
     const f8 widen8 = splat8(widen);
@@ -102,8 +102,8 @@ WIDE_BLOCK_TEST
             const int mask = block_test(p, kx, ky, kz, ox, oy, oz, sx, sy, sz, tmin4,
                                         hit_t[i] < tfar[i] ? hit_t[i] : tfar[i], t, v, w,
                                         inv_det);
-            if (mask && keep_hit(p, mask, t, v, w, inv_det, ordered, hit_t[i], hit_u[i],
-                                 hit_v[i], hit_pos[i])) {
+            if (mask && keep_hit(block + q, mask, t, v, w, inv_det, ordered, hit_t[i], hit_u[i],
+                                 hit_v[i], hit_ref[i])) {
                 found = true;
                 if (!ordered)
                     break;
@@ -111,13 +111,13 @@ WIDE_BLOCK_TEST
         }
         return found;
     };
-    // Writes the group's hits to the outputs (t inf, leaf position -1 on a miss).
+    // Writes the group's hits to the outputs (t inf, hit reference -1 on a miss: wide_block.h).
     auto store_hits = [&](int n) {
         for (int i = 0; i < n; ++i) {
             const int k = first_ray + i;
             out_t.data[k] = hit_t[i];
             out_u.data[k] = hit_u[i];
             out_v.data[k] = hit_v[i];
-            out_triangle.data[k] = hit_pos[i];
+            out_triangle.data[k] = hit_ref[i];
         }
     };

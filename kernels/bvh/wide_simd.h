@@ -209,8 +209,8 @@ WIDE_BLOCK_TEST
 #if defined(WIDE_SIMD_NODE_TEST)
     return visit_node(node, tmax);
 #else
-    // Visit the leaf of reference -(slot + 1): a closer hit goes into `hit` with its leaf
-    // position; true when an any-hit ray is done.
+    // Visit the leaf of reference -(slot + 1): a closer hit goes into `hit` with its block
+    // lane (keep_hit); true when an any-hit ray is done.
     auto visit_leaf = [&](int slot) -> bool {
         const int* lane_words = words + (long long)(slot >> LANE_BITS) * (WORDS_PER_LANE * width)
                                 + (slot & (MAX_WIDTH - 1));
@@ -221,7 +221,7 @@ WIDE_BLOCK_TEST
             f4 t, v, w, inv_det;
             const int mask = block_test(p, kx, ky, kz, ox, oy, oz, sx, sy, sz, tmin4,
                                         hit.t < tmax ? hit.t : tmax, t, v, w, inv_det);
-            if (mask && keep_hit(p, mask, t, v, w, inv_det, ordered, hit.t, hit.u, hit.v,
+            if (mask && keep_hit(block + q, mask, t, v, w, inv_det, ordered, hit.t, hit.u, hit.v,
                                  hit.triangle) && !ordered)
                 return true;
         }

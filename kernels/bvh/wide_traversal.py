@@ -40,16 +40,16 @@ from ..core.triangle import intersect_triangle
 from .node import BvhArrays
 from .wide import (
     BLOCK,
-    BLOCK_WORDS,
     MAX_WIDTH,
     NATIVE_LAYOUT,
     ROW_CHILD,
     ROW_COUNT,
-    ROW_POSITION,
     WORDS_PER_LANE,
     WideDists,
     WideStack,
     float_bits,
+    lane_corners,
+    lane_position,
 )
 
 wp.set_module_options(MODULE_OPTIONS)
@@ -177,22 +177,18 @@ def wide_node_portable(bvh: BvhArrays, node: int, r: Ray, tmin: float, tmax: flo
 @wp.func
 def leaf_portable(bvh: BvhArrays, block: int, count: int, r: Ray, tmin: float, tmax: float,
                   any_hit: bool, hit: wp.ref[Hit]) -> bool:
-    """leaf_simd triangle by triangle with intersect_triangle."""
+    """leaf_simd triangle by triangle with intersect_triangle (the hit: its block lane)."""
     for k in range(count):
-        base = (block + k / BLOCK) * BLOCK_WORDS + k % BLOCK
-        v0 = wp.vec3(bvh.blocks[base], bvh.blocks[base + BLOCK], bvh.blocks[base + 2 * BLOCK])
-        v1 = wp.vec3(bvh.blocks[base + 3 * BLOCK], bvh.blocks[base + 4 * BLOCK],
-                     bvh.blocks[base + 5 * BLOCK])
-        v2 = wp.vec3(bvh.blocks[base + 6 * BLOCK], bvh.blocks[base + 7 * BLOCK],
-                     bvh.blocks[base + 8 * BLOCK])
-        h = intersect_triangle(r, v0, v1, v2, tmin, wp.min(hit.t, tmax))
-        position = float_bits(bvh.blocks[base + ROW_POSITION * BLOCK])
-        if h[0] < hit.t or (h[0] == hit.t and position < hit.triangle):
-            hit.t = h[0]
+        ref = block * BLOCK + k
+        c = lane_corners(bvh.blocks, ref)
+        h = intersect_triangle(r, c[0], c[1], c[2], tmin, wp.min(hit.t, tmax))
+        if h[0] < hit.t or (h[0] == hit.t and hit.triangle >= 0
+                            and lane_position(bvh.blocks, ref)
+                            < lane_position(bvh.blocks, hit.triangle)):
             hit.t = h[0]
             hit.u = h[1]
             hit.v = h[2]
-            hit.triangle = position
+            hit.triangle = ref
             if any_hit:
                 return True
     return False
