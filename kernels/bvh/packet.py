@@ -40,12 +40,13 @@ def traverse_packet_simd(wide: wp.array(dtype=float), blocks: wp.array(dtype=flo
                          width_arg: int, origins: wp.array(dtype=wp.vec3),
                          directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
                          tmax: wp.array(dtype=float), first_ray: int, last_ray: int,
-                         widen: float, out_t: wp.array(dtype=float),
-                         out_triangle: wp.array(dtype=int), out_u: wp.array(dtype=float),
-                         out_v: wp.array(dtype=float)) -> int:
-    """Rays [first_ray, last_ray) as one packet: each closest hit in [tmin, tmax] (t, leaf
-    position, u, v; t inf and -1 on a miss) into the outputs; 0 where the packet traversal
-    does not apply (wide_packet.h's header), the outputs untouched."""
+                         widen: float, tri_ids: wp.array(dtype=int), finish: int,
+                         out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
+                         out_u: wp.array(dtype=float), out_v: wp.array(dtype=float)) -> int:
+    """Rays [first_ray, last_ray) as one packet: each closest hit in [tmin, tmax] into the
+    outputs (t inf and -1 on a miss), finished as `leaf.finish_hit` does where `finish` is
+    1, else as found (t, u, v unrefined, the hit's reference: leaf.py); 0 where the packet
+    traversal does not apply (wide_packet.h's header), the outputs untouched."""
     ...
 
 
@@ -87,22 +88,35 @@ def write_hit(h: Hit, k: int, t: wp.array(dtype=float), triangle: wp.array(dtype
 
 
 @wp.func
+def trace_packet(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
+                 directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                 tmax: wp.array(dtype=float), first: int, last: int, finish: bool,
+                 out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
+                 out_u: wp.array(dtype=float), out_v: wp.array(dtype=float)):
+    """The closest hits of rays [first, last): as one packet where the packet traversal
+    takes them, else ray by ray; as `traverse` gives them (`finish`) or as
+    `traverse_leaf_order` does."""
+    packed = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions, tmin,
+                                  tmax, first, last, FAR_WIDEN, bvh.tri_ids,
+                                  wp.where(finish, 1, 0), out_t, out_triangle, out_u, out_v)
+    if packed == 0:
+        for k in range(first, last):
+            r = make_ray(origins[k], directions[k])
+            h = traverse_leaf_order(bvh, r, per_ray(tmin, k), per_ray(tmax, k), False)
+            if finish:
+                h = finish_hit(bvh, r, per_ray(tmin, k), per_ray(tmax, k), h)
+            write_hit(h, k, out_t, out_triangle, out_u, out_v)
+
+
+@wp.func
 def trace_packet_leaf_order(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                             directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
                             tmax: wp.array(dtype=float), first: int, last: int,
                             out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
                             out_u: wp.array(dtype=float), out_v: wp.array(dtype=float)):
-    """The closest hits of rays [first, last) as `traverse_leaf_order` gives them (leaf
-    positions, unrefined): as one packet where the packet traversal takes them, else ray by
-    ray."""
-    packed = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions, tmin,
-                                  tmax, first, last, FAR_WIDEN, out_t, out_triangle, out_u,
-                                  out_v)
-    if packed == 0:
-        for k in range(first, last):
-            h = traverse_leaf_order(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
-                                    per_ray(tmax, k), False)
-            write_hit(h, k, out_t, out_triangle, out_u, out_v)
+    """`trace_packet`'s hits as found (hit references, unrefined)."""
+    trace_packet(bvh, origins, directions, tmin, tmax, first, last, False, out_t,
+                 out_triangle, out_u, out_v)
 
 
 @wp.func
@@ -111,15 +125,9 @@ def trace_packet_hits(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
                       tmax: wp.array(dtype=float), first: int, last: int,
                       out_t: wp.array(dtype=float), out_triangle: wp.array(dtype=int),
                       out_u: wp.array(dtype=float), out_v: wp.array(dtype=float)):
-    """The closest hits of rays [first, last) as `traverse` gives them (refined, the
-    caller's triangle index)."""
-    trace_packet_leaf_order(bvh, origins, directions, tmin, tmax, first, last, out_t,
-                            out_triangle, out_u, out_v)
-    for k in range(first, last):
-        if out_triangle[k] >= 0:  # a miss is written already, and its ray need not be made
-            h = finish_hit(bvh, make_ray(origins[k], directions[k]), per_ray(tmin, k),
-                           per_ray(tmax, k), read_hit(out_t, out_triangle, out_u, out_v, k))
-            write_hit(h, k, out_t, out_triangle, out_u, out_v)
+    """`trace_packet`'s hits finished (refined, the caller's triangle index)."""
+    trace_packet(bvh, origins, directions, tmin, tmax, first, last, True, out_t,
+                 out_triangle, out_u, out_v)
 
 
 @wp.func(inline=False)  # inlined, it made the film kernel around it 1.3x slower

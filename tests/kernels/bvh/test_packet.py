@@ -40,7 +40,7 @@ def packets_taken(bvh: BvhArrays, origins: wp.array(dtype=wp.vec3),
         taken[p] = traverse_packet_simd(bvh.wide, bvh.blocks, bvh.width, origins, directions,
                                         tmin, tmax, first,
                                         wp.min(first + PACKET, origins.shape[0]), FAR_WIDEN,
-                                        out_t, out_triangle, out_u, out_v)
+                                        bvh.tri_ids, 0, out_t, out_triangle, out_u, out_v)
     else:
         first = p * GROUP
         taken[p] = traverse_occlusion_simd(bvh.wide, bvh.blocks, bvh.width, origins,
@@ -96,6 +96,27 @@ def test_camera_packets_equal_single_rays_on_shared_scenes(name, shared_scene):
             identical(kernels.trace(bvh, oo, dd, tmax=tmax),
                       single(bvh, oo, dd, tmax=tmax))
     assert taken(bvh, *tiles(o, d, 160, 120)).mean() > 0.75
+
+
+def test_finished_packets_clamp_to_each_rays_range(shared_scene):
+    """A packet's hits are finished in native code (four float64 refinements a vector): with
+    each ray's range ending or starting at its own float32 hit (the refined t clamped to the
+    range on one side or the other, or the hit cut), t, u, v and the triangle bit for bit
+    as ray by ray, where `leaf.finish_hit` refines them."""
+    scene = shared_scene("sponza")
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    cam = type(scene.camera).from_dict({**scene.camera.to_dict(), "width": 96, "height": 96})
+    o, d, _, _ = cam.rays()
+    o, d = tiles(o, d, 96, 96)
+    t = kernels.trace(bvh, o, d).t
+    t = np.where(np.isfinite(t), t, np.float32(1e30)).astype(np.float32)
+    below = np.nextafter(t, np.float32(0)).astype(np.float32)
+    above = np.nextafter(t, np.float32(np.inf)).astype(np.float32)
+    for kw in ({"tmax": t}, {"tmax": below}, {"tmin": t}, {"tmin": above}):
+        hits = kernels.trace(bvh, o, d, **kw)
+        assert (hits.triangle >= 0).sum() > len(o) / 10
+        identical(hits, single(bvh, o, d, **kw))
+    assert taken(bvh, o, d).mean() > 0.75
 
 
 def test_packets_equal_brute_force_with_per_ray_ranges():
