@@ -183,6 +183,26 @@ WIDE_RAYS
         return __builtin_ia32_movmskps256((f8)(lo <= hi));
     };
 
+    // The reference of lane j of inner node reference `node` (wide_simd.h's).
+    auto child_ref = [&](int node, int j) {
+        const int* w = words + (long long)(node - 1) * (WORDS_PER_LANE * width);
+        return w[ROW_COUNT * width + j] > 0 ? -((node - 1) * MAX_WIDTH + j + 1)
+                                            : w[ROW_CHILD * width + j] + 1;
+    };
+    // `entry` pushed at distance `dist` among the entries above `top`, farthest deepest, at
+    // equal distances the later one nearer (wide_simd.h's order).
+    auto push_sorted = [](auto* entries, float* dists, int& sp, int top, auto entry,
+                          float dist) {
+        int p = sp;
+        while (p > top && dists[p - 1] < dist) {
+            entries[p] = entries[p - 1];
+            dists[p] = dists[p - 1];
+            --p;
+        }
+        entries[p] = entry;
+        dists[p] = dist;
+        ++sp;
+    };
     // Ray i alone through the subtree of reference `root` (wide_simd.h's traversal from
     // there: children near to far by its own entry distances, entries beyond its closest
     // hit skipped); true if its hit changed. Where a packet's range is down to one ray,
@@ -213,23 +233,10 @@ WIDE_RAYS
                 node = 0;
             } else {
                 const float* nd = wide.data + (long long)(node - 1) * (WORDS_PER_LANE * width);
-                const int* w = words + (long long)(node - 1) * (WORDS_PER_LANE * width);
-                const int mask = ray_mask(nd, i, t0);
                 const int top = rsp;
-                for (int m = mask; m; m &= m - 1) {  // farthest deepest, ties: later lane nearer
+                for (int m = ray_mask(nd, i, t0); m; m &= m - 1) {
                     const int j = __builtin_ctz(m);
-                    const int ref = w[ROW_COUNT * width + j] > 0
-                                        ? -((node - 1) * MAX_WIDTH + j + 1)
-                                        : w[ROW_CHILD * width + j] + 1;
-                    int p = rsp;
-                    while (p > top && rdist[p - 1] < t0[j]) {
-                        rstack[p] = rstack[p - 1];
-                        rdist[p] = rdist[p - 1];
-                        --p;
-                    }
-                    rstack[p] = ref;
-                    rdist[p] = t0[j];
-                    ++rsp;
+                    push_sorted(rstack, rdist, rsp, top, child_ref(node, j), t0[j]);
                 }
                 node = 0;
             }
@@ -321,21 +328,11 @@ WIDE_RAYS
         }
         // Children pushed farthest first, the nearest on top, at equal distances the later
         // lane nearer (wide_simd.h's order); each keeps the frustum's entry bound.
-        const int* w = words + (long long)(e.ref - 1) * (WORDS_PER_LANE * width);
         const int top = sp;
         for (int m = entered; m; m &= m - 1) {
             const int j = __builtin_ctz(m);
-            const int ref = w[ROW_COUNT * width + j] > 0 ? -((e.ref - 1) * MAX_WIDTH + j + 1)
-                                                         : w[ROW_CHILD * width + j] + 1;
-            int p = sp;
-            while (p > top && stack_order[p - 1] < order[j]) {
-                stack[p] = stack[p - 1];
-                stack_order[p] = stack_order[p - 1];
-                --p;
-            }
-            stack[p] = Entry{ref, firsts[j], lasts[j], lower[j]};
-            stack_order[p] = order[j];
-            ++sp;
+            push_sorted(stack, stack_order, sp, top,
+                        Entry{child_ref(e.ref, j), firsts[j], lasts[j], lower[j]}, order[j]);
         }
     }
     if (finish)
