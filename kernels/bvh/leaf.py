@@ -4,8 +4,8 @@ wide traversal, so both report bit-identical hits). Until the end, hit.triangle 
 reference: on a tree traversed wide (`wide_leaves`) the block lane whose test found it
 (block * BLOCK + lane), else the leaf position; `finish_hit` (or, for an any hit,
 `leaf_position` and tri_ids) maps it to the caller's index. The block lane lets the finish
-read the corners from the block the leaf test just read: from the mesh, three dependent
-reads a hit, they cost closest hits on the blade 35 ns of 360 a ray."""
+read the corners from the block the leaf test just read: from the mesh (three dependent
+reads) the blade's closest hits took 360 ns a ray on one thread, 290 from the block."""
 
 from __future__ import annotations
 
