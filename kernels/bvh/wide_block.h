@@ -61,10 +61,12 @@
     // the finish reads the corners while the block is still cached: bvh/leaf.py) if nearer,
     // or as near at an earlier leaf position (so that ties go alike whatever the order of
     // the visits); true if it did.
+    auto lane_at = [&](int ref) {  // block lane `ref`'s first word (wide.lane_word)
+        return blocks.data + (long long)(ref / BLOCK) * BLOCK_WORDS + ref % BLOCK;
+    };
     auto block_position = [&](int ref) {
         int position;
-        __builtin_memcpy(&position, blocks.data + (long long)(ref / BLOCK) * BLOCK_WORDS
-                                    + ROW_POSITION * BLOCK + ref % BLOCK, sizeof(int));
+        __builtin_memcpy(&position, lane_at(ref) + ROW_POSITION * BLOCK, sizeof(int));
         return position;
     };
     auto keep_hit = [&](int block_index, int mask, f4 t, f4 v, f4 w, f4 inv_det, bool ordered,
