@@ -321,6 +321,25 @@ def device_camera(camera: Camera) -> FilmCamera:
     return cam
 
 
+# Pixels go to the kernels in square tiles of TILE: the rays of a tile's pixels meet the
+# same nodes and leaves, which stay in the cache between them. Issue 33's six Suzannes (1.5M
+# triangles, 320x240, 64 spp): 5-7% faster than rows, the same image; 8 and Morton order
+# gave about as much, 4 less; the shared scenes' trees (<= 1.1M triangles, 16 spp) neither
+# gain nor lose.
+TILE = 16
+
+
+def tile_order(width: int, height: int) -> np.ndarray:
+    """The row-major indices of a width x height image's pixels, tile by tile (TILE x TILE
+    tiles in rows, the pixels of each in rows; tiles at the right and bottom edges may be
+    smaller)."""
+    row, col = np.arange(height), np.arange(width)
+    tiles_across = -(-width // TILE)
+    key = ((row // TILE * tiles_across)[:, None] + (col // TILE)[None, :]) * (TILE * TILE)
+    key += (row % TILE * TILE)[:, None] + (col % TILE)[None, :]
+    return np.argsort(key.ravel(), kind="stable")
+
+
 def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = None, *,
                 normals: Any = None, terminator_offset: float | np.ndarray | None = None,
                 occluders: Bvh | Scene | None = None, progress: Progress | None = None,
@@ -365,11 +384,12 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
     mid, quarter = nested_marks(0, m)
     share = 0.5 if opts.adaptive else 1.0  # of the progress bar
     bounds = round_bounds(n, m)
+    order = tile_order(camera.width, camera.height)
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         report(share * float(a) / n, "film")
-        pixels = np.arange(a, b)
-        (first_open[a:b], first_mid[a:b], first_quarter[a:b],
-         hits[a:b]) = trace(pixels, 0, m, mid, quarter)
+        pixels = order[a:b]
+        (first_open[pixels], first_mid[pixels], first_quarter[pixels],
+         hits[pixels]) = trace(pixels, 0, m, mid, quarter)
     covered = np.flatnonzero(hits)
 
     def trace_round(select: np.ndarray, first: int, count: int, mid: int,
@@ -434,10 +454,14 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
                         group_rays(parts, isinstance(occluders, Scene), device))]
         return kept[0]
 
+    tile_rank = np.argsort(tile_order(camera.width, camera.height))
+
     def trace(pixels: np.ndarray, first: int, count: int, mid: int,
               quarter: int) -> tuple[np.ndarray, ...]:
+        """Any pixels, traced tile by tile (TILE), the results in `pixels`' order."""
         k = len(pixels)
-        active = wp.array(pixels.astype(np.int32), dtype=int, device=device)
+        tiled = np.argsort(tile_rank[pixels], kind="stable")
+        active = wp.array(pixels[tiled].astype(np.int32), dtype=int, device=device)
         outs = [wp.empty(k, dtype=int, device=device) for _ in range(4)]
         # Contiguous runs of pixels in host threads (a CPU launch is serial): more parts
         # than threads, taken in turn, since sky and geometry cost very different amounts.
@@ -452,6 +476,9 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
             launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p]), 17: p * PACKET})
 
         run_parts(run, parts, nthreads)
-        return tuple(out.numpy().astype(np.int64) for out in outs)
+        results = tuple(np.empty(k, np.int64) for _ in outs)
+        for result, out in zip(results, outs, strict=True):
+            result[tiled] = out.numpy()
+        return results
 
     return trace

@@ -12,6 +12,7 @@ import pytest
 import warp as wp
 from scenesort.backend.render.scenes import shared_scene
 from scenesort.kernels.bvh.packet import PACKET
+from scenesort.kernels.render import filtered
 from scenesort.kernels.render.camera import Camera
 from scenesort.kernels.render.film import (
     FILTER_TABLE_SIZE,
@@ -225,6 +226,34 @@ def test_filtered_render_does_not_depend_on_threads(shared_scene):
     a = render_film(bvh, cam, spp=8, threads=1, filter_width=1.5)
     b = render_film(bvh, cam, spp=8, threads=2, filter_width=1.5)
     assert np.array_equal(a.ao, b.ao) and np.array_equal(a.alpha, b.alpha)
+
+
+def test_tile_order_is_every_pixel_tile_by_tile():
+    """40x24 pixels in 16x16 tiles: 3 x 2 tiles, those at the right and bottom edges cut."""
+    order = filtered.tile_order(40, 24)
+    assert np.array_equal(np.sort(order), np.arange(40 * 24))
+    row, col = np.divmod(order, 40)
+    tile = (row // filtered.TILE) * 3 + col // filtered.TILE
+    assert np.array_equal(tile, np.sort(tile))  # each tile's pixels in one run, in tile order
+    sizes = np.bincount(tile)
+    assert sizes.tolist() == [256, 256, 128, 128, 128, 64]
+    first = order[:filtered.TILE]  # the first tile's top row, left to right
+    assert np.array_equal(first, np.arange(filtered.TILE))
+
+
+@pytest.mark.parametrize("settings", [{"spp": 8}, {"target_error": 0.05, "spp": 1}])
+def test_tile_order_renders_the_row_order_image(shared_scene, monkeypatch, settings):
+    """The kernels get pixels tile by tile (the cache's sake); each pixel's samples are its
+    own, so the image, fixed or adaptive, is the one the rows give."""
+    scene = shared_scene("sponza")
+    cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 52, 36)
+    bvh = kernels.build_bvh(scene.vertices, scene.indices)
+    film = {"filter_width": 1.5, **settings}
+    tiles = render_film(bvh, cam, **film)
+    monkeypatch.setattr(filtered, "tile_order", lambda width, height: np.arange(width * height))
+    rows = render_film(bvh, cam, **film)
+    for field in ("ao", "alpha", "spp_used"):
+        assert np.array_equal(getattr(tiles, field), getattr(rows, field)), field
 
 
 @pytest.mark.parametrize(("settings", "field"), [
