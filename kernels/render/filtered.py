@@ -375,7 +375,8 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
         raise ValueError("occluders must be of bvh's kind (both a Bvh or both a Scene) and on "
                          "its device")
     report = _monotone(progress)
-    trace = _film_tracer(bvh, camera, opts, normals, offsets, occluders or bvh)
+    order = tile_order(camera.width, camera.height)
+    trace = _film_tracer(bvh, camera, opts, normals, offsets, occluders or bvh, order)
     n, m = camera.width * camera.height, opts.min_spp
     # The first m samples of every pixel, in rounds of about ROUND_RAYS samples (a progress
     # call, the cancellation point, before each): they find the covered pixels (with a
@@ -384,7 +385,6 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
     mid, quarter = nested_marks(0, m)
     share = 0.5 if opts.adaptive else 1.0  # of the progress bar
     bounds = round_bounds(n, m)
-    order = tile_order(camera.width, camera.height)
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         report(share * float(a) / n, "film")
         pixels = order[a:b]
@@ -423,11 +423,13 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
 
 
 def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any,
-                 offsets: Any, occluders: Bvh | Scene) -> Callable[..., tuple[np.ndarray, ...]]:
+                 offsets: Any, occluders: Bvh | Scene,
+                 order: np.ndarray) -> Callable[..., tuple[np.ndarray, ...]]:
     """trace(pixels, first, count, mid, quarter): samples first..first+count-1 of these
     pixels (row-major indices), each through its own filtered camera ray into `bvh` and an
     occlusion ray through `occluders`: per pixel its open samples, those with index below
-    mid and below quarter, and its hits."""
+    mid and below quarter, and its hits. The kernels get the pixels in `order`
+    (tile_order's)."""
     shading = scene_shading(bvh, normals, offsets)
     arrays = occluders.arrays
     if isinstance(bvh, Scene):
@@ -454,7 +456,7 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
                         group_rays(parts, isinstance(occluders, Scene), device))]
         return kept[0]
 
-    tile_rank = np.argsort(tile_order(camera.width, camera.height))
+    tile_rank = np.argsort(order)
 
     def trace(pixels: np.ndarray, first: int, count: int, mid: int,
               quarter: int) -> tuple[np.ndarray, ...]:
