@@ -15,6 +15,7 @@ import warp as wp
 
 from .atomics import shared_add
 from .compile_options import MODULE_OPTIONS
+from .helpers import Entry, helpers
 from .launch import launch_key, run_parts
 
 wp.set_module_options(MODULE_OPTIONS)
@@ -57,12 +58,13 @@ def unclaimed(n: int, chunk: int, device) -> Claims:
 
 def launch_claimed(kernel, n: int, args: list, device, threads: int, align: int = 1) -> None:
     """`kernel` over n items in chunks: its last parameter, a Claims, is set here, its
-    others are `args`. On CPU each of the call's `threads` host threads runs one
-    launch, every launch taking the next unclaimed chunk (at least MIN_CLAIM items, a
-    multiple of `align`) until none is left: a thread that wakes late or meets costly items
-    takes fewer, and no array is sliced. There a numpy array may stand for an array
-    parameter (wrapped without a Warp array object, which costs ~7 us). On CUDA one launch,
-    a kernel item per chunk of `align` items."""
+    others are `args`. On CPU each of the call's `threads` host threads (the caller and
+    helpers that wait natively: core.helpers) runs the kernel's entry once, each run taking
+    the next unclaimed chunk (at least MIN_CLAIM items, a multiple of `align`) until none
+    is left: a thread that starts late or meets costly items takes fewer, and no array is
+    sliced. There a numpy array may stand for an array parameter (wrapped without a Warp
+    array object, which costs ~7 us). On CUDA one launch, a kernel item per chunk of
+    `align` items."""
     if n == 0:
         return
     if not device.is_cpu:
@@ -81,23 +83,32 @@ def launch_claimed(kernel, n: int, args: list, device, threads: int, align: int 
         launch.next_chunk[0] = 0
         launch.claims.chunk, launch.claims.count = chunk, n  # in place: no struct packed
         launch.set(args, chunks)
-        cmd, next_chunk = launch.cmd, launch.next_chunk
+        entry, next_chunk = launch.entry, launch.next_chunk
+        pool = helpers() if threads > 1 else None
+        taken = pool.take(threads - 1) if pool is not None else None
+        if threads == 1:
+            entry()
+        elif taken is not None:
+            pool.run(entry, taken)
+        else:  # the helpers busy with another call, or more threads than cores
 
-        def run(k: int) -> None:
-            if k == 0 or next_chunk[0] < chunks:  # a late thread finds every chunk taken
-                cmd.launch()  # concurrent launches of one Launch only read its parameters
+            def run(k: int) -> None:
+                if k == 0 or next_chunk[0] < chunks:  # a late thread finds every chunk taken
+                    entry()  # concurrent calls of one entry only read its arguments
 
-        run_parts(run, threads, threads)
+            run_parts(run, threads, threads)
     finally:
         idle.append(launch)
 
 
 class _Recorded:
-    """A recorded launch of launch_claimed's kernel, with its chunk counter (and a numpy
-    view of it) and the numbers it was last given: a call sets only what changed (a small
-    call's fixed cost is mostly setting parameters, ~1.5 us each through Warp)."""
+    """A recorded launch of launch_claimed's kernel, its entry (its arguments packed once,
+    kept), its chunk counter (and a numpy view of it) and the numbers it was last given: a
+    call sets only what changed (a small call's fixed cost is mostly setting parameters,
+    ~1.5 us each through Warp)."""
 
-    __slots__ = ("cmd", "counter", "next_chunk", "claims", "host", "other", "last", "dim")
+    __slots__ = ("cmd", "entry", "counter", "next_chunk", "claims", "host", "other", "last",
+                 "dim")
 
     def __init__(self, kernel, args: list, device) -> None:
         # recording costs 62 us for the trace kernel, so recorded launches are kept
@@ -111,10 +122,13 @@ class _Recorded:
         self.cmd = wp.launch(kernel, dim=1, inputs=[*values, claims], device=device,
                              record_cmd=True)
         self.cmd.fwd_args = self.cmd.adj_args = None  # kept between calls: no array kept alive
-        self.claims = self.cmd.params[len(args) + 1]  # the packed Claims, set in place
+        self.entry = Entry(self.cmd)
+        packed = self.entry.args
+        self.claims = getattr(packed, kernel.adj.args[len(args)].label)  # set in place
         # the numpy arrays' parameters (launch_key fixes which arguments are arrays):
-        # index, Warp's array_t, numpy scalar type, row bytes
-        self.host = [(i, self.cmd.params[i + 1], *_array_rows(kernel.adj.args[i].type.dtype))
+        # index, Warp's array_t in the packed arguments, numpy scalar type, row bytes
+        self.host = [(i, getattr(packed, kernel.adj.args[i].label),
+                      *_array_rows(kernel.adj.args[i].type.dtype))
                      for i, x in enumerate(args) if isinstance(x, np.ndarray)]
         for _, param, _, row in self.host:
             param.strides[0] = row
@@ -134,13 +148,18 @@ class _Recorded:
         for i in self.other:
             x = args[i]
             if type(x) not in (int, float):  # a struct is packed every call: mutable
-                self.cmd.set_param_at_index(i, x)
+                self._set_param(i, x)
             elif type(self.last[i]) is not type(x) or self.last[i] != x:
-                self.cmd.set_param_at_index(i, x)
+                self._set_param(i, x)
                 self.last[i] = x
         if dim != self.dim:
             self.cmd.set_dim(dim)
+            self.entry.set_bounds(self.cmd.params[0])
             self.dim = dim
+
+    def _set_param(self, i: int, x) -> None:
+        self.cmd.set_param_at_index(i, x)  # Warp packs it
+        setattr(self.entry.args, self.entry.fields[i][0], self.cmd.params[i + 1])
 
 
 # recorded launches of launch_claimed that no call is using, per launch_key

@@ -5,7 +5,8 @@ work is split between host threads that launch side by side (the launch releases
 Python lock): in parts with arguments of their own (`part_launcher`, `run_parts`), or as
 chunks claimed from one call's counter (core.claim); on CUDA one launch covers everything.
 The host threads are one persistent pool for the whole process (`host_pool`): starting
-threads for every call cost about 0.5 ms per thread.
+threads for every call cost about 0.5 ms per thread. Claimed launches use helper threads
+that wait natively instead (core.helpers), and this pool where those are busy.
 """
 
 from __future__ import annotations
