@@ -30,10 +30,11 @@ def warm_up(device: str) -> None:
         bvh = kernels.build_bvh(vertices, np.array([[0, 1, 2]], np.int32), device=device)
         rays = np.array([[0.2, 0.2, 1.0]], np.float32), np.array([[0, 0, -1]], np.float32)
         kernels.render_ao(bvh, *rays, spp=1)
-        if device == "cpu":  # the host helpers' module and threads (kernels/core/helpers.py)
-            from scenesort.kernels.core.helpers import helpers
+        if device == "cpu":  # the host helpers' module (threads start on first use)
+            import warp as wp
+            from scenesort.kernels.core import helpers
 
-            helpers()
+            wp.load_module(helpers.serve_kernel.module, device="cpu")
     except Exception:  # noqa: BLE001 - never stop the service over a warm-up
         log.exception("warm-up on %s failed", device)
 
