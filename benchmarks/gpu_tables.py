@@ -238,8 +238,9 @@ def part_trace(args, device, clock: Clock, rows: list[dict]) -> None:
                 n = arrs[0].shape[0]
                 out = [wp.empty(n, dtype=dt, device=device) for dt in (float, int, float, float)]
 
+                invalid = wp.zeros(1, dtype=int, device=device)
                 ms = device_ms(partial(wp.launch, trace_kernel, dim=n,
-                                       inputs=[bvh.arrays, *arrs, any_hit, *out,
+                                       inputs=[bvh.arrays, *arrs, any_hit, *out, invalid,
                                                unclaimed(n, 1, device)], device=device),
                                device, args.repeat)
                 t, tri = out[0].numpy(), out[1].numpy()
@@ -380,11 +381,13 @@ def part_sweep(args, device, clock: Clock, rows: list[dict]) -> None:
     arrs = [wp.array(x, dtype=dt, device=device)
             for x, dt in ((o, wp.vec3), (d, wp.vec3), (tmin, float), (tmax, float))]
     out = [wp.empty(len(o), dtype=dt, device=device) for dt in (float, int, float, float)]
+    invalid = wp.zeros(1, dtype=int, device=device)
     for block in (32, 64, 128, 256, 512):
         if not clock.ok(f"sweep trace block {block}"):
             continue
         ms = device_ms(partial(wp.launch, trace_kernel, dim=len(o),
-                               inputs=[bvh.arrays, *arrs, 0, *out, unclaimed(len(o), 1, device)],
+                               inputs=[bvh.arrays, *arrs, 0, *out, invalid,
+                                       unclaimed(len(o), 1, device)],
                                device=device, block_dim=block), device, args.repeat)
         rows.append({"part": "sweep", "what": "trace primary w2 block_dim", "scene": name,
                      "block_dim": block, "ms": ms, "mrays_s": len(o) / ms / 1e3})

@@ -21,7 +21,7 @@ from ..core.launch import (
     sync_ms,
 )
 from ..core.mesh import DeviceMesh
-from ..core.validate import as_rays, as_triangle_mesh, ray_range
+from ..core.validate import as_rays_unread, as_triangle_mesh, ray_range, refuse_flagged_rays
 from ..pool.chunks import CHUNK
 from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
@@ -387,7 +387,7 @@ def trace(
     launching its share: a Warp CPU launch runs on one thread. Closest hits of coherent
     runs of 64 rays go as packets, any hits as groups of 64, where `packets_apply` (the same
     hits; False: ray by ray)."""
-    origins, directions = as_rays(origins, directions)
+    origins, directions = as_rays_unread(origins, directions)  # the kernel checks them
     r = len(origins)
     tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)
     device = bvh.device
@@ -396,10 +396,12 @@ def trace(
                                                          (v, float))]
     inputs = [claimed_arg(origins, wp.vec3, device), claimed_arg(directions, wp.vec3, device),
               claimed_arg(tmin_a, float, device), claimed_arg(tmax_a, float, device)]
+    invalid = claimed_arg(np.zeros(1, np.int32), int, device)
     nthreads = host_threads(device, threads)
     kernel = packet_trace_kernel if packets and packets_apply(bvh) else trace_kernel
-    launch_claimed(kernel, r, [bvh.arrays, *inputs, int(any_hit), *outputs], device, nthreads,
-                   align=PACKET)
+    launch_claimed(kernel, r, [bvh.arrays, *inputs, int(any_hit), *outputs, invalid], device,
+                   nthreads, align=PACKET)
+    refuse_flagged_rays(invalid, origins, directions)
     if not device.is_cpu:
         t, tri, u, v = (a.numpy() for a in outputs)
     return Hits(t=t, triangle=tri, u=u, v=v)

@@ -12,7 +12,7 @@ import warp as wp
 
 from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.ray import FAR_WIDEN, Hit, make_ray, per_ray
+from ..core.ray import FAR_WIDEN, Hit, flag_invalid_rays, make_ray, per_ray
 from .leaf import finish_hit, leaf_position
 from .node import BvhArrays
 from .traversal import traverse, traverse_leaf_order
@@ -172,9 +172,11 @@ def packet_trace_kernel(
     out_triangle: wp.array(dtype=int),
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
+    invalid: wp.array(dtype=int),  # set to 1 where a ray is one as_rays refuses
     claims: Claims,  # chunks of a multiple of PACKET (= GROUP) rays
 ):
     items = claimed_items(claims, wp.tid())
+    flag_invalid_rays(origins, directions, items[0], items[1], invalid)
     for i in range(items[0], items[1], PACKET):
         last = wp.min(i + PACKET, items[1])
         if find_any != 0:

@@ -12,7 +12,16 @@ import warp as wp
 
 from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.ray import Hit, Ray, hit_distance, intersect_box, make_ray, no_hit, per_ray
+from ..core.ray import (
+    Hit,
+    Ray,
+    flag_invalid_rays,
+    hit_distance,
+    intersect_box,
+    make_ray,
+    no_hit,
+    per_ray,
+)
 from .binary_traversal import BinaryTree, make_binary_traversal
 from .leaf import finish_traversal, intersect_leaf, leaf_order_hit, wide_leaves
 from .node import BvhArrays
@@ -77,9 +86,11 @@ def trace_kernel(
     out_triangle: wp.array(dtype=int),
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
+    invalid: wp.array(dtype=int),  # set to 1 where a ray is one as_rays refuses
     claims: Claims,
 ):
     items = claimed_items(claims, wp.tid())
+    flag_invalid_rays(origins, directions, items[0], items[1], invalid)
     for i in range(items[0], items[1]):
         r = make_ray(origins[i], directions[i])
         h = traverse(bvh, r, per_ray(tmin, i), per_ray(tmax, i), find_any != 0)

@@ -68,6 +68,26 @@ def as_rays(origins, directions) -> tuple[np.ndarray, np.ndarray]:
     return origins, directions
 
 
+def as_rays_unread(origins, directions) -> tuple[np.ndarray, np.ndarray]:
+    """as_rays's shapes and dtypes without its pass over the values, for a kernel that
+    checks each ray as it first reads it (core.ray.flag_invalid_rays) and a caller that
+    then calls `refuse_flagged_rays`: float32 (R, 3) arrays of one length pass unread;
+    anything else goes through as_rays (a conversion reads the values anyway)."""
+    o, d = np.asarray(origins), np.asarray(directions)
+    if (o.dtype == d.dtype == np.float32 and o.ndim == d.ndim == 2
+            and o.shape[1] == d.shape[1] == 3 and len(o) == len(d)):
+        return np.ascontiguousarray(o), np.ascontiguousarray(d)
+    return as_rays(o, d)
+
+
+def refuse_flagged_rays(flag, origins: np.ndarray, directions: np.ndarray) -> None:
+    """as_rays's ValueError where a kernel flagged a ray it refuses (flag: the kernel's
+    one-int array, numpy or Warp)."""
+    if (flag if isinstance(flag, np.ndarray) else flag.numpy())[0]:
+        as_rays(origins, directions)
+        raise AssertionError("a kernel flagged a ray that as_rays accepts")
+
+
 def as_surface_points(triangles, u, v, triangle_count: int) -> tuple[np.ndarray, ...]:
     """Validated int32 triangle indices in [0, triangle_count) and float32 barycentric
     weights u, v (of each triangle's second and third corner: u, v >= 0, u + v <= 1, with

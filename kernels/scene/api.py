@@ -18,7 +18,13 @@ from ..bvh.packet import PACKET
 from ..core.claim import claimed_arg, launch_claimed
 from ..core.hits import Hits
 from ..core.launch import get_device, host_threads, load_modules, sync_ms
-from ..core.validate import as_rays, as_shading, as_terminator_offsets, ray_range
+from ..core.validate import (
+    as_rays_unread,
+    as_shading,
+    as_terminator_offsets,
+    ray_range,
+    refuse_flagged_rays,
+)
 from . import instances as inst
 from .packet import WARP_MODULES as PACKET_MODULES
 from .packet import instance_packets, scene_packet_kernel, scene_packets_apply, scratch_arrays
@@ -290,7 +296,7 @@ def trace(
     if not isinstance(scene, Scene):
         raise ValueError(f"trace takes a Bvh (build_bvh) or a Scene (build_scene), got "
                          f"{type(scene).__name__}")
-    origins, directions = as_rays(origins, directions)
+    origins, directions = as_rays_unread(origins, directions)  # the kernel checks them
     r = len(origins)
     tmin_a, tmax_a = ray_range(tmin, tmax, r, keep_scalar=True)
     device = scene.device
@@ -300,15 +306,17 @@ def trace(
                                                               strict=True)]
     inputs = [claimed_arg(origins, wp.vec3, device), claimed_arg(directions, wp.vec3, device),
               claimed_arg(tmin_a, float, device), claimed_arg(tmax_a, float, device)]
+    invalid = claimed_arg(np.zeros(1, np.int32), int, device)
     nthreads = host_threads(device, threads)
     if any_hit or not (packets and scene_packets_apply(device)):
-        launch_claimed(scene_trace_kernel, r, [scene.arrays, *inputs, int(any_hit), *outputs],
-                       device, nthreads)
+        launch_claimed(scene_trace_kernel, r, [scene.arrays, *inputs, int(any_hit), *outputs,
+                                               invalid], device, nthreads)
     else:
         load_modules(device, *PACKET_MODULES)
         scratch = scratch_arrays(instance_packets(r, device))
-        launch_claimed(scene_packet_kernel, r, [scene.arrays, *inputs, *scratch, *outputs],
-                       device, nthreads, align=PACKET)
+        launch_claimed(scene_packet_kernel, r, [scene.arrays, *inputs, *scratch, *outputs,
+                                                invalid], device, nthreads, align=PACKET)
+    refuse_flagged_rays(invalid, origins, directions)
     if not device.is_cpu:
         out = [a.numpy() for a in outputs]
     return Hits(t=out[0], triangle=out[1], u=out[2], v=out[3], instance=out[4])

@@ -25,7 +25,7 @@ from ..core.box import INF
 from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
 from ..core.device_arrays import struct_of_arrays
-from ..core.ray import per_ray
+from ..core.ray import flag_invalid_rays, per_ray
 from .top import (
     InstanceHit,
     SceneArrays,
@@ -282,9 +282,11 @@ def scene_packet_kernel(
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
     out_instance: wp.array(dtype=int),
+    invalid: wp.array(dtype=int),  # set to 1 where a ray is one as_rays refuses
     claims: Claims,  # chunks of a multiple of PACKET rays
 ):
     items = claimed_items(claims, wp.tid())
+    flag_invalid_rays(origins, directions, items[0], items[1], invalid)
     scratch = InstancePackets()
     scratch.origins = scratch_origins
     scratch.directions = scratch_directions

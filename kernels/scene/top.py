@@ -28,7 +28,7 @@ from ..bvh.traversal import traverse_leaf_order
 from ..core.box import INF
 from ..core.claim import Claims, claimed_items
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.ray import Hit, Ray, make_ray, per_ray
+from ..core.ray import Hit, Ray, flag_invalid_rays, make_ray, per_ray
 
 wp.set_module_options(MODULE_OPTIONS)
 
@@ -318,9 +318,11 @@ def scene_trace_kernel(
     out_u: wp.array(dtype=float),
     out_v: wp.array(dtype=float),
     out_instance: wp.array(dtype=int),
+    invalid: wp.array(dtype=int),  # set to 1 where a ray is one as_rays refuses
     claims: Claims,
 ):
     items = claimed_items(claims, wp.tid())
+    flag_invalid_rays(origins, directions, items[0], items[1], invalid)
     for i in range(items[0], items[1]):
         h = traverse_scene(s, origins[i], directions[i], per_ray(tmin, i), per_ray(tmax, i),
                            find_any != 0)

@@ -154,6 +154,38 @@ def test_threads_give_identical_results(any_hit):
                 assert np.array_equal(getattr(one, name), getattr(many, name))
 
 
+@pytest.mark.parametrize("where", ["bvh", "scene"])
+@pytest.mark.parametrize("bad", ["nan origin", "inf direction", "zero direction"])
+def test_one_bad_ray_among_many_is_refused_by_the_kernel_that_reads_it(where, bad):
+    """The kernels check the rays as they read them (not Python first): one bad ray among
+    100k, in any chunk, for closest and any hits, packets or not, on one and two threads,
+    gives as_rays's error naming its row; float64 rays go through as_rays itself."""
+    v, f = random_soup(np.random.default_rng(3), 200)
+    bvh = kernels.build_bvh(v, f)
+    target = bvh if where == "bvh" else kernels.build_scene([bvh], [0], np.eye(4)[None, :3])
+    o, d = random_rays(np.random.default_rng(4), 100_000)
+    good = kernels.trace(target, o, d, threads=2)
+    for row in (0, 63_999, 99_999):
+        bo, bd = o.copy(), d.copy()
+        if bad == "nan origin":
+            bo[row, 1] = np.nan
+        elif bad == "inf direction":
+            bd[row, 2] = -np.inf
+        else:
+            bd[row] = 0.0
+        message = (f"zero-length rows \\(first: row {row}\\)" if bad == "zero direction"
+                   else f"NaN or Inf in 1 rows \\(first: row {row}\\)")
+        for any_hit, packets, threads in ((False, True, 1), (False, True, 2), (True, True, 2),
+                                          (False, False, 2)):
+            with pytest.raises(ValueError, match=message):
+                kernels.trace(target, bo, bd, any_hit=any_hit, threads=threads,
+                              packets=packets)
+        with pytest.raises(ValueError, match=message):
+            kernels.trace(target, bo.astype(np.float64), bd, threads=2)
+    again = kernels.trace(target, o, d, threads=2)  # nothing kept from the refused calls
+    assert np.array_equal(again.t, good.t) and np.array_equal(again.triangle, good.triangle)
+
+
 def test_empty_mesh_and_zero_rays():
     empty = kernels.build_bvh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32))
     o, d = random_rays(np.random.default_rng(0), 10)
