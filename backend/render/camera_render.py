@@ -60,7 +60,6 @@ def render_camera(
                                                             device, view))
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
-    origins, directions, tmin, tmax = job.timed("camera", camera.rays)
     shape = (camera.height, camera.width)
     centres_only = _centres_only(views, passes)
     filtered = options.filtered and centres_only is None
@@ -75,6 +74,7 @@ def render_camera(
         job.rmse_estimate, job.rays, job.denoised = film.rmse_estimate, film.rays, False
         normals, held = None, None  # (no holdout: _centres_only)
     else:
+        origins, directions, tmin, tmax = job.timed("camera", camera.rays)
         result = job.timed(
             "ao", lambda: _render_ao(job, views, scene, origins, directions, tmin, tmax,
                                      options, shape)
@@ -94,7 +94,9 @@ def render_camera(
     if "normal" in passes:
         job.extras["normal"] = np.asarray(normals, np.float32).reshape(*shape, 3)
     if not (depth or {"position", "object", "triangle"} & set(passes)):
-        return  # nothing needs the camera rays' hits traced again
+        return  # nothing needs the camera rays' hits traced again (a film: nor made)
+    if filtered:  # the film traced its own rays; these passes take the pixel centres'
+        origins, directions, tmin, tmax = job.timed("camera", camera.rays)
     t, instance, triangle = job.timed("depth", lambda: seen_hits(views, origins, directions,
                                                                  tmin, tmax))
     hit = np.isfinite(t)

@@ -38,10 +38,12 @@ WAIT_SECONDS = 0.0002  # how long a caller spins for its helpers before it sleep
 # A control row's state (word 0): a helper spinning, a job posted, a job running, a helper
 # asleep in Python; words 1-3: the job's entry point, bounds and arguments; word 4: stop.
 SPINNING, JOB, RUNNING, ASLEEP = 0, 1, 2, 3
+STOP_WORD = 4
 ROW = 16  # int64 words per helper: 128 bytes, two cache lines of its own
 
 _ROW = f"""
     constexpr long long SPINNING = {SPINNING}, JOB = {JOB}, RUNNING = {RUNNING}, ASLEEP = {ASLEEP};
+    constexpr int STOP_WORD = {STOP_WORD};
     long long* c = (long long*)ctl.data + row * {ROW};
 """
 
@@ -53,7 +55,7 @@ _SERVE = """
     unsigned long long since = __builtin_ia32_rdtsc();
     for (;;) {
         long long s = __atomic_load_n(&c[0], __ATOMIC_ACQUIRE);
-        if (__atomic_load_n(&c[4], __ATOMIC_ACQUIRE))  // stop
+        if (__atomic_load_n(&c[STOP_WORD], __ATOMIC_ACQUIRE))
             return ASLEEP;
         if (s == JOB) {
             if (__atomic_compare_exchange_n(&c[0], &s, RUNNING, false, __ATOMIC_ACQ_REL,
@@ -226,7 +228,7 @@ class _Helpers:
             t.start()
 
     def _main(self, r: int) -> None:
-        while not self.state[r * ROW + 4]:
+        while not self.state[r * ROW + STOP_WORD]:
             self.wakes[r].wait()
             self.wakes[r].clear()
             self.serves[r]()
@@ -273,7 +275,7 @@ class _Helpers:
     def stop(self) -> None:
         """Stops every helper (at exit: Warp's code must not be left running)."""
         for r in range(self.count):
-            self.state[r * ROW + 4] = 1
+            self.state[r * ROW + STOP_WORD] = 1
             self.wakes[r].set()
         for t in self.threads:
             t.join(timeout=1.0)

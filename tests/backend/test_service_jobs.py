@@ -102,6 +102,17 @@ def test_a_filtered_job_renders_what_render_film_renders(api, box_scene, scene_i
     assert status["rmse_estimate"] == pytest.approx(film.rmse_estimate)
 
 
+def test_a_filtered_job_makes_pixel_centre_rays_only_for_its_z_pass(api, scene_id) -> None:
+    """The film traces its own camera rays: the pixel centres' (the "camera" phase) are made
+    only for the Z pass (and the other passes that need them), not for a viewport's rounds."""
+    for depth in (True, False):
+        job = create(api, scene_id, 40, 30, spp=2, filter_width=1.5, depth=depth)
+        status = wait(api, job["job_id"], {"done", "failed", "cancelled"})
+        assert status["state"] == "done", status
+        phases = set(status["timings_ms"])
+        assert ({"camera", "depth"} <= phases) if depth else not ({"camera", "depth"} & phases)
+
+
 def test_a_filtered_job_with_an_error_target_is_render_films(api, box_scene, scene_id) -> None:
     """target_error with a filter: the adaptive rounds over the filtered pixels, as
     render_film renders them (image, coverage, spp and the estimate)."""
