@@ -169,12 +169,18 @@ class Entry:
     struct is kept, so a call sets only what changed in it. Warp 1.19's CPU entry,
     `name_cpu_forward(launch_bounds_t*, args*)` (the version pyproject.toml pins)."""
 
-    __slots__ = ("fn", "address", "bounds", "args", "fields", "bounds_address", "args_address")
+    __slots__ = ("fn", "address", "code", "bounds", "args", "fields", "bounds_address",
+                 "args_address")
 
     def __init__(self, cmd) -> None:
         if cmd.block_dim > 1:
             raise ValueError(f"{cmd.kernel.key}: a cooperative (tiled) kernel launches "
                              "through Warp, which checks its blocks' errors")
+        # The loaded module the entry point lies in, kept: Warp unloads a module's code when
+        # nothing holds its executable (as a load of the same module on another thread
+        # replaced it: a service's warm-up beside its first job), and a call into it then
+        # jumped to unmapped memory.
+        self.code = cmd.module_exec
         hooks = cmd.hooks
         self.address = ctypes.cast(hooks.forward, ctypes.c_void_p).value
         self.fn = _ENTRY(self.address)

@@ -150,6 +150,27 @@ def test_a_process_exits_with_its_helpers_spinning_or_asleep(idle):
     assert out.stdout.strip().endswith("done")
 
 
+def test_an_entry_keeps_its_modules_code_loaded():
+    """Warp unloads a module's code once nothing holds its executable (a load of the same
+    module on another thread replaces it: a service's warm-up beside its first job): an
+    Entry holds it, so a call after that still runs (it jumped to unmapped memory)."""
+    code = textwrap.dedent("""
+        import gc
+        import warp as wp
+        from scenesort.kernels.core import helpers
+        out = wp.zeros(1, dtype=wp.int64, device="cpu")
+        entry = helpers._entry_of(helpers.clock_kernel, [out])
+        helpers.clock_kernel.module.unload()
+        gc.collect()
+        entry()
+        print("ran", int(out.numpy()[0] > 0))
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=300)
+    assert out.returncode == 0, (out.returncode, out.stderr[-2000:])
+    assert out.stdout.strip().endswith("ran 1")
+
+
 def test_a_forked_child_makes_its_own_helpers():
     pool = helpers.helpers()
     helpers._forget()  # what the at-fork hook runs in a child
