@@ -139,9 +139,8 @@ def clock() -> wp.int64:
 
 
 @wp.kernel
-def serve_kernel(ctl: wp.array(dtype=wp.int64), row: int, cycles: wp.int64,
-                 out: wp.array(dtype=int)):
-    out[row] = serve(ctl, row, cycles)
+def serve_kernel(ctl: wp.array(dtype=wp.int64), row: int, cycles: wp.int64):
+    serve(ctl, row, cycles)  # its answer unread: the helper's loop reads the stop word
 
 
 @wp.kernel
@@ -213,16 +212,13 @@ class _Helpers:
         self.count = count
         self.ctl = wp.zeros(count * ROW, dtype=wp.int64, device="cpu")
         self.state = self.ctl.numpy()
-        # what post and wait found (the caller's), what serve returned (the helper's)
-        self.out = wp.zeros(count, dtype=int, device="cpu")
+        self.out = wp.zeros(count, dtype=int, device="cpu")  # what post and wait found
         self.found = self.out.numpy()
-        self.served_out = wp.zeros(count, dtype=int, device="cpu")
-        self.served = self.served_out.numpy()
         rate = _tsc_rate()
         self.owners = [threading.Lock() for _ in range(count)]
         self.wakes = [threading.Event() for _ in range(count)]
-        self.serves = [_entry_of(serve_kernel, [self.ctl, r, int(spin_seconds * rate),
-                                                self.served_out]) for r in range(count)]
+        self.serves = [_entry_of(serve_kernel, [self.ctl, r, int(spin_seconds * rate)])
+                       for r in range(count)]
         self.posts = [_entry_of(post_kernel, [self.ctl, r, self.out]) for r in range(count)]
         self.waits = [_entry_of(wait_kernel, [self.ctl, r, int(WAIT_SECONDS * rate),
                                               self.out]) for r in range(count)]
