@@ -23,7 +23,7 @@ from ..core.launch import (
 from ..core.mesh import DeviceMesh
 from ..core.validate import as_rays_unread, as_triangle_mesh, ray_range, refuse_flagged_rays
 from ..pool.chunks import CHUNK
-from ..pool.state import DEFAULT_MIN_CHUNKS, check_pool, default_workers, make_pool
+from ..pool.state import check_pool, default_workers, make_pool
 from ..pool.worker import CYCLE_ROW, launch_workers
 from . import build as bb
 from .binary_traversal import STACK_SIZE
@@ -32,6 +32,7 @@ from .build_data import (
     METHOD_MEDIAN,
     METHOD_SAH,
     PHASE_NAMES,
+    SUBTREE_NODES,
     BuildData,
     BuildItem,
     BuildTask,
@@ -53,10 +54,14 @@ Width = Literal[2, 4, 8]
 # slower; CUDA kernels now traverse the binary tree whatever the width, see
 # leaf.wide_tree_traversed).
 SIMD_WIDTH, PORTABLE_WIDTH = 8, 2
-# K of eq. 3.1 per device: the paper's 14 on CPU; on CUDA 64, where 33,792 one-thread workers
-# grabbing fewer, larger runs of chunks built Conference 1.5x and the 1.1 M-triangle bunny 3x
-# faster on an H200 (docs/benchmarks.md, CUDA sweeps)
-BUILD_MIN_CHUNKS = {"cpu": DEFAULT_MIN_CHUNKS, "cuda": 64}
+# K of eq. 3.1 per device. CPU: 256 chunks (8,192 triangles); with the paper's 14, two workers
+# shared the steps of tasks of a few thousand triangles, whose items had just been written by
+# one of them, and spent 25% more in SplitPlane than one worker did alone (4M-triangle
+# gallery, two workers: the launch 747 -> 677 ms, 1M 172 -> 158, Conference 44 -> 40, in
+# builds interleaved in one process; 1,024 the same as 256). CUDA: 64, where 33,792
+# one-thread workers grabbing fewer, larger runs of chunks built Conference 1.5x and the
+# 1.1 M-triangle bunny 3x faster on an H200 (docs/benchmarks.md, CUDA sweeps)
+BUILD_MIN_CHUNKS = {"cpu": 256, "cuda": 64}
 # SAH tasks of at most 1 / (SERIAL_SHARE x workers) of the triangles are partitioned by one
 # worker in one pass (build.exchange_in_place), not by the pool's PPS and Swap
 SERIAL_SHARE = 4
@@ -307,6 +312,7 @@ def build_items(valid: wp.array, bounds: wp.array,
     )
     b.tasks = wp.empty(capacity, dtype=BuildTask, device=device)
     b.nodes = wp.empty(max(2 * n - 1, 1), dtype=BvhNode, device=device)
+    b.subtree_nodes = wp.empty(workers * int(SUBTREE_NODES), dtype=BvhNode, device=device)
     b.counters = wp.zeros(2, dtype=int, device=device)
     b.phase_cycles = wp.zeros(workers * CYCLE_ROW, dtype=wp.int64, device=device)
     b.worker_bins = capacity

@@ -414,26 +414,26 @@ def in_worker(b: BuildData, count: int, depth: int) -> bool:
 
 
 @wp.func
-def split_node(b: BuildData, pool: Pool, t: BuildTask, slot: int) -> int:
+def split_node(b: BuildData, pool: Pool, worker: int, t: BuildTask, slot: int) -> int:
     """Turn a finished task into an inner node with two children (sec. 4.2): child tasks
     reuse this slot and, for a second one, take the lowest free slot. The worker continues
     with the child in the higher of the two slots and stores the other: on one worker the
     pool then behaves as a stack (depth first), so it never holds more than depth + 1 tasks.
     Returns the slot to continue with, or -1."""
     left = shared_add(b.counters, NODE_COUNT, 2)
-    write_node(b, t.node, t.lo, t.hi, left, 0)
+    write_node(b.nodes, t.node, t.lo, t.hi, left, 0)
     depth = t.depth + 1
     n_right = t.count - t.pivot
-    write_node(b, left, t.llo, t.lhi, t.start, t.pivot)
-    write_node(b, left + 1, t.rlo, t.rhi, t.start + t.pivot, n_right)
+    write_node(b.nodes, left, t.llo, t.lhi, t.start, t.pivot)
+    write_node(b.nodes, left + 1, t.rlo, t.rhi, t.start + t.pivot, n_right)
     left_here = in_worker(b, t.pivot, depth)
     right_here = in_worker(b, n_right, depth)
     if left_here or right_here:
         shared_max(b.counters, MAX_DEPTH, depth)
     if left_here:
-        small_subtree(b, left, depth)
+        small_subtree(b, left, depth, worker)
     if right_here:
-        small_subtree(b, left + 1, depth)
+        small_subtree(b, left + 1, depth, worker)
     if left_here and right_here:
         pool_release(pool, slot)
         return -1
@@ -468,8 +468,8 @@ def start_build(b: BuildData, pool: Pool, root_lo: wp.vec3, root_hi: wp.vec3,
     """Store the root task (Algorithm 1: 'in serial, insert the first task')."""
     b.counters[NODE_COUNT] = 1
     if in_worker(b, count, 0):
-        write_node(b, 0, root_lo, root_hi, 0, count)
-        small_subtree(b, 0, 0)
+        write_node(b.nodes, 0, root_lo, root_hi, 0, count)
+        small_subtree(b, 0, 0, 0)
         return
     slot = pool_alloc(pool)
     t = new_task(b, 0, 0, count, 0, root_lo, root_hi, root_clo, root_chi)

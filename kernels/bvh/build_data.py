@@ -36,6 +36,7 @@ SMALL_TASK = wp.constant(64)  # SAH ranges up to this size are built in one work
 SWAP_IN_PLACE = wp.constant(2)
 SmallFloats = wp.types.vector(length=SMALL_TASK, dtype=wp.float32)  # per item of a range
 SmallInts = wp.types.vector(length=SMALL_TASK, dtype=wp.int32)  # the small subtree's stack
+SUBTREE_NODES = wp.constant(2 * SMALL_TASK - 1)  # the most nodes a small subtree has
 
 
 @wp.struct
@@ -94,6 +95,9 @@ class BuildData:
     bin_chi: wp.array(dtype=wp.vec3)
     tasks: wp.array(dtype=BuildTask)  # the task data array, one entry per pool slot
     nodes: wp.array(dtype=BvhNode)
+    # SUBTREE_NODES per worker: a small subtree's nodes until they take their numbers in
+    # `nodes` all at once (sweep_sah.number_subtree)
+    subtree_nodes: wp.array(dtype=BvhNode)
     counters: wp.array(dtype=int)
     phase_cycles: wp.array(dtype=wp.int64)  # per worker and phase (pool.worker.CYCLE_ROW)
     worker_bins: int  # the first worker's bins: after the pool slots' (the pool's capacity)
@@ -110,15 +114,17 @@ def centroid(it: BuildItem) -> wp.vec3:
 
 
 @wp.func
-def write_node(b: BuildData, node: int, lo: wp.vec3, hi: wp.vec3, first: int, count: int):
+def write_node(nodes: wp.array(dtype=BvhNode), node: int, lo: wp.vec3, hi: wp.vec3, first: int,
+               count: int):
     n = BvhNode()
     n.lo = lo
     n.hi = hi
     n.first = first
     n.count = count
-    b.nodes[node] = n
+    nodes[node] = n
 
 
 @wp.func
-def write_node_box(b: BuildData, node: int, box: wp.mat33, first: int, count: int):
-    write_node(b, node, box[0], box[1], first, count)
+def write_node_box(nodes: wp.array(dtype=BvhNode), node: int, box: wp.mat33, first: int,
+                   count: int):
+    write_node(nodes, node, box[0], box[1], first, count)

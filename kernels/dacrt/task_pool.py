@@ -723,7 +723,7 @@ def child_box(d: DacrtData, t: DacrtTask, ray_side: int, tri_side: int) -> wp.ma
 
 
 @wp.func
-def finish_task(d: DacrtData, pool: Pool, t: DacrtTask, slot: int) -> int:
+def finish_task(d: DacrtData, pool: Pool, worker: int, t: DacrtTask, slot: int) -> int:
     """A finished intersection task releases its slot and activates its dependants; a
     finished subdivision stores its children. Returns a locked slot to continue with, or -1."""
     if t.leaf != 0:

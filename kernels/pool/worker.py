@@ -57,9 +57,9 @@ class Application:
         what a worker keeps of its own; the pool itself is not for chunks to touch).
     complete_step(data, task, slot) -> task: the last finisher's work at the end of a
         step: the next step (its `phase` and `chunks`), or phase `done`.
-    finish_task(data, pool, task, slot) -> int: a task in phase `done`: store its children
-        or activate its dependants, release or reuse its slot; return a locked slot whose
-        task this worker continues with (its data in `data.tasks`), or -1.
+    finish_task(data, pool, worker, task, slot) -> int: a task in phase `done`: store its
+        children or activate its dependants, release or reuse its slot; return a locked
+        slot whose task this worker continues with (its data in `data.tasks`), or -1.
     done: the phase of a finished task (its ticks: the time spent finishing tasks).
     module: the Warp module to compile the worker in: the application's (`__name__`).
     name: a prefix for the generated kernel and functions.
@@ -101,7 +101,7 @@ def make_worker(app: Application) -> wp.Kernel:
             add_ticks(d, worker, phase, since)
             if task.phase == done:
                 since = ticks()
-                next_slot = finish_task(d, pool, task, s)
+                next_slot = finish_task(d, pool, worker, task, s)
                 add_ticks(d, worker, done, since)
                 if next_slot < 0:
                     return

@@ -98,10 +98,10 @@ def test_small_steps_run_inline(method):
     v, f = random_soup(np.random.default_rng(1), 3000)
     inline = kernels.build_bvh(v, f, method=method, min_chunks=1_000_000)
     pooled = kernels.build_bvh(v, f, method=method, min_chunks=1)
-    default = kernels.build_bvh(v, f, method=method)
+    middle = kernels.build_bvh(v, f, method=method, min_chunks=14)  # the paper's K
     assert inline.stats.pool_steps_published == 0
-    assert pooled.stats.pool_steps_published > default.stats.pool_steps_published > 0
-    for other in (pooled, default):
+    assert pooled.stats.pool_steps_published > middle.stats.pool_steps_published > 0
+    for other in (pooled, middle):
         assert other.stats.sah_cost == pytest.approx(inline.stats.sah_cost, rel=1e-12)
         assert other.stats.nodes == inline.stats.nodes
 

@@ -93,7 +93,7 @@ def complete_step(d: SumData, t: SumTask, slot: int) -> SumTask:
 
 
 @wp.func
-def finish_task(d: SumData, pool: Pool, t: SumTask, slot: int) -> int:
+def finish_task(d: SumData, pool: Pool, worker: int, t: SumTask, slot: int) -> int:
     pool_release(pool, slot)
     if t.segment < 0:
         return -1
