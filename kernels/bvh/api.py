@@ -41,7 +41,7 @@ from .node import BvhArrays, BvhNode, empty_root, sah_cost
 from .packet import PACKET, packet_trace_kernel, packets_apply
 from .stats import BvhStats
 from .traversal import trace_kernel
-from .wide import WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
+from .wide import WHOLE, WIDE_STACK, WIDTHS, collapse, collapse_kernel, empty_wide
 from .wide_traversal import simd_support
 
 Method = Literal["sah", "median"]
@@ -134,29 +134,31 @@ def build_bvh(
     m = len(indices)
     mesh = DeviceMesh(vertices, indices, device, validated=True)
     v_wp, f_wp = mesh.v, mesh.f
-    valid = wp.empty(m, dtype=int, device=device)
     threads = (default_workers(device) if workers is None else int(workers)
                ) if device.is_cpu else 1
     # the triangles in parts, one per worker, each with a scene box of its own
     parts = max(1, min(threads, m // PART_ITEMS))
-    part_bounds = wp.array(np.tile(empty_bounds_numpy(), (parts, 1)), dtype=wp.vec3,
-                           device=device)
-    launch_parts(bb.triangle_validity, [v_wp, f_wp, 0, 0, valid, part_bounds], 2, m, parts,
-                 threads, device, part_arg=3)
-    box = part_bounds.numpy().reshape(parts, 4, 3)
-    merged = np.empty((4, 3), np.float32)
-    merged[0::2] = box[:, 0::2].min(axis=0)  # lows: of the boxes and of the centroids
-    merged[1::2] = box[:, 1::2].max(axis=0)  # highs
-    bounds = wp.array(merged, dtype=wp.vec3, device=device)
 
-    def fill(valid: wp.array, offsets: wp.array, b: BuildData) -> None:
-        launch_parts(bb.triangle_items, [v_wp, f_wp, 0, valid, offsets, b], 2, m, parts,
-                     threads, device)
+    def fill(b: BuildData) -> tuple[int, np.ndarray]:
+        part_bounds = wp.array(np.tile(empty_bounds_numpy(), (parts, 1)), dtype=wp.vec3,
+                               device=device)
+        flat = wp.zeros(parts, dtype=int, device=device)
+        launch_parts(bb.triangle_items, [v_wp, f_wp, 0, 0, part_bounds, flat, b.items], 2, m,
+                     parts, threads, device, part_arg=3)
+        box = part_bounds.numpy().reshape(parts, 4, 3)
+        merged = np.empty((4, 3), np.float32)
+        merged[0::2] = box[:, 0::2].min(axis=0)  # lows: of the boxes and of the centroids
+        merged[1::2] = box[:, 1::2].max(axis=0)  # highs
+        left_out = int(flat.numpy().sum())
+        if left_out:
+            drop_left_out(b, m, device)
+        return m - left_out, merged
 
-    tree = build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
+    tree = build_items(m, fill, method, leaf_size, max_depth, device,
                        min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
-                       phase_ms=phase_ms, start=t0)
-    del valid  # before the reorder and the collapse, which need more
+                       phase_ms=phase_ms, start=t0,
+                       whole_max=min(int(leaf_size), WHOLE) if device.is_cpu and width > 2
+                       else 1)
     n, box, b = tree.count, tree.bounds, tree.data
 
     t0 = time.perf_counter()
@@ -239,11 +241,6 @@ def empty_bounds_numpy() -> np.ndarray:
     return np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32)
 
 
-def empty_bounds(device) -> wp.array:
-    """`empty_bounds_numpy` on the device."""
-    return wp.array(empty_bounds_numpy(), dtype=wp.vec3, device=device)
-
-
 @dataclass
 class BoxTree:
     """A binary tree built by the pool over boxes: `data.nodes` (leaves: runs of
@@ -259,47 +256,58 @@ class BoxTree:
     workers: int
 
 
-def build_over_boxes(lo: wp.array, hi: wp.array, valid: wp.array, bounds: wp.array,
+def build_over_boxes(lo: np.ndarray, hi: np.ndarray, keep: np.ndarray, bounds: np.ndarray,
                      method: str, leaf_size: int, max_depth: int, device, *,
                      min_chunks: int | None = None, workers: int | None = None,
                      pool_capacity: int | None = None, phase_ms: dict[str, float],
                      start: float) -> BoxTree:
     """The pool's build (2012 paper, sec. 4) over any boxes: a scene's instance boxes
-    (kernels.scene). Boxes with `valid` 0 are left out; `bounds` is `empty_bounds` widened
-    over the valid boxes and their centroids. Adds the "prepare" phase (from `start`, a
-    perf_counter reading) and the build's phases to `phase_ms`."""
+    (kernels.scene), (N, 3) float32 on the host. Boxes where `keep` is False are left out;
+    `bounds` (4, 3) holds the kept boxes' box and their centroids' box. Adds the "prepare"
+    phase (from `start`, a perf_counter reading) and the build's phases to `phase_ms`."""
 
-    def fill(valid: wp.array, offsets: wp.array, b: BuildData) -> None:
-        wp.launch(bb.compact_valid, dim=lo.shape[0], inputs=[valid, offsets, lo, hi, b],
-                  device=device)
+    def fill(b: BuildData) -> tuple[int, np.ndarray]:
+        kept = np.flatnonzero(keep)
+        items = np.zeros(len(kept), BuildItem.numpy_dtype())
+        items["lo"], items["tri"], items["hi"] = lo[kept], kept, hi[kept]
+        if len(kept):
+            wp.copy(b.items, wp.array(items, dtype=BuildItem, device=device), count=len(kept))
+        return len(kept), bounds
 
-    return build_items(valid, bounds, fill, method, leaf_size, max_depth, device,
+    return build_items(len(lo), fill, method, leaf_size, max_depth, device,
                        min_chunks=min_chunks, workers=workers, pool_capacity=pool_capacity,
                        phase_ms=phase_ms, start=start)
 
 
-def build_items(valid: wp.array, bounds: wp.array,
-                fill: Callable[[wp.array, wp.array, BuildData], None], method: str,
+def drop_left_out(b: BuildData, count: int, device) -> None:
+    """Move the first `count` items but those left out (`tri` -1) to the front of `b.items`,
+    in order, through `b.spare`, which changes places with it."""
+    kept, offsets = (wp.empty(count, dtype=int, device=device) for _ in range(2))
+    wp.launch(bb.kept_items, dim=count, inputs=[b.items, kept], device=device)
+    wp.utils.array_scan(kept, offsets, inclusive=False)
+    wp.launch(bb.compact_items, dim=count, inputs=[b.items, kept, offsets, b.spare],
+              device=device)
+    b.items, b.spare = b.spare, b.items
+
+
+def build_items(count: int, fill: Callable[[BuildData], tuple[int, np.ndarray]], method: str,
                 leaf_size: int, max_depth: int, device, *, min_chunks: int | None,
                 workers: int | None,
                 pool_capacity: int | None, phase_ms: dict[str, float],
-                start: float) -> BoxTree:
-    """`build_over_boxes` over boxes that `fill(valid, offsets, b)` writes into `b.items`
-    at their valid boxes' `offsets` (straight from the triangles in `build_bvh`: no box
-    arrays in between)."""
-    m = valid.shape[0]
+                start: float, whole_max: int = 1) -> BoxTree:
+    """`build_over_boxes` over `count` boxes that `fill(b)` writes into `b.items`: the ones
+    kept, in order from the first position, straight from the triangles in `build_bvh` (no
+    box arrays in between); it returns how many it kept and the (4, 3) box of those and of
+    their centroids. SAH ranges of at most `whole_max` boxes stay leaves (wide.WHOLE)."""
     workers = default_workers(device) if workers is None else int(workers)
     if min_chunks is None:
         min_chunks = BUILD_MIN_CHUNKS["cpu" if device.is_cpu else "cuda"]
     b = BuildData()
-    offsets = wp.empty(m, dtype=int, device=device)
-    if m:
-        wp.utils.array_scan(valid, offsets, inclusive=False)
-    n = int(offsets.numpy()[-1] + valid.numpy()[-1]) if m else 0
-    box = bounds.numpy()
+    b.items, b.spare = (wp.empty(max(count, 1), dtype=BuildItem, device=device)
+                        for _ in range(2))
+    n, box = fill(b) if count else (0, empty_bounds_numpy())
 
     capacity = pool_capacity or (256 * workers if device.is_cpu else max(4096, 2 * n // leaf_size))
-    b.items, b.spare = (wp.empty(max(n, 1), dtype=BuildItem, device=device) for _ in range(2))
     b.spare_pos, b.scan = (wp.empty(max(n, 1), dtype=int, device=device) for _ in range(2))
     b.mark = wp.empty(max(n, 1), dtype=wp.int8, device=device)
     b.box_lo, b.box_hi, b.cbox_lo, b.cbox_hi = (
@@ -319,14 +327,12 @@ def build_items(valid: wp.array, bounds: wp.array,
     b.method = METHODS[method]
     b.leaf_size = int(leaf_size)
     b.max_depth = int(max_depth)
+    b.whole_max = int(whole_max)
     # tasks small enough that the workers have plenty of others exchange in place (the tree
     # is the same); on CUDA, with thousands of one-thread workers, only those whose steps
     # would run inline anyway
     b.serial_max = max(n // (SERIAL_SHARE * workers), int(CHUNK) * int(min_chunks) - 1)
     pool = make_pool(capacity, workers, int(min_chunks), device)
-    if m:
-        fill(valid, offsets, b)
-    del offsets
     wp.launch(bb.reset_bins, dim=bins, inputs=[b], device=device)
     phase_ms["prepare"] = sync_ms(device, start)
 

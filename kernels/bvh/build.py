@@ -494,68 +494,52 @@ def triangle_box(vertices: wp.array(dtype=wp.vec3), indices: wp.array(dtype=wp.v
 
 
 @wp.kernel
-def triangle_validity(
+def triangle_items(
     vertices: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.vec3i),
     first: int,
     part: int,
-    valid: wp.array(dtype=int),
     bounds: wp.array(dtype=wp.vec3),
+    flat: wp.array(dtype=int),
+    items: wp.array(dtype=BuildItem),
 ):
-    """Triangles first + tid, one part of them (a host thread each on CPU): `valid` is 0
-    for zero-area triangles, which the build leaves out, else 1; bounds[4 part ..
-    4 part + 3] get the part's box and centroid box over the valid ones (a part's own:
-    CPU atomics are plain updates, safe within one launch only)."""
+    """The initial index array straight from the triangles, first + tid (one part of them,
+    a host thread each on CPU): item i is triangle i with its box, or, for a zero-area
+    triangle, which the build leaves out, `tri` -1 (counted in flat[part]: api.drop_left_out
+    then takes them out). bounds[4 part .. 4 part + 3] get the part's box and centroid box
+    over the others (a part's own: CPU atomics are plain updates, safe within one launch
+    only)."""
     i = first + wp.tid()
     box = triangle_box(vertices, indices, i)
-    valid[i] = 0
+    it = BuildItem()
+    it.lo = box[0]
+    it.tri = i
+    it.hi = box[1]
     if box[2][0] == 0.0:
-        valid[i] = 1
         mid = 0.5 * (box[0] + box[1])
         wp.atomic_min(bounds, 4 * part, box[0])
         wp.atomic_max(bounds, 4 * part + 1, box[1])
         wp.atomic_min(bounds, 4 * part + 2, mid)
         wp.atomic_max(bounds, 4 * part + 3, mid)
+    else:
+        it.tri = -1
+        wp.atomic_add(flat, part, 1)
+    items[i] = it
 
 
 @wp.kernel
-def triangle_items(
-    vertices: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.vec3i),
-    first: int,
-    valid: wp.array(dtype=int),
-    offsets: wp.array(dtype=int),
-    b: BuildData,
-):
-    """The initial index array straight from the triangles (first + tid: one part of them):
-    the valid ones in order, with their boxes (computed again: cheaper than arrays of them
-    in between)."""
-    i = first + wp.tid()
-    if valid[i] != 0:
-        box = triangle_box(vertices, indices, i)
-        it = BuildItem()
-        it.lo = box[0]
-        it.tri = i
-        it.hi = box[1]
-        b.items[offsets[i]] = it
-
-
-@wp.kernel
-def compact_valid(
-    valid: wp.array(dtype=int),
-    offsets: wp.array(dtype=int),
-    lo: wp.array(dtype=wp.vec3),
-    hi: wp.array(dtype=wp.vec3),
-    b: BuildData,
-):
-    """The initial index array: the valid boxes in order (kernels.scene's instances)."""
+def kept_items(items: wp.array(dtype=BuildItem), kept: wp.array(dtype=int)):
     i = wp.tid()
-    if valid[i] != 0:
-        it = BuildItem()
-        it.lo = lo[i]
-        it.tri = i
-        it.hi = hi[i]
-        b.items[offsets[i]] = it
+    kept[i] = wp.where(items[i].tri >= 0, 1, 0)
+
+
+@wp.kernel
+def compact_items(items: wp.array(dtype=BuildItem), kept: wp.array(dtype=int),
+                  offsets: wp.array(dtype=int), out: wp.array(dtype=BuildItem)):
+    """The kept items, in order, at their `offsets` (an exclusive scan of `kept`)."""
+    i = wp.tid()
+    if kept[i] != 0:
+        out[offsets[i]] = items[i]
 
 
 @wp.kernel

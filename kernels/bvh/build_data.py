@@ -105,6 +105,7 @@ class BuildData:
     leaf_size: int
     max_depth: int
     serial_max: int  # SAH tasks of at most this many triangles skip PPS: SWAP_IN_PLACE
+    whole_max: int  # SAH ranges of at most this many triangles are leaves, never cut
 
 
 @wp.func

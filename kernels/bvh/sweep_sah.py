@@ -88,7 +88,7 @@ SUBTREE_SOURCE = """
         deepest = d > deepest ? d : deepest;
         const int count = row[r].count;
         int* p = perm + (row[r].first - start);
-        if (count < 2 || d >= max_depth - 1)
+        if (count <= whole_max || d >= max_depth - 1)
             continue;
         int k = count / 2;  // coincident centroids: halve
         f4 llo = up, lhi = down, lclo = up, lchi = down;  // the left child's boxes
@@ -183,7 +183,8 @@ SUBTREE_SOURCE = """
 
 @wp.func_native(SUBTREE_SOURCE)
 def subtree_rows_native(items: wp.array(dtype=BuildItem), nodes: wp.array(dtype=BvhNode),
-                        rows: int, depth: int, max_depth: int, leaf_size: int) -> wp.vec2i:
+                        rows: int, depth: int, max_depth: int, leaf_size: int,
+                        whole_max: int) -> wp.vec2i:
     """subtree_rows (SUBTREE_SOURCE); (0, 0) where not compiled."""
     ...
 
@@ -280,7 +281,7 @@ def small_subtree(b: BuildData, node: int, depth: int, worker: int):
     rows = worker * SUBTREE_NODES
     b.subtree_nodes[rows] = b.nodes[node]
     made = subtree_rows_native(b.items, b.subtree_nodes, rows, depth, b.max_depth,
-                               b.leaf_size)
+                               b.leaf_size, b.whole_max)
     if made[0] == 0:
         made = subtree_rows(b, rows, depth)
     shared_max(b.counters, MAX_DEPTH, made[1])
@@ -308,7 +309,7 @@ def subtree_rows(b: BuildData, rows: int, depth: int) -> wp.vec2i:
         d = depths[sp]
         axis = axes[sp]
         deepest = wp.max(deepest, d)
-        if n.count < 2 or d >= b.max_depth - 1:
+        if n.count <= b.whole_max or d >= b.max_depth - 1:
             continue
         k = n.count / 2  # coincident centroids: halve, as the pool's tasks do
         if axis >= 0:

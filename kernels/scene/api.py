@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
-from ..bvh.api import METHODS, Bvh, build_over_boxes, empty_bounds
+from ..bvh.api import METHODS, Bvh, build_over_boxes
 from ..bvh.api import trace as trace_bvh
 from ..bvh.binary_traversal import STACK_SIZE
 from ..bvh.node import empty_root
@@ -244,12 +244,8 @@ def build_scene(meshes: Sequence[Bvh | None], mesh_ids, transforms, *,
                        np.float32)
     else:
         box = np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32)
-    bounds_wp = empty_bounds(device)
-    bounds_wp.assign(box)  # instance boxes come from the host, so their bounds do too
-    tree = build_over_boxes(
-        wp.array(lo, dtype=wp.vec3, device=device), wp.array(hi, dtype=wp.vec3, device=device),
-        wp.array(keep.astype(np.int32), dtype=int, device=device), bounds_wp, method,
-        TOP_LEAF_SIZE, STACK_SIZE, device, workers=workers, phase_ms=phase_ms, start=t0)
+    tree = build_over_boxes(lo, hi, keep, box, method, TOP_LEAF_SIZE, STACK_SIZE, device,
+                            workers=workers, phase_ms=phase_ms, start=t0)
     arrays = SceneArrays()
     if tree.count:
         arrays.top = tree.data.nodes[: tree.node_count]

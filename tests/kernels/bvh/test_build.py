@@ -140,12 +140,19 @@ def test_depth_cap_makes_big_leaves():
 
 def test_sah_splits_below_the_leaf_size_where_that_is_cheaper():
     """leaf_size is a maximum for SAH: two far-apart small triangles get a leaf each, while
-    copies of one triangle (nothing to gain from splitting) share one leaf."""
+    copies of one triangle (nothing to gain from splitting) share one leaf. A CPU build for
+    a wide tree leaves ranges of at most wide.WHOLE triangles uncut: the collapse makes one
+    leaf block of them either way."""
     tri = np.array([[0, 0, 0], [0.01, 0, 0], [0, 0.01, 0]], np.float32)
     v = np.vstack([tri, tri + 100]).astype(np.float32)
-    bvh = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), leaf_size=8)
+    bvh = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), leaf_size=8,
+                            width=2)
     check_bvh(bvh, 8)
     assert bvh.stats.leaves == 2
+    wide = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), leaf_size=8,
+                             width=8, device="cpu")
+    check_bvh(wide, 8)
+    assert wide.stats.leaves == 1 and wide.stats.leaf_blocks == 1
     copies = kernels.build_bvh(tri, np.zeros((8, 3), np.int32) + [0, 1, 2], leaf_size=8)
     assert copies.stats.leaves == 1
     median = kernels.build_bvh(v, np.array([[0, 1, 2], [3, 4, 5]], np.int32), method="median")

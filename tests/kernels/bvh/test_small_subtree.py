@@ -22,12 +22,12 @@ wp.set_module_options(MODULE_OPTIONS)
 def both_paths(native: BuildData, portable: BuildData, depth: int,
                made: wp.array(dtype=wp.vec2i)):
     made[0] = subtree_rows_native(native.items, native.subtree_nodes, 0, depth,
-                                  native.max_depth, native.leaf_size)
+                                  native.max_depth, native.leaf_size, native.whole_max)
     made[1] = subtree_rows(portable, 0, depth)
 
 
-def build_data(items: np.ndarray, root: np.ndarray, leaf_size: int, max_depth: int
-               ) -> BuildData:
+def build_data(items: np.ndarray, root: np.ndarray, leaf_size: int, max_depth: int,
+               whole_max: int) -> BuildData:
     b = BuildData()
     b.items = wp.array(items, dtype=BuildItem, device="cpu")
     b.spare = wp.zeros(len(items), dtype=BuildItem, device="cpu")
@@ -37,6 +37,7 @@ def build_data(items: np.ndarray, root: np.ndarray, leaf_size: int, max_depth: i
     b.method = int(METHOD_SAH)
     b.leaf_size = leaf_size
     b.max_depth = max_depth
+    b.whole_max = whole_max
     return b
 
 
@@ -44,8 +45,8 @@ def build_data(items: np.ndarray, root: np.ndarray, leaf_size: int, max_depth: i
 @settings(max_examples=80, deadline=None)
 @given(count=st.integers(1, int(SMALL_TASK)), seed=st.integers(0, 2**32 - 1),
        grid=st.sampled_from([1, 4, 1024]), leaf_size=st.sampled_from([1, 2, 8]),
-       max_depth=st.sampled_from([2, 5, 64]))
-def test_native_and_warp_subtrees_agree(count, seed, grid, leaf_size, max_depth):
+       max_depth=st.sampled_from([2, 5, 64]), whole_max=st.sampled_from([1, 3]))
+def test_native_and_warp_subtrees_agree(count, seed, grid, leaf_size, max_depth, whole_max):
     """Coarse grids make ties of centroid keys and boxes that share a plane; signed zeros
     make min and max depend on the order they are taken in."""
     rng = np.random.default_rng(seed)
@@ -57,8 +58,8 @@ def test_native_and_warp_subtrees_agree(count, seed, grid, leaf_size, max_depth)
     root = np.zeros((), BvhNode.numpy_dtype())
     root["lo"], root["hi"] = lo.min(axis=0), hi.max(axis=0)
     root["first"], root["count"] = 0, count
-    native = build_data(items, root, leaf_size, max_depth)
-    portable = build_data(items, root, leaf_size, max_depth)
+    native = build_data(items, root, leaf_size, max_depth, whole_max)
+    portable = build_data(items, root, leaf_size, max_depth, whole_max)
     made = wp.zeros(2, dtype=wp.vec2i, device="cpu")
     wp.launch(both_paths, dim=1, inputs=[native, portable, 3, made], device="cpu")
     (rows, deepest), (rows_warp, deepest_warp) = made.numpy()
