@@ -63,8 +63,11 @@ SIMD_WIDTH, PORTABLE_WIDTH = 8, 2
 # 1.1 M-triangle bunny 3x faster on an H200 (docs/benchmarks.md, CUDA sweeps)
 BUILD_MIN_CHUNKS = {"cpu": 256, "cuda": 64}
 # SAH tasks of at most 1 / (SERIAL_SHARE x workers) of the triangles are partitioned by one
-# worker in one pass (build.exchange_in_place), not by the pool's PPS and Swap
-SERIAL_SHARE = 4
+# worker in one pass (build.exchange_in_place), not by the pool's PPS and Swap (two workers:
+# every task of at most half the triangles). 1 rather than 4 (builds interleaved in one
+# process, medians of 5-10, two workers: 4M gallery 959 -> 938 ms, 1M 232 -> 224,
+# Conference 62.7 -> 61.6, dragon 21.0 -> 19.7; 2 and 8 in between and worse)
+SERIAL_SHARE = 1
 PART_ITEMS = 65536  # fewest triangles worth a launch of their own (prepare, reorder)
 REORDER_PARTS = 4  # parts per host thread of the reorder
 
