@@ -238,8 +238,8 @@ def tree_bytes(arrays: BvhArrays) -> int:
 
 
 def empty_bounds_numpy() -> np.ndarray:
-    """The four boxes a box kernel widens by atomics before `build_over_boxes`: the items'
-    box (lo, hi) and their centroids' box (lo, hi), empty; (4, 3) float32."""
+    """The four boxes the prepare phase's parts widen by atomics (bb.triangle_items): the
+    items' box (lo, hi) and their centroids' box (lo, hi), empty; (4, 3) float32."""
     inf = np.float32(np.inf)
     return np.array([[inf] * 3, [-inf] * 3, [inf] * 3, [-inf] * 3], np.float32)
 
