@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -35,16 +36,16 @@ from ..bvh.node import BvhArrays
 from ..bvh.packet import PACKET
 from ..bvh.wide_traversal import simd_lanes
 from ..core.compile_options import MODULE_OPTIONS
-from ..core.launch import PARTS_PER_THREAD, host_threads, part_launcher, run_parts
+from ..core.launch import host_threads, part_launcher, run_parts
 from ..core.mesh import Shading
 from ..scene.api import Scene
 from ..scene.top import SceneArrays, SceneShading
 from .adaptive import Progress, SampleCounts, nested_marks, round_bounds, sample_rounds
 from .ao import AoResult, _monotone, default_distance, render_ao
 from .camera import Camera
-from .film import decorrelated_2d, filter_position, filter_table
+from .film import FILTER_KEY, decorrelated_2d, filter_position, filter_table
 from .primary import scene_shading
-from .sampling import SAMPLERS, cosine_direction, pixel_key
+from .sampling import SAMPLERS, cosine_about, cosine_direction, pixel_key
 from .surface import Surface, occlusion_origin
 from .tracers import (
     PART_RAYS,
@@ -175,6 +176,29 @@ def sample_ray(cam: FilmCamera, table: wp.array(dtype=float), sampler: int, key:
     return camera_ray(cam, float(col) + offset[0], float(row) + offset[1], lens)
 
 
+FILM_RAYS_SOURCE = (
+    "#if !defined(__CUDA_ARCH__)\n"
+    + (Path(__file__).parent / "film_rays.h").read_text().replace(
+        "FILTER_KEY_VALUE", f"{int(FILTER_KEY)}u")
+    + "#else\n    return 0;\n#endif\n"
+)
+
+
+@wp.func_native(FILM_RAYS_SOURCE)
+def packet_samples_native(rotation: wp.mat33, position: wp.vec3, centre: wp.vec2,
+                          step: wp.vec2, offset: wp.vec2, persp: int, aperture: float,
+                          clip_start: float, clip_end: float, sampler: int,
+                          table: wp.array(dtype=float), key: wp.uint32, first: int, count: int,
+                          row: int, col: int, origins: wp.array(dtype=wp.vec3),
+                          directions: wp.array(dtype=wp.vec3), tmin: wp.array(dtype=float),
+                          tmax: wp.array(dtype=float), points: wp.array(dtype=wp.vec2),
+                          first_ray: int) -> int:
+    """Samples first .. first + count - 1 of pixel (row, col), from first_ray on: their
+    occlusion-direction points on a CPU, and where it returns 1 their camera rays
+    (film_rays.h); 0 on CUDA, nothing written."""
+    ...
+
+
 @wp.func
 def sample_surface(tracer: Any, shading: Any, cam: FilmCamera, table: wp.array(dtype=float),
                    sampler: int, key: wp.uint32, first: int, s: int, count: int, row: int,
@@ -182,11 +206,16 @@ def sample_surface(tracer: Any, shading: Any, cam: FilmCamera, table: wp.array(d
     """`closest_surface` of sample first + s's camera ray of pixel (row, col) through the
     tracer (MeshTracer or SceneArrays). On an AVX2 CPU the camera rays of PACKET samples at
     a time are traced together, at the first of them (a pixel's rays leave one point
-    through a pixel or two: as coherent as rays get)."""
+    through a pixel or two: as coherent as rays get), and made there with the samples'
+    occlusion-direction points (packet_samples_native)."""
     if simd_lanes() > 0:
         q = s % PACKET
         c = wp.min(PACKET, count - (s - q))
-        if q == 0:
+        if q == 0 and packet_samples_native(
+                cam.rotation, cam.position, cam.centre, cam.step, cam.offset, cam.persp,
+                cam.aperture, cam.clip_start, cam.clip_end, sampler, table, key, first + s, c,
+                row, col, rays.origins, rays.directions, rays.tmin, rays.tmax, rays.points,
+                packet0) == 0:
             for m in range(c):
                 o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s + m, row, col)
                 rays.origins[packet0 + m] = o
@@ -196,6 +225,16 @@ def sample_surface(tracer: Any, shading: Any, cam: FilmCamera, table: wp.array(d
         return packet_surface(tracer, shading, rays, packet0, packet0 + q, packet0 + c)
     o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s, row, col)
     return closest_surface(tracer, shading, o, d, t0, t1)
+
+
+@wp.func
+def sample_direction(n: wp.vec3, sampler: int, key: wp.uint32, i: int, rays: PacketRays,
+                     k: int) -> wp.vec3:
+    """`cosine_direction` of sample i about n, from its point that packet_samples_native
+    made at packet ray k on an AVX2 CPU."""
+    if simd_lanes() > 0:
+        return cosine_about(n, rays.points[k])
+    return cosine_direction(n, sampler, key, i)
 
 
 @wp.func
@@ -250,7 +289,7 @@ def film_kernel(
                                       count, row, col, rays, packet0)
         if hit:
             n_hit += 1
-            w = cosine_direction(surface.n, sampler, key, i)
+            w = sample_direction(surface.n, sampler, key, i, rays, packet0 + s % PACKET)
             o = sample_origin(tracer, shading, rays, packet0, s, surface, w)
             if simd_lanes() > 0:
                 add_group_ray(group, packet0 + m, o, w, distance, i)
@@ -327,6 +366,10 @@ def device_camera(camera: Camera) -> FilmCamera:
 # gave about as much, 4 less; the shared scenes' trees (<= 1.1M triangles, 16 spp) neither
 # gain nor lose.
 TILE = 16
+# Parts per host thread of a film's round (core.launch's PARTS_PER_THREAD is 8): a round
+# ends when its last part does, and a film's parts cost unevenly (sky, ground, detail).
+# Issue 33's six Suzannes, two threads: 0.672 s against 0.689 (means of 5 processes).
+FILM_PARTS_PER_THREAD = 32
 
 
 def tile_order(width: int, height: int) -> np.ndarray:
@@ -467,7 +510,7 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
         outs = [wp.empty(k, dtype=int, device=device) for _ in range(4)]
         # Contiguous runs of pixels in host threads (a CPU launch is serial): more parts
         # than threads, taken in turn, since sky and geometry cost very different amounts.
-        parts = max(1, min(nthreads * PARTS_PER_THREAD if nthreads > 1 else 1,
+        parts = max(1, min(nthreads * FILM_PARTS_PER_THREAD if nthreads > 1 else 1,
                            k * count // PART_RAYS, k))
         bounds = np.linspace(0, k, parts + 1).astype(int)
         launch = part_launcher(film_kernel, [*head, active, 0, int(first), int(count),

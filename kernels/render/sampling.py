@@ -179,7 +179,13 @@ def frame_y(n: wp.vec3) -> wp.vec3:
 
 
 @wp.func
+def cosine_about(n: wp.vec3, u: wp.vec2) -> wp.vec3:
+    """The cosine-weighted unit direction about n that the point u of [0,1)^2 gives."""
+    w = cosine_hemisphere(u)
+    return frame_x(n) * w[0] + frame_y(n) * w[1] + n * w[2]
+
+
+@wp.func
 def cosine_direction(n: wp.vec3, sampler: int, key: wp.uint32, index: int) -> wp.vec3:
     """Sample `index` of the pixel with `key`: a cosine-weighted unit direction about n."""
-    w = cosine_hemisphere(sample_2d_at(sampler, key, wp.uint32(index)))
-    return frame_x(n) * w[0] + frame_y(n) * w[1] + n * w[2]
+    return cosine_about(n, sample_2d_at(sampler, key, wp.uint32(index)))

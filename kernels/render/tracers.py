@@ -154,6 +154,7 @@ class PacketRays:
     v: wp.array(dtype=float)
     instance: wp.array(dtype=int)  # a two-level scene's: the hit instance
     scene: InstancePackets  # a two-level scene's scratch
+    points: wp.array(dtype=wp.vec2)  # the film's: each sample's occlusion-direction point
 
 
 def packet_rays(parts: int, scene: bool, device) -> PacketRays:
