@@ -303,7 +303,7 @@ class AoEngine:
                 raise Cancelled()
             self.update_progress(self.task.fraction)
             self.show(f"{self.task.step} ({what})")
-            time.sleep(POLL_S)
+            self.task.join(POLL_S)  # back as the work ends, not up to POLL_S after it
         if self.task.error is not None:
             raise self.task.error
         return self.task.result
