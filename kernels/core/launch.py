@@ -63,8 +63,11 @@ def to_device(a: np.ndarray, dtype, device) -> wp.array:
 
 
 def launch_key(kernel, device, args: list) -> tuple:
-    """What a recorded launch of `kernel` is specific to: a generic kernel's overload
-    follows its arguments' kinds (which struct, which dtype)."""
+    """What a recorded launch of `kernel` is specific to: which arguments are numpy arrays
+    (core.claim), and for a generic kernel, whose overload follows its arguments' kinds,
+    their dtypes too (which struct, which dtype)."""
+    if not kernel.is_generic:  # its types fixed: 2 us less a small call (trace's 11)
+        return (kernel, device.alias, tuple(map(type, args)))
     return (kernel, device.alias, tuple((type(x), getattr(x, "dtype", None),
                                          getattr(x, "ndim", None)) for x in args))
 
