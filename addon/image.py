@@ -70,6 +70,16 @@ def needs_depth(extras: tuple[ExtraPass, ...]) -> bool:
     return any(p.blender[0] in ("Depth", "Denoising Depth") for p in extras)
 
 
+def film_alpha(coverage: np.ndarray, holdout: np.ndarray | None,
+               transparent: bool) -> np.ndarray:
+    """Cycles' alpha from a job's coverage and holdout layer (the fraction of a pixel the
+    camera sees as holdout; its samples are not covered): with Film > Transparent the
+    coverage (sky and holdout alike transparent), else 1 less the holdout."""
+    if transparent:
+        return coverage
+    return np.ones_like(coverage) if holdout is None else 1.0 - holdout
+
+
 def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
     """The passes' pixels (bottom row first, as Blender stores them) of a job's outcome."""
     width, height = outcome.size
@@ -79,9 +89,9 @@ def result_passes(outcome: Outcome, transparent: bool) -> dict[str, np.ndarray]:
     # of the two float32 means must not take an uncovered pixel below 0.
     ao = np.maximum(outcome.ao.reshape(height, width)[::-1].reshape(-1, 1) + coverage - 1.0,
                     0.0)
-    alpha = coverage if transparent else np.ones_like(coverage)
-    if outcome.holdout is not None:  # a holdout is transparent whatever the film says
-        alpha = alpha * (1.0 - outcome.holdout.reshape(height, width)[::-1].reshape(-1, 1))
+    holdout = None if outcome.holdout is None else (
+        outcome.holdout.reshape(height, width)[::-1].reshape(-1, 1))
+    alpha = film_alpha(coverage, holdout, transparent)
     passes = {"Combined": np.hstack([ao, ao, ao, alpha]), "AO": ao}
     if outcome.depth is not None:  # the job traced it (the Z pass is on)
         passes["Depth"] = outcome.depth.reshape(height, width)[::-1].reshape(-1, 1)

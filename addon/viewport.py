@@ -37,6 +37,7 @@ from . import export, pipeline
 from .ao_options import MIN_ADAPTIVE_SPP
 from .client import ServiceError
 from .connection import Connection, Target
+from .image import film_alpha
 from .tasks import Cancelled, Task
 
 ROUND_SEED = 7919  # round k's seed is the render seed + k * ROUND_SEED: independent samples
@@ -316,9 +317,8 @@ class ViewSession:
                  rmse: float | None, done: bool) -> None:
         width, height = got.size
         coverage = got.coverage.reshape(height, width)
-        alpha = coverage if self.transparent else np.ones_like(coverage)
-        if got.holdout is not None:
-            alpha = alpha * (1.0 - got.holdout.reshape(height, width))
+        alpha = film_alpha(coverage, None if got.holdout is None
+                           else got.holdout.reshape(height, width), self.transparent)
         grey = mean.reshape(height, width) * coverage
         rgba = np.stack([grey, grey, grey, alpha], axis=-1)[::-1]
         with self._lock:

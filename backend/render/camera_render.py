@@ -61,7 +61,7 @@ def render_camera(
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
     shape = (camera.height, camera.width)
-    centres_only = _centres_only(views, passes)
+    centres_only = _centres_only(passes)
     filtered = options.filtered and centres_only is None
     job.film = options.film if filtered or not options.filtered else (
         f"pixel centres: {centres_only} renders one camera ray per pixel centre")
@@ -72,7 +72,7 @@ def render_camera(
         job.ao, job.coverage = film.ao, film.alpha
         job.spp_mean, job.spp_max = film.spp_mean, film.spp_max  # over covered pixels
         job.rmse_estimate, job.rays, job.denoised = film.rmse_estimate, film.rays, False
-        normals, held = None, None  # (no holdout: _centres_only)
+        normals, held = None, film.holdout  # (no normal pass: _centres_only)
     else:
         origins, directions, tmin, tmax = job.timed("camera", camera.rays)
         result = job.timed(
@@ -143,12 +143,10 @@ def _reach(options: AoOptions) -> float:
     return filter_reach(options.pixel_filter, options.filter_width) if options.filtered else 0.0
 
 
-def _centres_only(views: Views, passes: Sequence[str]) -> str | None:
+def _centres_only(passes: Sequence[str]) -> str | None:
     """What makes a job render pixel centres whatever its filter (None: nothing): the
-    filtered film has no holdout and no per-pixel normal yet."""
-    reasons = [why for why, applies in (("a holdout", views.holdout is not None),
-                                        ("the normal pass", "normal" in passes)) if applies]
-    return " and ".join(reasons) or None
+    filtered film has no per-pixel normal yet."""
+    return "the normal pass" if "normal" in passes else None
 
 
 def _render_film(job: Job, views: Views, scene: Any, camera: Any, options: AoOptions) -> Any:
@@ -162,7 +160,7 @@ def _render_film(job: Job, views: Views, scene: Any, camera: Any, options: AoOpt
 
     occluders = None if views.occluders is views.camera else views.occluders
     return kernels.render_film(views.camera, camera, options, occluders=occluders,
-                               progress=progress, **shading(scene))
+                               holdout=views.holdout, progress=progress, **shading(scene))
 
 
 def _render_ao(

@@ -55,10 +55,12 @@ from .tracers import (
     add_group_ray,
     check_tracer,
     closest_surface,
+    closest_t,
     group_rays,
     occluded,
     occluded_group,
     open_sample,
+    packet_closest,
     packet_occlusion_origin,
     packet_rays,
     packet_surface,
@@ -199,31 +201,90 @@ def packet_samples_native(rotation: wp.mat33, position: wp.vec3, centre: wp.vec2
     ...
 
 
+@wp.struct
+class NoHoldout:
+    """film_kernel's holdout where there is none: the overloads below on it do nothing, and
+    the kernel compiled for it has no holdout code (a call of hold_packet in the kernel,
+    never made, slowed the film by 5-13%)."""
+
+    unused: int
+
+
 @wp.func
-def sample_surface(tracer: Any, shading: Any, cam: FilmCamera, table: wp.array(dtype=float),
-                   sampler: int, key: wp.uint32, first: int, s: int, count: int, row: int,
-                   col: int, rays: PacketRays, packet0: int):
+def hold_packet(holdout: NoHoldout, rays: PacketRays, held_rays: PacketRays, first: int,
+                last: int):
+    """The holdout's closest hits of rays [first, last) into held_rays (which share the
+    rays' origins, directions and ranges), each ray's range then ending at its hit."""
+    pass
+
+
+@wp.func(inline=False)  # a Warp overload of the one above: through a two-level scene
+def hold_packet(holdout: SceneArrays, rays: PacketRays, held_rays: PacketRays,  # noqa: F811
+                first: int, last: int):
+    packet_closest(holdout, held_rays, first, last)
+    for m in range(first, last):
+        rays.tmax[m] = wp.min(rays.tmax[m], held_rays.t[m])
+
+
+@wp.func
+def hold_ray(holdout: NoHoldout, o: wp.vec3, d: wp.vec3, t0: float, t1: float,
+             held_rays: PacketRays, k: int) -> float:
+    """The distance of the holdout's closest hit along one ray (inf: none), also into
+    held_rays.t at k."""
+    return wp.inf
+
+
+@wp.func  # a Warp overload of the one above: through a two-level scene
+def hold_ray(holdout: SceneArrays, o: wp.vec3, d: wp.vec3, t0: float, t1: float,  # noqa: F811
+             held_rays: PacketRays, k: int) -> float:
+    t = closest_t(holdout, o, d, t0, t1)
+    held_rays.t[k] = t
+    return t
+
+
+@wp.func
+def is_held(holdout: NoHoldout, held_rays: PacketRays, k: int) -> bool:
+    """Whether a sample that saw nothing met the holdout (its t at held_rays' entry k)."""
+    return False
+
+
+@wp.func  # a Warp overload of the one above
+def is_held(holdout: SceneArrays, held_rays: PacketRays, k: int) -> bool:  # noqa: F811
+    return held_rays.t[k] < wp.inf
+
+
+@wp.func
+def sample_surface(tracer: Any, shading: Any, holdout: Any, cam: FilmCamera,
+                   table: wp.array(dtype=float), sampler: int, key: wp.uint32, first: int,
+                   s: int, count: int, row: int, col: int, rays: PacketRays,
+                   held_rays: PacketRays, packet0: int):
     """`closest_surface` of sample first + s's camera ray of pixel (row, col) through the
-    tracer (MeshTracer or SceneArrays). On an AVX2 CPU the camera rays of PACKET samples at
-    a time are traced together, at the first of them (a pixel's rays leave one point
-    through a pixel or two: as coherent as rays get), and made there with the samples'
-    occlusion-direction points (packet_samples_native)."""
+    tracer (MeshTracer or SceneArrays); with a holdout (not NoHoldout), the ray's range ends
+    at the holdout's closest hit, whose t (inf: none) goes to held_rays.t at packet0 + s %
+    PACKET (a miss there is held, as render_ao's holdout). On an AVX2 CPU the camera rays of
+    PACKET samples at a time are traced together, at the first of them (a pixel's rays
+    leave one point through a pixel or two: as coherent as rays get), and made there with
+    the samples' occlusion-direction points (packet_samples_native)."""
     if simd_lanes() > 0:
         q = s % PACKET
         c = wp.min(PACKET, count - (s - q))
-        if q == 0 and packet_samples_native(
-                cam.rotation, cam.position, cam.centre, cam.step, cam.offset, cam.persp,
-                cam.aperture, cam.clip_start, cam.clip_end, sampler, table, key, first + s, c,
-                row, col, rays.origins, rays.directions, rays.tmin, rays.tmax, rays.points,
-                packet0) == 0:
-            for m in range(c):
-                o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s + m, row, col)
-                rays.origins[packet0 + m] = o
-                rays.directions[packet0 + m] = d
-                rays.tmin[packet0 + m] = t0
-                rays.tmax[packet0 + m] = t1
+        if q == 0:
+            if packet_samples_native(
+                    cam.rotation, cam.position, cam.centre, cam.step, cam.offset, cam.persp,
+                    cam.aperture, cam.clip_start, cam.clip_end, sampler, table, key, first + s,
+                    c, row, col, rays.origins, rays.directions, rays.tmin, rays.tmax,
+                    rays.points, packet0) == 0:
+                for m in range(c):
+                    o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s + m, row,
+                                              col)
+                    rays.origins[packet0 + m] = o
+                    rays.directions[packet0 + m] = d
+                    rays.tmin[packet0 + m] = t0
+                    rays.tmax[packet0 + m] = t1
+            hold_packet(holdout, rays, held_rays, packet0, packet0 + c)
         return packet_surface(tracer, shading, rays, packet0, packet0 + q, packet0 + c)
     o, d, t0, t1 = sample_ray(cam, table, sampler, key, first + s, row, col)
+    t1 = wp.min(t1, hold_ray(holdout, o, d, t0, t1, held_rays, packet0 + s % PACKET))
     return closest_surface(tracer, shading, o, d, t0, t1)
 
 
@@ -252,6 +313,7 @@ def film_kernel(
     tracer: Any,  # MeshTracer or SceneArrays
     shading: Any,  # Shading or SceneShading
     bvh: Any,  # BvhArrays or SceneArrays: what occlusion rays traverse
+    holdout: Any,  # SceneArrays: what the camera sees as holdout; NoHoldout: none
     cam: FilmCamera,
     width: int,
     table: wp.array(dtype=float),
@@ -265,12 +327,14 @@ def film_kernel(
     mid: int,  # out_open_mid counts the open samples with index below this (absolute)
     quarter: int,  # out_open_quarter: those below this
     rays: PacketRays,  # one packet per part of the round
+    held_rays: PacketRays,  # the holdout's hits of the same rays (with a holdout)
     group: GroupRays,  # one group per part: the occlusion rays of the packet's hits
     packet0: int,  # this launch's packet in `rays` and group in `group`
     out_open: wp.array(dtype=int),  # per slot: samples whose value is 1
     out_open_mid: wp.array(dtype=int),
     out_open_quarter: wp.array(dtype=int),
     out_hit: wp.array(dtype=int),  # per slot: samples whose camera ray hit
+    out_held: wp.array(dtype=int),  # per slot: samples whose camera ray met the holdout
 ):
     # One pixel's samples per thread: each slot is written by one thread of one launch.
     j = slot0 + wp.tid()
@@ -280,13 +344,14 @@ def film_kernel(
     col = k - row * width
     opened = wp.vec3i(0, 0, 0)  # open samples: all, below mid, below quarter
     n_hit = int(0)
+    n_held = int(0)
     # The occlusion rays of a packet's hits go as one group at the packet's end (rays from
     # around one point: bvh/wide_occlusion.h).
     m = int(0)
     for s in range(count):
         i = first + s
-        surface, hit = sample_surface(tracer, shading, cam, table, sampler, key, first, s,
-                                      count, row, col, rays, packet0)
+        surface, hit = sample_surface(tracer, shading, holdout, cam, table, sampler, key,
+                                      first, s, count, row, col, rays, held_rays, packet0)
         if hit:
             n_hit += 1
             w = sample_direction(surface.n, sampler, key, i, rays, packet0 + s % PACKET)
@@ -296,8 +361,10 @@ def film_kernel(
                 m += 1
             elif not occluded(bvh, o, w, distance, True):  # elsewhere ray by ray
                 opened += open_sample(i, mid, quarter)
-        else:  # a miss counts 1, as render_ao's pixels do
+        else:  # a miss counts 1, as render_ao's pixels do; so does a held sample
             opened += open_sample(i, mid, quarter)
+            if is_held(holdout, held_rays, packet0 + s % PACKET):
+                n_held += 1
         if m > 0 and (s % PACKET == PACKET - 1 or s == count - 1):
             occluded_group(bvh, group, packet0, packet0 + m)
             for g in range(packet0, packet0 + m):
@@ -308,11 +375,15 @@ def film_kernel(
     out_open_mid[j] = opened[1]
     out_open_quarter[j] = opened[2]
     out_hit[j] = n_hit
+    out_held[j] = n_held
 
 
-for _tracer, _shading, _bvh in ((MeshTracer, Shading, BvhArrays),
-                                (SceneArrays, SceneShading, SceneArrays)):
-    wp.overload(film_kernel, {"tracer": _tracer, "shading": _shading, "bvh": _bvh})
+# a holdout comes with a two-level scene (a mesh's is rendered as one: render_film)
+for _tracer, _shading, _bvh, _holdout in ((MeshTracer, Shading, BvhArrays, NoHoldout),
+                                          (SceneArrays, SceneShading, SceneArrays, NoHoldout),
+                                          (SceneArrays, SceneShading, SceneArrays, SceneArrays)):
+    wp.overload(film_kernel, {"tracer": _tracer, "shading": _shading, "bvh": _bvh,
+                              "holdout": _holdout})
 
 
 @dataclass
@@ -329,6 +400,9 @@ class FilmResult:
     # filter_width=0: render_ao's result over the pixel centres (its statistics, normals,
     # denoised image); None for a filtered render
     centres: AoResult | None = None
+    # (H, W) float32: the fraction of samples whose camera ray met the holdout before
+    # anything seen (those count as misses in ao and alpha); None without a holdout
+    holdout: np.ndarray | None = None
 
     @property
     def spp_mean(self) -> float:
@@ -385,16 +459,17 @@ def tile_order(width: int, height: int) -> np.ndarray:
 
 def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = None, *,
                 normals: Any = None, terminator_offset: float | np.ndarray | None = None,
-                occluders: Bvh | Scene | None = None, progress: Progress | None = None,
-                **settings: Any) -> FilmResult:
+                occluders: Bvh | Scene | None = None, holdout: Bvh | Scene | None = None,
+                progress: Progress | None = None, **settings: Any) -> FilmResult:
     """AO and alpha of `camera`'s image through the options' pixel filter (`pixel_filter`,
     `filter_width`; module docstring), or with filter_width=0 through the pixel centres
     (render_ao over `Camera.rays()`, any of its settings). A filter with denoising or
     engine "dacrt" raises ValueError (AoOptions.film_fallback says why). With an error
     target the rounds are render_ao's (adaptive.py) over the covered pixels: those that
     any of their first `min_spp` samples hit. `normals`, `terminator_offset`, `occluders`
-    (what occlusion rays meet; None: `bvh`; of `bvh`'s kind) and `progress` are
-    `render_ao`'s; keywords set single fields of `options`."""
+    (what occlusion rays meet; None: `bvh`; of `bvh`'s kind), `holdout` (what the camera
+    sees as holdout; of `bvh`'s kind, through a filter Scenes only: FilmResult.holdout) and
+    `progress` are `render_ao`'s; keywords set single fields of `options`."""
     opts = (options or AoOptions()).with_(**settings)
     offsets = opts.terminator_offset if terminator_offset is None else terminator_offset
     shape = (camera.height, camera.width)
@@ -402,37 +477,44 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
         o, d, t0, t1 = camera.rays()
         r = render_ao(bvh, o, d, opts, tmin=t0, tmax=t1, normals=normals,
                       terminator_offset=offsets, image_shape=shape, progress=progress,
-                      occluders=occluders)
+                      occluders=occluders, holdout=holdout)
         return FilmResult(ao=r.ao.reshape(shape),
                           alpha=(r.spp_used > 0).astype(np.float32).reshape(shape),
                           spp_used=r.spp_used.reshape(shape),
                           rays=r.rays.primary + r.rays.occlusion,
-                          rmse_estimate=r.rmse_estimate, centres=r)
+                          rmse_estimate=r.rmse_estimate, centres=r,
+                          holdout=None if r.holdout is None
+                          else r.holdout.astype(np.float32).reshape(shape))
     if opts.film_fallback is not None:
         raise ValueError(f"render_film with filter_width > 0 renders with engine='bvh' and "
                          f"no denoising: drop denoise and engine='dacrt', or set "
                          f"filter_width=0 ({opts.film_fallback})")
     check_tracer(bvh, opts.engine)
-    if occluders is not None and (type(occluders) is not type(bvh)
-                                  or occluders.device != bvh.device):
-        raise ValueError("occluders must be of bvh's kind (both a Bvh or both a Scene) and on "
-                         "its device")
+    for name, other in (("occluders", occluders), ("holdout", holdout)):
+        if other is not None and (type(other) is not type(bvh) or other.device != bvh.device):
+            raise ValueError(f"{name} must be of bvh's kind (both a Bvh or both a Scene) and "
+                             "on its device")
+    if holdout is not None and not isinstance(bvh, Scene):
+        raise ValueError("holdout through a pixel filter needs two-level scenes (bvh and "
+                         "holdout from kernels.build_scene), or set filter_width=0")
     report = _monotone(progress)
     order = tile_order(camera.width, camera.height)
-    trace = _film_tracer(bvh, camera, opts, normals, offsets, occluders or bvh, order)
+    trace = _film_tracer(bvh, camera, opts, normals, offsets, occluders or bvh, holdout,
+                         order)
     n, m = camera.width * camera.height, opts.min_spp
     # The first m samples of every pixel, in rounds of about ROUND_RAYS samples (a progress
     # call, the cancellation point, before each): they find the covered pixels (with a
     # fixed spp, all the work).
-    first_open, first_mid, first_quarter, hits = (np.zeros(n, np.int64) for _ in range(4))
+    first_open, first_mid, first_quarter, hits, held = (np.zeros(n, np.int64)
+                                                         for _ in range(5))
     mid, quarter = nested_marks(0, m)
     share = 0.5 if opts.adaptive else 1.0  # of the progress bar
     bounds = round_bounds(n, m)
     for a, b in zip(bounds[:-1], bounds[1:], strict=True):
         report(share * float(a) / n, "film")
         pixels = order[a:b]
-        (first_open[pixels], first_mid[pixels], first_quarter[pixels],
-         hits[pixels]) = trace(pixels, 0, m, mid, quarter)
+        (first_open[pixels], first_mid[pixels], first_quarter[pixels], hits[pixels],
+         held[pixels]) = trace(pixels, 0, m, mid, quarter)
     covered = np.flatnonzero(hits)
 
     def trace_round(select: np.ndarray, first: int, count: int, mid: int,
@@ -440,8 +522,10 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
         pixels = covered[select]
         if first == 0:  # traced above
             return first_open[pixels], first_mid[pixels], first_quarter[pixels]
-        opened, opened_mid, opened_quarter, hit = trace(pixels, first, count, mid, quarter)
+        opened, opened_mid, opened_quarter, hit, held_here = trace(pixels, first, count, mid,
+                                                                   quarter)
         hits[pixels] += hit
+        held[pixels] += held_here
         return opened, opened_mid, opened_quarter
 
     counts = SampleCounts(*(np.zeros(len(covered), np.int64) for _ in range(3)),
@@ -462,41 +546,55 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
                       alpha=(hits / done).astype(np.float32).reshape(shape),
                       spp_used=done.astype(np.int32).reshape(shape),
                       rays=int(done.sum() + hits.sum()),
-                      rmse_estimate=math.sqrt(counts.mse()) if len(covered) else None)
+                      rmse_estimate=math.sqrt(counts.mse()) if len(covered) else None,
+                      holdout=None if holdout is None
+                      else (held / done).astype(np.float32).reshape(shape))
+
+
+def _tracer(bvh: Bvh | Scene) -> MeshTracer | Any:
+    """What film_kernel traces camera rays through: a Scene's arrays, a mesh's tracer."""
+    if isinstance(bvh, Scene):
+        return bvh.arrays
+    mesh = scene_mesh(bvh)
+    tracer = MeshTracer()
+    tracer.bvh = bvh.arrays
+    tracer.vertices, tracer.indices = mesh.v, mesh.f
+    return tracer
 
 
 def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any,
-                 offsets: Any, occluders: Bvh | Scene,
+                 offsets: Any, occluders: Bvh | Scene, holdout: Bvh | Scene | None,
                  order: np.ndarray) -> Callable[..., tuple[np.ndarray, ...]]:
     """trace(pixels, first, count, mid, quarter): samples first..first+count-1 of these
-    pixels (row-major indices), each through its own filtered camera ray into `bvh` and an
-    occlusion ray through `occluders`: per pixel its open samples, those with index below
-    mid and below quarter, and its hits. The kernels get the pixels in `order`
-    (tile_order's)."""
+    pixels (row-major indices), each through its own filtered camera ray into `bvh` (its
+    range ending at `holdout`'s closest hit) and an occlusion ray through `occluders`: per
+    pixel its open samples, those with index below mid and below quarter, its hits and its
+    held samples. The kernels get the pixels in `order` (tile_order's)."""
     shading = scene_shading(bvh, normals, offsets)
     arrays = occluders.arrays
-    if isinstance(bvh, Scene):
-        tracer = bvh.arrays
-    else:
-        mesh = scene_mesh(bvh)
-        tracer = MeshTracer()
-        tracer.bvh = bvh.arrays
-        tracer.vertices, tracer.indices = mesh.v, mesh.f
+    tracer = _tracer(bvh)
     device = bvh.device
     dist = default_distance(bvh) if opts.distance is None else opts.distance
     table = wp.array(filter_table(opts.pixel_filter, opts.filter_width), dtype=float,
                      device=device)
     wp.load_module(film_kernel.module, device=device)  # once, not in every thread at once
     nthreads = host_threads(device, opts.threads)
-    head = [tracer, shading, arrays, device_camera(camera), camera.width, table,
-            SAMPLERS[opts.sampler], opts.seed, dist]
-    kept: list[tuple[PacketRays, GroupRays]] = []
+    head = [tracer, shading, arrays, NoHoldout() if holdout is None else holdout.arrays,
+            device_camera(camera), camera.width, table, SAMPLERS[opts.sampler], opts.seed,
+            dist]
+    kept: list[tuple[PacketRays, PacketRays, GroupRays]] = []
 
-    def packets(parts: int) -> tuple[PacketRays, GroupRays]:
-        """One packet and one group per part, kept for the render's later rounds."""
+    def packets(parts: int) -> tuple[PacketRays, PacketRays, GroupRays]:
+        """One packet, its holdout's hits and one group per part, kept for the render's
+        later rounds."""
         if not kept or kept[0][0].t.shape[0] < parts * PACKET:
-            kept[:] = [(packet_rays(parts, isinstance(bvh, Scene), device),
-                        group_rays(parts, isinstance(occluders, Scene), device))]
+            rays = packet_rays(parts, isinstance(bvh, Scene), device)
+            held = rays  # not read without a holdout
+            if holdout is not None:
+                held = packet_rays(parts, isinstance(holdout, Scene), device)
+                held.origins, held.directions = rays.origins, rays.directions
+                held.tmin, held.tmax = rays.tmin, rays.tmax
+            kept[:] = [(rays, held, group_rays(parts, isinstance(occluders, Scene), device))]
         return kept[0]
 
     tile_rank = np.argsort(order)
@@ -507,7 +605,7 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
         k = len(pixels)
         tiled = np.argsort(tile_rank[pixels], kind="stable")
         active = wp.array(pixels[tiled].astype(np.int32), dtype=int, device=device)
-        outs = [wp.empty(k, dtype=int, device=device) for _ in range(4)]
+        outs = [wp.empty(k, dtype=int, device=device) for _ in range(5)]
         # Contiguous runs of pixels in host threads (a CPU launch is serial): more parts
         # than threads, taken in turn, since sky and geometry cost very different amounts.
         parts = max(1, min(nthreads * FILM_PARTS_PER_THREAD if nthreads > 1 else 1,
@@ -518,7 +616,7 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
                                device)
 
         def run(p: int) -> None:
-            launch(int(bounds[p + 1] - bounds[p]), {10: int(bounds[p]), 17: p * PACKET})
+            launch(int(bounds[p + 1] - bounds[p]), {11: int(bounds[p]), 19: p * PACKET})
 
         run_parts(run, parts, nthreads)
         results = tuple(np.empty(k, np.int64) for _ in outs)

@@ -185,24 +185,47 @@ def packet_hit_surface(g: SceneArrays, shading: SceneShading, rays: PacketRays, 
 
 
 @wp.func
-def packet_surface(g: MeshTracer, shading: Shading, rays: PacketRays, first: int, k: int,
-                   last: int):
-    """`closest_surface` of ray k of rays [first, last) of `rays`, its lift left to
-    packet_occlusion_origin; at k == first the closest hits of them all are traced
-    (trace_packet_hits), into `rays`."""
-    if k == first:
-        trace_packet_hits(g.bvh, rays.origins, rays.directions, rays.tmin, rays.tmax, first,
-                          last, rays.t, rays.triangle, rays.u, rays.v)
-    return packet_hit_surface(g, shading, rays, k, False)
+def packet_closest(g: MeshTracer, rays: PacketRays, first: int, last: int):
+    """The closest hits of rays [first, last) of `rays` into it (trace_packet_hits; t inf
+    and triangle -1 on a miss)."""
+    trace_packet_hits(g.bvh, rays.origins, rays.directions, rays.tmin, rays.tmax, first,
+                      last, rays.t, rays.triangle, rays.u, rays.v)
 
 
 @wp.func  # a Warp overload of the one above: through a two-level scene (scene/packet.py)
-def packet_surface(g: SceneArrays, shading: SceneShading, rays: PacketRays,  # noqa: F811
-                   first: int, k: int, last: int):
+def packet_closest(g: SceneArrays, rays: PacketRays, first: int, last: int):  # noqa: F811
+    trace_scene_packet(g, rays.origins, rays.directions, rays.tmin, rays.tmax, first, last,
+                       rays.scene, rays.t, rays.triangle, rays.u, rays.v, rays.instance)
+
+
+@wp.func
+def packet_surface(g: Any, shading: Any, rays: PacketRays, first: int, k: int, last: int):
+    """`closest_surface` of ray k of rays [first, last) of `rays`, its lift left to
+    packet_occlusion_origin; at k == first the closest hits of them all are traced
+    (packet_closest), into `rays`."""
     if k == first:
-        trace_scene_packet(g, rays.origins, rays.directions, rays.tmin, rays.tmax, first, last,
-                           rays.scene, rays.t, rays.triangle, rays.u, rays.v, rays.instance)
+        packet_closest(g, rays, first, last)
     return packet_hit_surface(g, shading, rays, k, False)
+
+
+@wp.func
+def closest_t(g: MeshTracer, o: wp.vec3, d: wp.vec3, tmin: float, tmax: float) -> float:
+    """The distance of the closest hit in [tmin, tmax] (inf on a miss)."""
+    h = closest_hit(g.bvh, o, d, tmin, tmax)
+    t = float(wp.inf)
+    if h.triangle >= 0:
+        t = h.t
+    return t
+
+
+@wp.func  # a Warp overload of the one above (by the first argument's type)
+def closest_t(g: SceneArrays, o: wp.vec3, d: wp.vec3, tmin: float,  # noqa: F811
+              tmax: float) -> float:
+    ih = traverse_scene(g, o, d, tmin, tmax, False)
+    t = float(wp.inf)
+    if ih.instance >= 0:
+        t = ih.hit.t
+    return t
 
 
 @wp.func

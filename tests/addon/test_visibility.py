@@ -124,6 +124,27 @@ def test_visibility_and_holdout_match_cycles_region_by_region(scene, tmp_path) -
             assert wrong > RATIO * cycles_rmse, (name, wrong, cycles_rmse)
 
 
+def test_a_holdout_through_the_pixel_filter_has_soft_edges(scene, tmp_path) -> None:
+    """With Cycles' default filter (Blackman-Harris 1.5 px) F12 renders the holdout through
+    it, not through the pixel centres: in the holdout's third, pixels inside it are alpha 0
+    and AO 0, its silhouette's pixels partly transparent, and AO never above alpha (Cycles'
+    AO pass is premultiplied). With one ray a pixel centre the edge would be 0 or 1."""
+    cycles = scene.cycles
+    kept = cycles.pixel_filter_type, cycles.filter_width
+    set_cases(True)
+    try:
+        cycles.pixel_filter_type, cycles.filter_width = "BLACKMAN_HARRIS", 1.5
+        ours = f12(scene, tmp_path / "filtered")
+    finally:
+        cycles.pixel_filter_type, cycles.filter_width = kept
+        set_cases(False)
+    held = thirds(np.ones(ours.shape[:2], bool))["Held"]
+    alpha, ao = ours[..., 3][held], ours[..., 0][held]
+    assert (alpha == 0.0).sum() > 30 and (ao[alpha == 0.0] == 0.0).all()
+    assert ((alpha > 0.05) & (alpha < 0.95)).sum() > 10
+    assert (ao <= alpha + 1e-6).all()
+
+
 def test_f12_of_instances_is_the_flattened_render(scene, tmp_path, monkeypatch) -> None:
     """Linked duplicates and a collection instance go as an instance list: the image
     equals the flattened scene's render but for float rounding (hit points a few ulps

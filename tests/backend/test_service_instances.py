@@ -182,9 +182,9 @@ def test_decode_instances_keeps_the_values() -> None:
     assert listing.transforms.dtype == np.float32 and listing.mesh_index.dtype == np.int32
 
 
-def _job(api, scene_id: str, camera: dict) -> dict:  # noqa: ANN001
+def _job(api, scene_id: str, camera: dict, **fields) -> dict:  # noqa: ANN001, ANN003
     job = api.client.post("/v1/jobs", json={"scene_id": scene_id, "camera": camera, "spp": 4,
-                                            "seed": 2, "distance": 0.5})
+                                            "seed": 2, "distance": 0.5, **fields})
     assert job.status_code == 202, job.text
     status = job_ended(api.client, job.json()["job_id"])
     assert status["state"] == "done", status
@@ -368,6 +368,45 @@ def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
     assert not np.frombuffer(coverage.content, "<f4")[held > 0].any()
     depth = api.client.get(f"/v1/jobs/{first['job_id']}/result", params={"format": "depth"})
     assert (np.frombuffer(depth.content, "<f4")[held > 0] < 1e9).all()  # the holdout's
+
+
+def test_a_filtered_job_holds_out_sample_by_sample(api, meshes) -> None:  # noqa: ANN001
+    """Through Cycles' pixel filter a holdout is a fraction of each pixel's samples: the
+    job's AO, coverage and holdout layer are kernels.render_film's with the camera's, the
+    occluders' and the holdout's instances, bit for bit, and its film is the filter's."""
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
+
+    ids = [meshes["floor"], meshes["cube"]]
+    placed = transforms((0, 0, 0), (0.3, 0.0, 0.3), (-0.3, 0.0, 0.3), scale=0.5)
+    placed[0, :, :3] = np.eye(3)
+    masks = np.array([wire.CAMERA | wire.SHADOW, wire.SHADOW, wire.CAMERA | wire.HOLDOUT
+                      | wire.SHADOW], np.uint8)
+    scene_id = post_masked(api, ids, [0, 1, 1], placed, masks).json()["scene_id"]
+    camera = Camera.look_at((0.0, 2.0, 2.0), (0, 0, 0), (0, 1, 0), 50.0, 24, 18).to_dict()
+    film = {"pixel_filter": "BLACKMAN_HARRIS", "filter_width": 1.5}
+    job = _job(api, scene_id, camera, **film)
+    assert "pixel centres" not in job["film"], job["film"]
+
+    def layer(name: str) -> np.ndarray:
+        got = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
+        return np.frombuffer(got.content, "<f4")
+
+    (fv, fi), (cv, ci) = floor_and_box(), cube()
+    bvhs = [kernels.build_bvh(fv, fi), kernels.build_bvh(cv, ci)]
+
+    def scene(*keep: int):
+        return kernels.build_scene(bvhs, [0, 1, 1], placed, visible=np.isin(range(3), keep))
+
+    direct = kernels.render_film(scene(0), Camera.from_dict(camera), spp=4, seed=2,
+                                 distance=0.5, occluders=scene(0, 1, 2), holdout=scene(2),
+                                 **film)
+    np.testing.assert_array_equal(job["ao"], direct.ao.ravel())
+    np.testing.assert_array_equal(layer("coverage"), direct.alpha.ravel())
+    held = layer("holdout")
+    np.testing.assert_array_equal(held, direct.holdout.ravel())
+    assert ((held > 0) & (held < 1)).any() and (held == 1).any()  # edges and whole pixels
 
 
 def test_extra_passes_are_kept_when_asked_for(api, meshes) -> None:  # noqa: ANN001

@@ -534,3 +534,48 @@ def test_occluders_occlude_unseen():
     assert np.all(alone.ao == 1.0) and np.all(lidded.ao == 0.0)
     with pytest.raises(ValueError, match="occluders"):
         render_film(floor, ortho_camera(w, h), occluders=both, **film)
+
+
+def _lifted(bvh: kernels.Bvh, z: float) -> kernels.Scene:
+    """`bvh` as a two-level scene's one instance, moved up by z."""
+    m = np.eye(4, dtype=np.float32)[None, :3].copy()
+    m[0, 2, 3] = z
+    return kernels.build_scene([bvh], np.array([0]), m)
+
+
+@pytest.mark.parametrize("kind", ["ORTHO", "PERSP"])
+def test_a_holdout_hides_what_is_behind_it_sample_by_sample(kind):
+    """Holdout (Cycles: alpha 0 and AO 0 where it covers): a card over the floor's left
+    half, only in `holdout`. Each sample meets the floor or, first, the card, so coverage
+    and the held fraction add up to 1 in every pixel; the held samples count as misses (AO
+    1: the AO pass subtracts them as it does the sky); pixels under the card are held
+    whole, and pixels beyond the filter's reach of its edge are the render without a
+    holdout, bit for bit. The PERSP camera's rays are made natively (film_rays.h), the
+    ORTHO camera's by the Warp code."""
+    w, h = 16, 4
+    floor = _lifted(half_plane(100.0), 0.0)
+    card = _lifted(half_plane(0.0), 1.0)  # x < 0: the left half of the image
+    cam = ortho_camera(w, h)
+    if kind == "PERSP":  # from z = 5, 11.5 units wide at the card, its edge in the centre
+        cam = Camera(matrix_world=cam.matrix_world, width=w, height=h, type="PERSP",
+                     lens=12.5, sensor_width=36.0, sensor_fit="HORIZONTAL")
+    film = {"spp": 64, "distance": 0.5, "filter_width": 1.5}
+    plain = render_film(floor, cam, **film)
+    held = render_film(floor, cam, holdout=card, **film)
+    assert plain.holdout is None and held.holdout is not None
+    np.testing.assert_allclose(held.alpha + held.holdout, 1.0, atol=1e-6)
+    assert np.all(held.ao[held.holdout == 1.0] == 1.0)
+    left, right = held.holdout[:, :6], held.holdout[:, 10:]
+    assert np.all(left == 1.0) and np.all(held.alpha[:, :6] == 0.0)
+    assert np.all(right == 0.0)
+    assert np.array_equal(held.ao[:, 10:], plain.ao[:, 10:])
+    assert np.array_equal(held.alpha[:, 10:], plain.alpha[:, 10:])
+    edge = held.holdout[:, 7:9]
+    assert np.all((edge > 0.0) & (edge < 1.0))  # the filter blends the card's edge
+    centres = render_film(floor, cam, holdout=card, **{**film, "filter_width": 0.0})
+    assert np.array_equal(centres.holdout, (centres.holdout > 0).astype(np.float32))
+    assert np.all(centres.holdout[:, :8] == 1.0) and np.all(centres.holdout[:, 8:] == 0.0)
+    with pytest.raises(ValueError, match="holdout"):
+        render_film(floor, cam, holdout=half_plane(0.0), **film)
+    with pytest.raises(ValueError, match="holdout .*two-level"):
+        render_film(half_plane(100.0), cam, holdout=half_plane(0.0), **film)
