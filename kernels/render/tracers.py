@@ -209,18 +209,8 @@ def packet_surface(g: Any, shading: Any, rays: PacketRays, first: int, k: int, l
 
 
 @wp.func
-def closest_t(g: MeshTracer, o: wp.vec3, d: wp.vec3, tmin: float, tmax: float) -> float:
-    """The distance of the closest hit in [tmin, tmax] (inf on a miss)."""
-    h = closest_hit(g.bvh, o, d, tmin, tmax)
-    t = float(wp.inf)
-    if h.triangle >= 0:
-        t = h.t
-    return t
-
-
-@wp.func  # a Warp overload of the one above (by the first argument's type)
-def closest_t(g: SceneArrays, o: wp.vec3, d: wp.vec3, tmin: float,  # noqa: F811
-              tmax: float) -> float:
+def closest_t(g: SceneArrays, o: wp.vec3, d: wp.vec3, tmin: float, tmax: float) -> float:
+    """The distance of a two-level scene's closest hit in [tmin, tmax] (inf on a miss)."""
     ih = traverse_scene(g, o, d, tmin, tmax, False)
     t = float(wp.inf)
     if ih.instance >= 0:

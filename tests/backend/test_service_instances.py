@@ -4,6 +4,9 @@ naming the field at fault, behind the same token, Content-Type and body checks."
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import Any
+
 import httpx
 import numpy as np
 import pytest
@@ -329,10 +332,10 @@ def test_visibility_masks_are_counted_and_checked(api, meshes) -> None:  # noqa:
     assert short.status_code == 400 and "223 bytes" in short.json()["detail"]  # 32*2 + 53*3
 
 
-def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
-    """A job over a list with masks renders as kernels.render_ao with the camera's, the
-    occluders' and the holdout's instances (bit for bit), reports the holdout pixels and
-    their depth, and a second job builds nothing."""
+def _masked_scene(api, meshes) -> tuple[str, dict, Callable[..., Any]]:  # noqa: ANN001
+    """A floor seen and occluding, a cube that only occludes and one that is a holdout, as
+    a list with masks: its id, a camera on them, and scene(*keep) the engine's Scene of the
+    instances `keep` over the same meshes."""
     from scenesort.kernels import Camera
 
     from scenesort import kernels
@@ -344,16 +347,28 @@ def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
                       | wire.SHADOW], np.uint8)
     scene_id = post_masked(api, ids, [0, 1, 1], placed, masks).json()["scene_id"]
     camera = Camera.look_at((0.0, 2.0, 2.0), (0, 0, 0), (0, 1, 0), 50.0, 24, 18).to_dict()
+    (fv, fi), (cv, ci) = floor_and_box(), cube()
+    bvhs = [kernels.build_bvh(fv, fi), kernels.build_bvh(cv, ci)]
+
+    def scene(*keep: int) -> Any:
+        return kernels.build_scene(bvhs, [0, 1, 1], placed, visible=np.isin(range(3), keep))
+
+    return scene_id, camera, scene
+
+
+def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
+    """A job over a list with masks renders as kernels.render_ao with the camera's, the
+    occluders' and the holdout's instances (bit for bit), reports the holdout pixels and
+    their depth, and a second job builds nothing."""
+    from scenesort.kernels import Camera
+
+    from scenesort import kernels
+
+    scene_id, camera, scene = _masked_scene(api, meshes)
     first = _job(api, scene_id, camera)
     again = _job(api, scene_id, camera)
     assert first["build"]["top_level"] == "built" and again["build"]["top_level"] == "reused"
     np.testing.assert_array_equal(first["ao"], again["ao"])
-
-    (fv, fi), (cv, ci) = floor_and_box(), cube()
-    bvhs = [kernels.build_bvh(fv, fi), kernels.build_bvh(cv, ci)]
-
-    def scene(*keep: int):
-        return kernels.build_scene(bvhs, [0, 1, 1], placed, visible=np.isin(range(3), keep))
 
     o, d, tmin, tmax = Camera.from_dict(camera).rays()
     direct = kernels.render_ao(scene(0), o, d, spp=4, seed=2, distance=0.5, tmin=tmin,
@@ -378,13 +393,7 @@ def test_a_filtered_job_holds_out_sample_by_sample(api, meshes) -> None:  # noqa
 
     from scenesort import kernels
 
-    ids = [meshes["floor"], meshes["cube"]]
-    placed = transforms((0, 0, 0), (0.3, 0.0, 0.3), (-0.3, 0.0, 0.3), scale=0.5)
-    placed[0, :, :3] = np.eye(3)
-    masks = np.array([wire.CAMERA | wire.SHADOW, wire.SHADOW, wire.CAMERA | wire.HOLDOUT
-                      | wire.SHADOW], np.uint8)
-    scene_id = post_masked(api, ids, [0, 1, 1], placed, masks).json()["scene_id"]
-    camera = Camera.look_at((0.0, 2.0, 2.0), (0, 0, 0), (0, 1, 0), 50.0, 24, 18).to_dict()
+    scene_id, camera, scene = _masked_scene(api, meshes)
     film = {"pixel_filter": "BLACKMAN_HARRIS", "filter_width": 1.5}
     job = _job(api, scene_id, camera, **film)
     assert "pixel centres" not in job["film"], job["film"]
@@ -392,12 +401,6 @@ def test_a_filtered_job_holds_out_sample_by_sample(api, meshes) -> None:  # noqa
     def layer(name: str) -> np.ndarray:
         got = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
         return np.frombuffer(got.content, "<f4")
-
-    (fv, fi), (cv, ci) = floor_and_box(), cube()
-    bvhs = [kernels.build_bvh(fv, fi), kernels.build_bvh(cv, ci)]
-
-    def scene(*keep: int):
-        return kernels.build_scene(bvhs, [0, 1, 1], placed, visible=np.isin(range(3), keep))
 
     direct = kernels.render_film(scene(0), Camera.from_dict(camera), spp=4, seed=2,
                                  distance=0.5, occluders=scene(0, 1, 2), holdout=scene(2),
