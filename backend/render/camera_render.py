@@ -61,10 +61,8 @@ def render_camera(
     if not job.build.cached:  # of "bvh", the part that was Warp compiling (as "ao.compile")
         job.add_timing("bvh.compile", float(views.camera.stats.compile_ms))
     shape = (camera.height, camera.width)
-    centres_only = _centres_only(passes)
-    filtered = options.filtered and centres_only is None
-    job.film = options.film if filtered or not options.filtered else (
-        f"pixel centres: {centres_only} renders one camera ray per pixel centre")
+    filtered = options.filtered
+    job.film = options.film
     if camera.aperture_size > 0.0 and not filtered:
         job.film += " (no depth of field: it needs the pixel filter's own camera rays)"
     if filtered:
@@ -72,7 +70,7 @@ def render_camera(
         job.ao, job.coverage = film.ao, film.alpha
         job.spp_mean, job.spp_max = film.spp_mean, film.spp_max  # over covered pixels
         job.rmse_estimate, job.rays, job.denoised = film.rmse_estimate, film.rays, False
-        normals, held = None, film.holdout  # (no normal pass: _centres_only)
+        normals, held = film.normals, film.holdout
     else:
         origins, directions, tmin, tmax = job.timed("camera", camera.rays)
         result = job.timed(
@@ -141,12 +139,6 @@ def _reach(options: AoOptions) -> float:
     from scenesort.kernels.render.film import filter_reach
 
     return filter_reach(options.pixel_filter, options.filter_width) if options.filtered else 0.0
-
-
-def _centres_only(passes: Sequence[str]) -> str | None:
-    """What makes a job render pixel centres whatever its filter (None: nothing): the
-    filtered film has no per-pixel normal yet."""
-    return "the normal pass" if "normal" in passes else None
 
 
 def _render_film(job: Job, views: Views, scene: Any, camera: Any, options: AoOptions) -> Any:

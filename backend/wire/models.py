@@ -276,8 +276,7 @@ class JobRequest(AoSettings):
 FILM_DOC = (
     "what the image's pixels are: 'BLACKMAN_HARRIS 1.5 px' (the pixel filter and width it "
     "was rendered through), 'pixel centres' (filter_width 0), or 'pixel centres: ...' "
-    "saying why a requested filter was not used (it needs engine bvh, no denoising, no "
-    "holdout and no normal pass)"
+    "saying why a requested filter was not used (it needs engine bvh and no denoising)"
 )
 
 

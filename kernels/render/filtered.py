@@ -335,6 +335,7 @@ def film_kernel(
     out_open_quarter: wp.array(dtype=int),
     out_hit: wp.array(dtype=int),  # per slot: samples whose camera ray hit
     out_held: wp.array(dtype=int),  # per slot: samples whose camera ray met the holdout
+    out_normal: wp.array(dtype=wp.vec3),  # per slot: the sum of its hits' shading normals
 ):
     # One pixel's samples per thread: each slot is written by one thread of one launch.
     j = slot0 + wp.tid()
@@ -345,6 +346,7 @@ def film_kernel(
     opened = wp.vec3i(0, 0, 0)  # open samples: all, below mid, below quarter
     n_hit = int(0)
     n_held = int(0)
+    normal = wp.vec3(0.0)  # Cycles' Normal pass: the hits' normals over all samples
     # The occlusion rays of a packet's hits go as one group at the packet's end (rays from
     # around one point: bvh/wide_occlusion.h).
     m = int(0)
@@ -354,6 +356,7 @@ def film_kernel(
                                       first, s, count, row, col, rays, held_rays, packet0)
         if hit:
             n_hit += 1
+            normal += surface.n
             w = sample_direction(surface.n, sampler, key, i, rays, packet0 + s % PACKET)
             o = sample_origin(tracer, shading, rays, packet0, s, surface, w)
             if simd_lanes() > 0:
@@ -376,6 +379,7 @@ def film_kernel(
     out_open_quarter[j] = opened[2]
     out_hit[j] = n_hit
     out_held[j] = n_held
+    out_normal[j] = normal
 
 
 # a holdout comes with a two-level scene (a mesh's is rendered as one: render_film)
@@ -397,6 +401,10 @@ class FilmResult:
     # the estimated RMSE of `ao` over the covered pixels (alpha > 0) against the converged
     # image, as render_ao's (adaptive.py); None when nothing is covered
     rmse_estimate: float | None
+    # (H, W, 3) float32: Cycles' Normal pass, the sum of the samples' unit shading normals
+    # (0 for a miss or a held sample) over the samples: a pixel centre's normal with
+    # filter_width=0; through a filter an edge pixel's is shorter, as its alpha is less than 1
+    normals: np.ndarray
     # filter_width=0: render_ao's result over the pixel centres (its statistics, normals,
     # denoised image); None for a filtered render
     centres: AoResult | None = None
@@ -483,6 +491,7 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
                           spp_used=r.spp_used.reshape(shape),
                           rays=r.rays.primary + r.rays.occlusion,
                           rmse_estimate=r.rmse_estimate, centres=r,
+                          normals=r.normals.reshape(*shape, 3),
                           holdout=None if r.holdout is None
                           else r.holdout.astype(np.float32).reshape(shape))
     if opts.film_fallback is not None:
@@ -507,6 +516,7 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
     # fixed spp, all the work).
     first_open, first_mid, first_quarter, hits, held = (np.zeros(n, np.int64)
                                                          for _ in range(5))
+    normal_sum = np.zeros((n, 3))
     mid, quarter = nested_marks(0, m)
     share = 0.5 if opts.adaptive else 1.0  # of the progress bar
     bounds = round_bounds(n, m)
@@ -514,7 +524,7 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
         report(share * float(a) / n, "film")
         pixels = order[a:b]
         (first_open[pixels], first_mid[pixels], first_quarter[pixels], hits[pixels],
-         held[pixels]) = trace(pixels, 0, m, mid, quarter)
+         held[pixels], normal_sum[pixels]) = trace(pixels, 0, m, mid, quarter)
     covered = np.flatnonzero(hits)
 
     def trace_round(select: np.ndarray, first: int, count: int, mid: int,
@@ -522,10 +532,11 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
         pixels = covered[select]
         if first == 0:  # traced above
             return first_open[pixels], first_mid[pixels], first_quarter[pixels]
-        opened, opened_mid, opened_quarter, hit, held_here = trace(pixels, first, count, mid,
-                                                                   quarter)
+        opened, opened_mid, opened_quarter, hit, held_here, normal_here = trace(
+            pixels, first, count, mid, quarter)
         hits[pixels] += hit
         held[pixels] += held_here
+        normal_sum[pixels] += normal_here
         return opened, opened_mid, opened_quarter
 
     counts = SampleCounts(*(np.zeros(len(covered), np.int64) for _ in range(3)),
@@ -547,6 +558,8 @@ def render_film(bvh: Bvh | Scene, camera: Camera, options: AoOptions | None = No
                       spp_used=done.astype(np.int32).reshape(shape),
                       rays=int(done.sum() + hits.sum()),
                       rmse_estimate=math.sqrt(counts.mse()) if len(covered) else None,
+                      normals=(normal_sum / done[:, None]).astype(np.float32).reshape(
+                          *shape, 3),
                       holdout=None if holdout is None
                       else (held / done).astype(np.float32).reshape(shape))
 
@@ -568,8 +581,9 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
     """trace(pixels, first, count, mid, quarter): samples first..first+count-1 of these
     pixels (row-major indices), each through its own filtered camera ray into `bvh` (its
     range ending at `holdout`'s closest hit) and an occlusion ray through `occluders`: per
-    pixel its open samples, those with index below mid and below quarter, its hits and its
-    held samples. The kernels get the pixels in `order` (tile_order's)."""
+    pixel its open samples, those with index below mid and below quarter, its hits, its
+    held samples and the sum of its hits' shading normals ((k, 3)). The kernels get the
+    pixels in `order` (tile_order's)."""
     shading = scene_shading(bvh, normals, offsets)
     arrays = occluders.arrays
     tracer = _tracer(bvh)
@@ -605,7 +619,8 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
         k = len(pixels)
         tiled = np.argsort(tile_rank[pixels], kind="stable")
         active = wp.array(pixels[tiled].astype(np.int32), dtype=int, device=device)
-        outs = [wp.empty(k, dtype=int, device=device) for _ in range(5)]
+        outs = [*(wp.empty(k, dtype=int, device=device) for _ in range(5)),
+                wp.empty(k, dtype=wp.vec3, device=device)]
         # Contiguous runs of pixels in host threads (a CPU launch is serial): more parts
         # than threads, taken in turn, since sky and geometry cost very different amounts.
         parts = max(1, min(nthreads * FILM_PARTS_PER_THREAD if nthreads > 1 else 1,
@@ -619,9 +634,11 @@ def _film_tracer(bvh: Bvh | Scene, camera: Camera, opts: AoOptions, normals: Any
             launch(int(bounds[p + 1] - bounds[p]), {11: int(bounds[p]), 19: p * PACKET})
 
         run_parts(run, parts, nthreads)
-        results = tuple(np.empty(k, np.int64) for _ in outs)
-        for result, out in zip(results, outs, strict=True):
-            result[tiled] = out.numpy()
-        return results
+        results = []
+        for out in outs:  # counts as int64, normal sums as float64: summed over rounds
+            values = out.numpy()
+            results.append(np.empty(values.shape, np.float64 if values.ndim > 1 else np.int64))
+            results[-1][tiled] = values
+        return tuple(results)
 
     return trace

@@ -387,16 +387,17 @@ def test_a_job_honours_visibility_masks(api, meshes) -> None:  # noqa: ANN001
 
 def test_a_filtered_job_holds_out_sample_by_sample(api, meshes) -> None:  # noqa: ANN001
     """Through Cycles' pixel filter a holdout is a fraction of each pixel's samples: the
-    job's AO, coverage and holdout layer are kernels.render_film's with the camera's, the
-    occluders' and the holdout's instances, bit for bit, and its film is the filter's."""
+    job's AO, coverage, holdout and normal layers are kernels.render_film's with the
+    camera's, the occluders' and the holdout's instances, bit for bit, and its film is the
+    filter's (the Normal pass rendered through it too)."""
     from scenesort.kernels import Camera
 
     from scenesort import kernels
 
     scene_id, camera, scene = _masked_scene(api, meshes)
     film = {"pixel_filter": "BLACKMAN_HARRIS", "filter_width": 1.5}
-    job = _job(api, scene_id, camera, **film)
-    assert "pixel centres" not in job["film"], job["film"]
+    job = _job(api, scene_id, camera, passes=["normal"], **film)
+    assert job["film"] == "BLACKMAN_HARRIS 1.5 px", job["film"]
 
     def layer(name: str) -> np.ndarray:
         got = api.client.get(f"/v1/jobs/{job['job_id']}/result", params={"format": name})
@@ -410,6 +411,7 @@ def test_a_filtered_job_holds_out_sample_by_sample(api, meshes) -> None:  # noqa
     held = layer("holdout")
     np.testing.assert_array_equal(held, direct.holdout.ravel())
     assert ((held > 0) & (held < 1)).any() and (held == 1).any()  # edges and whole pixels
+    np.testing.assert_array_equal(layer("normal"), direct.normals.ravel())
 
 
 def test_extra_passes_are_kept_when_asked_for(api, meshes) -> None:  # noqa: ANN001

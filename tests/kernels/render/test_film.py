@@ -191,7 +191,9 @@ def ortho_camera(width: int, height: int) -> Camera:
 def test_edge_alpha_is_the_filtered_coverage(kind, width):
     """A straight silhouette between two pixel centres: each pixel's alpha is the filter's
     mass left of the edge (brute force from the table), within 4 binomial sigmas; the open
-    plane's AO is exactly 1 and pixels beyond the filter's reach are exactly 0 or 1."""
+    plane's AO is exactly 1 and pixels beyond the filter's reach are exactly 0 or 1. The
+    Normal pass is the plane's normal times the alpha (the hits' normals over all samples,
+    as Cycles'), exactly."""
     w, h, spp = 16, 4, 256
     edge = 7.3  # raster x of the edge
     r = render_film(half_plane(edge - w / 2), ortho_camera(w, h), spp=spp,
@@ -204,10 +206,12 @@ def test_edge_alpha_is_the_filtered_coverage(kind, width):
     assert np.array_equal(r.alpha[:, exact], np.broadcast_to(expected[exact], (h, exact.sum())))
     assert exact.sum() >= w - 6  # the widest (Gaussian 1.5: +-2.25 px) reaches 5 pixels
     assert np.all(r.ao == 1.0)
+    assert np.array_equal(r.normals[..., 2], r.alpha) and not r.normals[..., :2].any()
 
 
 def test_width_zero_is_the_pixel_centre_render(shared_scene):
-    """filter_width=0 is render_ao over Camera.rays(), bit for bit, alpha its hit mask."""
+    """filter_width=0 is render_ao over Camera.rays(), bit for bit, alpha its hit mask,
+    the normals its hits' normals."""
     scene = shared_scene("sponza")
     cam = Camera.look_at((-13.0, 2.5, 0.0), (10.0, 4.5, 0.0), (0, 1, 0), 60.0, 24, 16)
     bvh = kernels.build_bvh(scene.vertices, scene.indices)
@@ -216,6 +220,7 @@ def test_width_zero_is_the_pixel_centre_render(shared_scene):
     ref = kernels.render_ao(bvh, o, d, spp=8, tmin=t0, tmax=t1)
     assert np.array_equal(film.ao.ravel(), ref.ao)
     assert np.array_equal(film.alpha.ravel(), (ref.spp_used > 0).astype(np.float32))
+    assert np.array_equal(film.normals.reshape(-1, 3), ref.normals)
 
 
 def test_filtered_render_does_not_depend_on_threads(shared_scene):
@@ -226,6 +231,25 @@ def test_filtered_render_does_not_depend_on_threads(shared_scene):
     a = render_film(bvh, cam, spp=8, threads=1, filter_width=1.5)
     b = render_film(bvh, cam, spp=8, threads=2, filter_width=1.5)
     assert np.array_equal(a.ao, b.ao) and np.array_equal(a.alpha, b.alpha)
+    assert np.array_equal(a.normals, b.normals)
+
+
+def test_filtered_normals_are_over_each_pixels_own_samples(shared_scene):
+    """With an error target (pixels at different sample counts) the Normal pass is each
+    pixel's mean over its own samples: no longer than its alpha (a mean of unit normals
+    over hits, misses 0), the same as with 256 samples everywhere but for sampling noise,
+    and in most pixels the pixel centre's normal."""
+    sc = shared_scene("conference")
+    bvh = kernels.build_bvh(sc.vertices, sc.indices)
+    cam = type(sc.camera).from_dict({**sc.camera.to_dict(), "width": 48, "height": 36})
+    r = render_film(bvh, cam, spp=16, target_error=0.02, max_spp=256, filter_width=1.5)
+    assert r.spp_used.max() > r.spp_used.min()
+    length = np.linalg.norm(r.normals, axis=-1)
+    assert np.all(length <= r.alpha + 1e-5) and length.mean() > 0.8
+    fixed = render_film(bvh, cam, spp=256, filter_width=1.5).normals
+    assert np.abs(r.normals - fixed).max() < 0.1  # 16 spp: 0.0156 seen
+    centre = render_film(bvh, cam, spp=1, filter_width=0).normals
+    assert np.median(np.sum(r.normals * centre, axis=-1)) > 0.99
 
 
 def test_tile_order_is_every_pixel_tile_by_tile():
@@ -312,6 +336,7 @@ def test_camera_packets_render_as_single_rays(name):
     a = render_film(bvh, cam, spp=80, filter_width=1.5)
     b = render_film(scene, cam, spp=80, filter_width=1.5)
     assert np.array_equal(a.alpha, b.alpha) and np.array_equal(a.ao, b.ao)
+    assert np.array_equal(a.normals, b.normals)
     assert a.alpha.mean() > 0.1
 
 
