@@ -6,9 +6,14 @@ the main thread; the task body only does HTTP and numpy, so it is safe in a thre
 
 from __future__ import annotations
 
+import contextlib
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
+
+
+def _start(callback: Callable[[], Any]) -> None:
+    threading.Thread(target=callback, name="scenesort-cancel", daemon=True).start()
 
 
 class Cancelled(Exception):
@@ -21,6 +26,8 @@ class Task:
     def __init__(self, body: Callable[[Task], Any]) -> None:
         self._body = body
         self._cancel = threading.Event()
+        self._on_cancel: list[Callable[[], Any]] = []
+        self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
         self.step = "starting"
         self.steps: list[str] = []  # every step so far, oldest first
@@ -39,7 +46,31 @@ class Task:
             self.fraction = fraction
 
     def cancel(self) -> None:
-        self._cancel.set()
+        """Stop at the next step, and run the callbacks of `cancelling` blocks (each on a
+        thread of its own: the caller, Blender's main thread, never waits on them)."""
+        with self._lock:
+            self._cancel.set()
+            callbacks, self._on_cancel = self._on_cancel, []
+        for callback in callbacks:
+            _start(callback)
+
+    @contextlib.contextmanager
+    def cancelling(self, callback: Callable[[], Any]) -> Iterator[None]:
+        """Within the block, a cancel also runs `callback` (at once if the task already is
+        cancelled): what the body waits on between steps, such as a service job it
+        long-polls, stops then rather than at the body's next look."""
+        with self._lock:
+            cancelled = self._cancel.is_set()
+            if not cancelled:
+                self._on_cancel.append(callback)
+        if cancelled:
+            _start(callback)
+        try:
+            yield
+        finally:
+            with self._lock:
+                if callback in self._on_cancel:
+                    self._on_cancel.remove(callback)
 
     @property
     def cancelled(self) -> bool:

@@ -47,3 +47,31 @@ def test_cancel_stops_at_the_next_step() -> None:
     assert task.steps == ["waiting"]
     with pytest.raises(Cancelled):  # a cancelled task also refuses steps run inline
         task.set_step("x")
+
+
+def test_a_cancel_runs_the_cancelling_blocks_callback_at_once() -> None:
+    """Within `cancelling`, cancel() runs the callback on a thread of its own while the body
+    still waits (a long poll); one registered after the cancel runs at once; after the
+    block a cancel no longer runs it."""
+    called, inside, release = threading.Event(), threading.Event(), threading.Event()
+
+    def body(task: Task) -> None:
+        with task.cancelling(called.set):
+            inside.set()
+            release.wait(10)  # a poll that does not look at the task
+
+    task = Task(body)
+    task.start()
+    assert inside.wait(10)
+    task.cancel()
+    assert called.wait(10) and not task.done  # the body is still in its wait
+    release.set()
+    task._thread.join(10)
+    late = threading.Event()
+    with task.cancelling(late.set):
+        assert late.wait(10)
+    after, idle = Task(lambda t: None), threading.Event()
+    with after.cancelling(idle.set):
+        pass
+    after.cancel()
+    assert not idle.wait(0.2)
