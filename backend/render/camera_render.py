@@ -99,7 +99,7 @@ def render_camera(
                                                                  tmin, tmax))
     hit = np.isfinite(t)
     t64 = np.where(hit, t, 0.0).astype(np.float64)[:, None]
-    z = t64[:, 0] * (directions.astype(np.float64) @ camera.forward)
+    z = t64[:, 0] * (directions.astype(np.float64) * camera.forward).sum(axis=1)  # no BLAS
     if depth:
         job.depth = np.where(hit, z, BACKGROUND_DEPTH).astype(np.float32).reshape(shape)
     extras = {  # made only when asked for (JobRequest.passes)

@@ -90,6 +90,13 @@ def _matrix(value: Any) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(x) for x in row) for row in m)
 
 
+def rotated(points: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """points @ r.T for (N, 3) points, without BLAS: after a BLAS product this large
+    OpenBLAS's threads spin on, taking a core from what runs next (a job's Z-pass trace of
+    76,800 rays right after Camera.rays took 26 ms against 13 ms)."""
+    return points[:, :1] * r[:, 0] + points[:, 1:2] * r[:, 1] + points[:, 2:3] * r[:, 2]
+
+
 @dataclass(frozen=True)
 class Camera:
     """A Blender camera: placement, final resolution and lens; see the module docstring.
@@ -235,7 +242,7 @@ class Camera:
         m = np.array(self.matrix_world)
         t = m[:3, 3]
         if self.type == "PERSP":
-            world = pts @ self._r.T
+            world = rotated(pts, self._r)
             length = np.linalg.norm(world, axis=1)
             directions = world / length[:, None]
             origins = np.broadcast_to(t, directions.shape)
@@ -243,7 +250,7 @@ class Camera:
             tmin = self.clip_start * length
             tmax = self.clip_end * length
         else:
-            origins = t + pts @ self._r.T
+            origins = t + rotated(pts, self._r)
             d = -self._r[:, 2]
             directions = np.broadcast_to(d / np.linalg.norm(d), origins.shape)
             tmin = np.full(origins.shape[0], self.clip_start)
