@@ -224,7 +224,7 @@ def prepare(
 
 # A poll waits on the service for the job's end (a long poll: a short job, as a viewport
 # round, is seen as it ends) but no longer than this, so that progress shows this often.
-# Esc does not wait for it: the task's cancel sends the job's cancel at once (Task.on_cancel).
+# Esc does not wait for it: the task's cancel sends the job's at once (Task.cancelling).
 # Each poll is a request the service's Python answers beside the job: polls every 30 ms
 # slowed a 0.77 s film job by ~2.5% (notes, session 58).
 JOB_POLL_S = 0.25
